@@ -1,0 +1,1 @@
+"""Hand-eye calibration of the stationary laser profilers against the robot base."""

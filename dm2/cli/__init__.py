@@ -1,0 +1,1 @@
+"""The ``dm2`` command line (typer + rich). Only the CLI wires dm2, calib and twin together."""

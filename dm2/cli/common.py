@@ -1,0 +1,76 @@
+"""Shared CLI plumbing: the typer app, the console and error handling with exit codes."""
+
+from __future__ import annotations
+
+import logging
+from contextlib import contextmanager
+
+import typer
+from rich.console import Console
+from rich.logging import RichHandler
+
+from dm2 import __version__
+
+EXAMPLES = """Examples:
+
+  dm2 run                                   # default scenario: simulate, monitor, report
+  dm2 toolpath pad --out tp.csv --plot tp.png --rapid tp.mod
+  dm2 simulate seven_sided_corner_overbuild --out run.mcap
+  dm2 monitor run.mcap --out runs/replay
+  dm2 calibrate --rehearse --poses 24 --noise-mm 0.03
+"""
+
+app = typer.Typer(
+    name="dm2",
+    help="3D-DM2: in-process 3D deviation mapping and defect monitoring for robotic cold "
+    "spray additive manufacturing, with a digital twin.\n\n" + EXAMPLES,
+    no_args_is_help=True,
+    add_completion=False,
+    rich_markup_mode="markdown",
+)
+console = Console(stderr=False)
+err_console = Console(stderr=True)
+
+EXIT_BAD_INPUT = 2
+
+
+def setup_logging(verbose: bool) -> None:
+    logging.basicConfig(
+        level=logging.DEBUG if verbose else logging.INFO,
+        format="%(message)s",
+        handlers=[RichHandler(console=err_console, show_path=False)],
+        force=True,
+    )
+
+
+def fail(message: str, code: int = EXIT_BAD_INPUT) -> None:
+    """Print a clear error and exit with ``code`` (2 = bad input)."""
+    err_console.print(f"[bold red]error:[/] {message}", highlight=False)
+    raise typer.Exit(code)
+
+
+@contextmanager
+def bad_input_exits():
+    """Turn the project's input errors into a clear message and exit code 2."""
+    from dm2.config import ConfigError
+    from dm2.messages import MessageError
+
+    try:
+        yield
+    except (ConfigError, MessageError, FileNotFoundError, ValueError) as exc:
+        fail(str(exc))
+
+
+def version_callback(value: bool) -> None:
+    if value:
+        console.print(f"dm2 {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def main_callback(
+    version: bool = typer.Option(False, "--version", callback=version_callback, is_eager=True,
+                                 help="Show the version and exit."),
+    verbose: bool = typer.Option(False, "--verbose", "-v", help="Debug logging."),
+) -> None:
+    setup_logging(verbose)
