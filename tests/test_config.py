@@ -1,0 +1,57 @@
+"""Scenario loading: typed, versioned, unknown keys rejected with file and field named."""
+
+import pytest
+
+from dm2.config import ConfigError, dump_toml, load_scenario, parse_scenario
+from scenarios import list_scenarios, resolve_scenario
+
+
+def write(tmp_path, text):
+    p = tmp_path / "s.toml"
+    p.write_text(text)
+    return p
+
+
+def test_minimal_scenario_gets_documented_defaults(tmp_path):
+    s = load_scenario(write(tmp_path, 'name = "x"\n[part]\ngenerator = "pad"\n'))
+    assert s.toolpath.layer_mm == 0.8 and s.toolpath.line_spacing_mm == 2.0
+    assert s.toolpath.speed_mm_s.overhang == 12.0 and s.process.nozzle_exit_mm == 6.55
+    assert s.sensors.points == 640 and s.sensors.cascade_s == 0.02
+
+
+@pytest.mark.parametrize("text, field", [
+    ('name = "x"\n[part]\ngenerator = "pad"\n[toolpath]\nlayer_mm = 0.0\n', "toolpath.layer_mm"),
+    ('name = "x"\n[part]\ngenerator = "pad"\n[toolpath]\nlayer_mm = -1\n', "toolpath.layer_mm"),
+    ('name = "x"\nbogus = 1\n[part]\ngenerator = "pad"\n', "bogus"),
+    ('name = "x"\n[part]\ngenerator = "pad"\n[process]\nfeed_g_min = "lots"\n',
+     "process.feed_g_min"),
+    ('name = "x"\n[part]\ngenerator = "pad"\n[cell]\nwheels = 4\n', "cell.wheels"),
+    ('schema = 9\nname = "x"\n[part]\ngenerator = "pad"\n', "schema"),
+])
+def test_bad_scenarios_name_file_and_field(tmp_path, text, field):
+    p = write(tmp_path, text)
+    with pytest.raises(ConfigError) as err:
+        load_scenario(p)
+    assert str(p) in str(err.value) and f"'{field}'" in str(err.value)
+
+
+def test_unreadable_and_invalid_toml(tmp_path):
+    with pytest.raises(ConfigError, match="cannot read"):
+        load_scenario(tmp_path / "missing.toml")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_scenario(write(tmp_path, "name = \n"))
+
+
+def test_resolved_config_round_trips_through_toml(tmp_path):
+    s = parse_scenario({"name": "x", "part": {"generator": "pad"},
+                        "faults": [{"kind": "bump", "layers": [3, 3], "height_mm": 1.0}]})
+    again = load_scenario(write(tmp_path, dump_toml(s.to_toml_dict())))
+    assert again == s
+
+
+def test_every_shipped_scenario_loads():
+    names = list_scenarios()
+    for name in names:
+        load_scenario(resolve_scenario(name))
+    with pytest.raises(FileNotFoundError, match="neither a file nor a shipped scenario"):
+        resolve_scenario("no_such_scenario")
