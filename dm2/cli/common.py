@@ -13,11 +13,13 @@ from dm2 import __version__
 
 EXAMPLES = """Examples:
 
-  dm2 run                                   # default scenario: simulate, monitor, report
+```
+  dm2 run                 # default scenario: simulate, monitor, report
   dm2 toolpath pad --out tp.csv --plot tp.png --rapid tp.mod
   dm2 simulate seven_sided_corner_overbuild --out run.mcap
   dm2 monitor run.mcap --out runs/replay
   dm2 calibrate --rehearse --poses 24 --noise-mm 0.03
+```
 """
 
 app = typer.Typer(
