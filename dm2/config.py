@@ -107,7 +107,17 @@ class NoiseConfig(_Model):
     speckle_sigma_mm: float = Field(0.0, ge=0)
     dropout_prob: float = Field(0.0, ge=0, le=1)
     outlier_prob: float = Field(0.0, ge=0, le=1)
+    speckle_length_points: float = Field(4.0, gt=0)  # speckle correlation length along the line
+    outlier_offset_mm: tuple[float, float] = (0.5, 5.0)  # ghost lies this far beyond, along ray
+    min_intensity: float = Field(0.02, ge=0, lt=1)  # weaker returns (grazing incidence) dropped
     robot_repeatability_mm: float = Field(0.0, ge=0)
+
+    @model_validator(mode="after")
+    def _outlier_offsets(self):
+        lo, hi = self.outlier_offset_mm
+        if not 0 <= lo <= hi:
+            raise ValueError("outlier_offset_mm must be [min, max] with 0 <= min <= max")
+        return self
 
 
 class FaultConfig(_Model):
