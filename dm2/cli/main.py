@@ -4,6 +4,7 @@ from dm2.cli.common import app
 
 # Each command module registers itself on ``app`` when imported (one line per module).
 COMMAND_MODULES = [
+    "cmd_simulate",
 ]
 
 for _name in COMMAND_MODULES:

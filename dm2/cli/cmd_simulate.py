@@ -1,0 +1,75 @@
+"""``dm2 simulate``: run the digital twin on a scenario and record the stream to MCAP."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from dm2.cli.common import app, bad_input_exits, console, fail
+
+
+@app.command()
+def simulate(
+    scenario: str = typer.Argument(None, help="Scenario name or TOML path (default: the "
+                                   "seven-sided corner over-build)."),
+    out: Path = typer.Option(Path("run.mcap"), "--out", "-o", help="MCAP file to write."),
+    truth: Path = typer.Option(None, "--truth", help="Folder for per-layer ground truth."),
+    duration_s: float = typer.Option(None, "--duration-s", min=0.001,
+                                     help="Stop after this many process seconds."),
+    gui: bool = typer.Option(False, "--gui", help="Show the cell in pybullet's GUI while "
+                             "simulating (needs a display)."),
+) -> None:
+    """Simulate a build (robot, spray, three profilers) and record it as MCAP.
+
+    The recording opens in Foxglove and ROS 2 tools (PointCloud2, JointState, TF) and carries
+    the scenario, toolpath and calibration as attachments, so `dm2 monitor` can replay it.
+    """
+    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from dm2.config import load_scenario
+    from scenarios import resolve_scenario
+
+    with bad_input_exits():
+        path = resolve_scenario(scenario)
+        sc = load_scenario(path)
+        if duration_s is not None:
+            sc = sc.model_copy(update={"duration_s": duration_s})
+        if not out.parent.exists():
+            raise FileNotFoundError(f"--out {out}: folder {out.parent} does not exist")
+    from twin.kinematics import ReachError
+    from twin.simulate import Simulation
+    from twin.simulate import simulate as run_simulation
+
+    with bad_input_exits():
+        try:
+            sim = Simulation(sc)
+        except ReachError as exc:
+            fail(f"{path}: the robot cannot follow the toolpath: {exc}")
+    viewer = _open_gui(sim) if gui else None
+    with Progress(TextColumn("[bold]simulating[/]"), BarColumn(),
+                  TextColumn("{task.completed:.1f}/{task.total:.1f} s"), TimeRemainingColumn(),
+                  console=console, transient=True) as bar:
+        task = bar.add_task("sim", total=sim.end_s)
+
+        def progress(done_s: float, total_s: float) -> None:
+            bar.update(task, completed=done_s, total=total_s)
+
+        result = run_simulation(sc, out, truth, progress, simulation=sim,
+                                on_message=viewer.on_message if viewer is not None else None)
+    c = result.counts
+    console.print(f"wrote {out}: {result.process_s:.1f} s of process, {result.n_layers} layers, "
+                  f"{c.get('Profile', 0)} profiles, {c.get('RobotState', 0)} robot states"
+                  + (f"; truth in {truth}" if truth is not None else ""))
+
+
+def _open_gui(sim):
+    import os
+
+    if not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY"):
+        fail("--gui needs a display (DISPLAY is not set); run without --gui")
+    try:
+        from twin.pybullet_cell import PybulletCell
+    except ImportError as exc:
+        fail(f"--gui: the pybullet cell view is unavailable: {exc}")
+    return PybulletCell(sim.cell, gui=True)
