@@ -1,0 +1,116 @@
+"""The reference surface as a height map over the plate, with its SDF and mesh views."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class ReferenceMap:
+    """Near-net reference surface ``z_O = h(x, y)`` on a regular grid in ``O``.
+
+    Attributes
+    ----------
+    heights_mm : (ny, nx) float64 [mm], reference top surface at cell centres
+        ``((i + 0.5) * cell_mm, (j + 0.5) * cell_mm)`` for row ``j``, column ``i`` (0 = plate)
+    cell_mm : float [mm], grid spacing
+    layer : int, the layer this reference belongs to
+    stamp_s : float [s], process time of the last robot state integrated
+    """
+
+    heights_mm: np.ndarray
+    cell_mm: float
+    layer: int = 0
+    stamp_s: float = 0.0
+
+    def __post_init__(self):
+        h = np.ascontiguousarray(self.heights_mm, dtype=np.float64)
+        if h.ndim != 2 or min(h.shape) < 2:
+            raise ValueError(f"ReferenceMap.heights_mm: expected (ny, nx) >= 2, got {h.shape}")
+        if not np.all(np.isfinite(h)):
+            raise ValueError("ReferenceMap.heights_mm: contains NaN or infinite values")
+        if not self.cell_mm > 0:
+            raise ValueError(f"ReferenceMap.cell_mm: must be positive, got {self.cell_mm}")
+        h.setflags(write=False)
+        object.__setattr__(self, "heights_mm", h)
+        object.__setattr__(self, "cell_mm", float(self.cell_mm))
+
+    @property
+    def size_mm(self) -> tuple[float, float]:
+        ny, nx = self.heights_mm.shape
+        return nx * self.cell_mm, ny * self.cell_mm
+
+    def _frac(self, xy_O: np.ndarray):
+        ny, nx = self.heights_mm.shape
+        fx = np.clip(xy_O[:, 0] / self.cell_mm - 0.5, 0.0, nx - 1.0)
+        fy = np.clip(xy_O[:, 1] / self.cell_mm - 0.5, 0.0, ny - 1.0)
+        i0 = np.minimum(fx.astype(np.int64), nx - 2)
+        j0 = np.minimum(fy.astype(np.int64), ny - 2)
+        return i0, j0, fx - i0, fy - j0
+
+    def height_at(self, xy_O) -> np.ndarray:
+        """Bilinear reference height [mm] at ``xy_O`` (n, 2); clamped at the map's border."""
+        xy = np.asarray(xy_O, dtype=np.float64).reshape(-1, 2)
+        h = self.heights_mm
+        i0, j0, tx, ty = self._frac(xy)
+        return ((1 - tx) * (1 - ty) * h[j0, i0] + tx * (1 - ty) * h[j0, i0 + 1]
+                + (1 - tx) * ty * h[j0 + 1, i0] + tx * ty * h[j0 + 1, i0 + 1])
+
+    def gradient_at(self, xy_O) -> np.ndarray:
+        """``(dh/dx, dh/dy)`` (n, 2) of the bilinear surface at ``xy_O``."""
+        xy = np.asarray(xy_O, dtype=np.float64).reshape(-1, 2)
+        h = self.heights_mm
+        i0, j0, tx, ty = self._frac(xy)
+        gx = ((1 - ty) * (h[j0, i0 + 1] - h[j0, i0]) + ty * (h[j0 + 1, i0 + 1] - h[j0 + 1, i0]))
+        gy = ((1 - tx) * (h[j0 + 1, i0] - h[j0, i0]) + tx * (h[j0 + 1, i0 + 1] - h[j0, i0 + 1]))
+        return np.stack([gx, gy], axis=1) / self.cell_mm
+
+    def normals_at(self, xy_O) -> np.ndarray:
+        """Unit upward normals (n, 3) of the reference surface at ``xy_O``."""
+        g = self.gradient_at(xy_O)
+        n = np.column_stack([-g[:, 0], -g[:, 1], np.ones(len(g))])
+        return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+    def sdf_at(self, points_O) -> np.ndarray:
+        """First-order signed distance [mm] (n,) of ``points_O`` to the reference surface.
+
+        ``(z - h(x, y)) * n_z``: the height difference projected on the local normal; positive
+        above the surface (outside the material), negative below.
+        """
+        p = np.asarray(points_O, dtype=np.float64).reshape(-1, 3)
+        nz = self.normals_at(p[:, :2])[:, 2]
+        return (p[:, 2] - self.height_at(p[:, :2])) * nz
+
+    def crop_indices(self, lo_xy, hi_xy, margin_mm: float = 0.0):
+        """Row and column index slices covering ``[lo, hi]`` (+ margin) in ``O`` [mm]."""
+        ny, nx = self.heights_mm.shape
+        i0 = int(np.clip(np.floor((lo_xy[0] - margin_mm) / self.cell_mm - 0.5), 0, nx - 2))
+        j0 = int(np.clip(np.floor((lo_xy[1] - margin_mm) / self.cell_mm - 0.5), 0, ny - 2))
+        i1 = int(np.clip(np.ceil((hi_xy[0] + margin_mm) / self.cell_mm - 0.5), i0 + 1, nx - 1))
+        j1 = int(np.clip(np.ceil((hi_xy[1] + margin_mm) / self.cell_mm - 0.5), j0 + 1, ny - 1))
+        return slice(j0, j1 + 1), slice(i0, i1 + 1)
+
+    def mesh_arrays(self, rows: slice | None = None, cols: slice | None = None):
+        """Triangulated grid of cell centres: ``(vertices_O (n, 3), faces (m, 3) int64)``."""
+        rows = rows or slice(0, self.heights_mm.shape[0])
+        cols = cols or slice(0, self.heights_mm.shape[1])
+        h = self.heights_mm[rows, cols]
+        ny, nx = h.shape
+        x = (np.arange(cols.start, cols.start + nx) + 0.5) * self.cell_mm
+        y = (np.arange(rows.start, rows.start + ny) + 0.5) * self.cell_mm
+        xx, yy = np.meshgrid(x, y)
+        verts = np.column_stack([xx.ravel(), yy.ravel(), h.ravel()])
+        idx = np.arange(nx * ny).reshape(ny, nx)
+        a, b = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel()
+        c, d = idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+        faces = np.concatenate([np.column_stack([a, b, d]), np.column_stack([a, d, c])])
+        return verts, faces.astype(np.int64)
+
+    def to_mesh(self):
+        """The reference top surface as a ``trimesh.Trimesh`` in ``O`` (for STL export)."""
+        import trimesh
+
+        verts, faces = self.mesh_arrays()
+        return trimesh.Trimesh(verts, faces, process=False)

@@ -1,0 +1,111 @@
+"""Near-net reference: analytic Gaussian integral, mass balance, spray-angle efficiency."""
+
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from dm2.config import MonitorConfig, ProcessConfig
+from dm2.frames import invert, make_T
+from dm2.messages import Calibration, LayerMark, RobotState
+from dm2.reference import NearNetReference, deposition_efficiency, plume_sigma_mm, volume_rate_mm3_s
+from dm2.refmap import ReferenceMap
+
+SPOT_B = np.array([1300.0, 0.0, 870.0])  # nozzle exit at z 900, pointing down, standoff 30
+T_B_N = make_T(Rotation.from_euler("x", 180, degrees=True), [1300.0, 0.0, 900.0])
+T_F_O = make_T(Rotation.from_euler("z", 30, degrees=True), [-60.0, -60.0, 150.0])
+CAL = Calibration({}, T_F_O, T_B_N)
+
+
+def flange_poses(points_O, axes_O=None):
+    """Flange poses putting each ``points_O`` on the spot with ``axes_O`` along +z_N."""
+    out = []
+    for k, p in enumerate(points_O):
+        a = np.array([0.0, 0.0, -1.0]) if axes_O is None else axes_O[k]
+        R_B_O, _ = Rotation.align_vectors([[0.0, 0.0, -1.0]], [a])  # R_B_O @ a = z_N
+        T_B_O = make_T(R_B_O, SPOT_B - R_B_O.apply(p))
+        out.append(T_B_O @ invert(T_F_O))
+    return np.array(out)
+
+
+def straight_pass(proc, v=30.0, y=60.125, rate_hz=250.0, axis=None):
+    ts = np.arange(0.0, 100.0 / v + 1e-9, 1.0 / rate_hz)
+    pts = np.column_stack([10.0 + v * ts, np.full_like(ts, y), np.zeros_like(ts)])
+    axes = None if axis is None else np.tile(axis, (len(ts), 1))
+    return ts, flange_poses(pts, axes)
+
+
+def test_spot_in_O_recovers_the_toolpath_point():
+    ref = NearNetReference(ProcessConfig(), MonitorConfig(), CAL)
+    p = np.array([[12.0, 80.0, 1.6]])
+    a = np.array([[np.sin(0.6), 0.0, -np.cos(0.6)]])
+    spot, axis = ref.spot_O(flange_poses(p, a))
+    assert np.allclose(spot, p, atol=1e-9) and np.allclose(axis, a, atol=1e-12)
+
+
+@pytest.mark.parametrize("sigma,v,rate", [(None, 30.0, 250.0), (1.5, 12.0, 250.0),
+                                          (3.0, 50.0, 20.0)])
+def test_straight_pass_matches_analytic_gaussian_integral(sigma, v, rate):
+    proc = ProcessConfig(plume_sigma_mm=sigma)
+    ref = NearNetReference(proc, MonitorConfig(), CAL, cell_mm=0.25)
+    ts, T = straight_pass(proc, v=v, rate_hz=rate)
+    ref.add_states(ts, T)
+    s = plume_sigma_mm(proc)
+    peak = volume_rate_mm3_s(proc) * proc.deposition_efficiency / (math.sqrt(2 * math.pi) * s * v)
+    m = ref.snapshot()
+    assert m.height_at([[60.0, 60.125]])[0] == pytest.approx(peak, rel=0.02)
+    # cross profile is the Gaussian of that sigma
+    assert m.height_at([[60.0, 60.125 + s]])[0] == pytest.approx(peak * math.exp(-0.5), rel=0.02)
+    # mass balance: all powder times efficiency landed on the plate
+    expected = volume_rate_mm3_s(proc) * proc.deposition_efficiency * ts[-1]
+    assert ref.deposited_mm3 == pytest.approx(expected, rel=0.005)
+    assert m.heights_mm.sum() * 0.25 ** 2 == pytest.approx(expected, rel=0.005)
+
+
+def test_default_sigma_formula_and_efficiency_falloff():
+    proc = ProcessConfig()
+    r = 6.55 / 2 + 30.0 * math.tan(math.radians(2.5))
+    assert plume_sigma_mm(proc) == pytest.approx(r / 2)
+    z = deposition_efficiency(np.radians([0.0, 35.0, 75.0, 80.0]), proc)
+    c = math.cos(math.radians(75.0))
+    assert z[0] == pytest.approx(0.5)
+    assert z[1] == pytest.approx(0.5 * (math.cos(math.radians(35)) - c) / (1 - c))
+    assert z[2] == pytest.approx(0.0, abs=1e-12) and z[3] == 0.0
+
+
+def test_tilted_edge_spray_deposits_zeta_of_its_angle():
+    proc = ProcessConfig()
+    ref = NearNetReference(proc, MonitorConfig(), CAL)
+    alpha = math.radians(35.0)
+    ts, T = straight_pass(proc, axis=np.array([0.0, math.sin(alpha), -math.cos(alpha)]))
+    ref.add_states(ts, T)
+    zeta = deposition_efficiency(alpha, proc)
+    assert ref.deposited_mm3 == pytest.approx(volume_rate_mm3_s(proc) * zeta * ts[-1], rel=0.01)
+    # the footprint is stretched across the pass by 1 / cos(alpha): lower, wider ridge
+    m = ref.snapshot()
+    ridge = m.heights_mm[:, 240]
+    y = (np.arange(len(ridge)) + 0.5) * 0.25
+    centre = float((ridge * y).sum() / ridge.sum())
+    spread = math.sqrt(float((ridge * (y - centre) ** 2).sum() / ridge.sum()))
+    assert centre == pytest.approx(60.125, abs=0.05)
+    assert spread == pytest.approx(plume_sigma_mm(proc) / math.cos(alpha), rel=0.02)
+
+
+def test_feed_messages_snapshots_layers_and_skips_gaps():
+    proc = ProcessConfig()
+    ref = NearNetReference(proc, MonitorConfig(), CAL)
+    ts, T = straight_pass(proc)
+    half = len(ts) // 2
+    for k in range(half):
+        ref.feed(RobotState(ts[k], k, np.zeros(6), T[k]))
+    done = ref.feed(LayerMark(ts[half], 1))
+    assert isinstance(done, ReferenceMap) and done.layer == 0 and ref.layers[0] is done
+    for k in range(half, len(ts)):
+        ref.feed(RobotState(ts[k] + 5.0, k, np.zeros(6), T[k]))  # a 5 s hole in the stream
+    rate = volume_rate_mm3_s(proc) * proc.deposition_efficiency
+    assert ref.gaps_skipped == 1
+    assert ref.deposited_mm3 == pytest.approx(rate * (ts[-1] - ts[1]), rel=0.01)
+    assert done.heights_mm.sum() < ref.snapshot().heights_mm.sum()
+    with pytest.raises(ValueError, match="backwards"):
+        ref.add_states([0.0], T[:1])
