@@ -1,0 +1,196 @@
+"""Numba kernels for the stochastic Gaussian spray (see :mod:`twin.deposition`).
+
+Randomness comes from a SplitMix64 generator whose 64-bit state lives in a numpy array owned
+by the :class:`twin.deposition.SprayModel`, so two models never share state and a seed fixes
+every packet bit for bit.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from twin.heightfield_kernels import bilinear_height, raise_block_max, ray_one
+
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+_M1 = np.uint64(0xBF58476D1CE4E5B9)
+_M2 = np.uint64(0x94D049BB133111EB)
+
+
+@njit(cache=True)
+def next_u64(state):
+    state[0] += _GOLDEN
+    z = state[0]
+    z = (z ^ (z >> np.uint64(30))) * _M1
+    z = (z ^ (z >> np.uint64(27))) * _M2
+    return z ^ (z >> np.uint64(31))
+
+
+@njit(cache=True)
+def uniform(state):
+    """Uniform float in [0, 1)."""
+    return float(next_u64(state) >> np.uint64(11)) * (1.0 / 9007199254740992.0)
+
+
+@njit(cache=True)
+def poisson(state, lam):
+    """Poisson draw (Knuth below 10, Hoermann's PTRS transformed rejection above)."""
+    if lam <= 0.0:
+        return 0
+    if lam < 10.0:
+        limit = math.exp(-lam)
+        k = 0
+        p = uniform(state)
+        while p > limit:
+            k += 1
+            p *= uniform(state)
+        return k
+    slam = math.sqrt(lam)
+    loglam = math.log(lam)
+    b = 0.931 + 2.53 * slam
+    a = -0.059 + 0.02483 * b
+    invalpha = 1.1239 + 1.1328 / (b - 3.4)
+    vr = 0.9277 - 3.6224 / (b - 2.0)
+    while True:
+        u = uniform(state) - 0.5
+        v = uniform(state)
+        us = 0.5 - abs(u)
+        k = math.floor((2.0 * a / us + b) * u + lam + 0.43)
+        if us >= 0.07 and v <= vr:
+            return int(k)
+        if k < 0 or (us < 0.013 and v > us):
+            continue
+        if (math.log(v) + math.log(invalpha) - math.log(a / (us * us) + b)
+                <= -lam + k * loglam - math.lgamma(k + 1.0)):
+            return int(k)
+
+
+@njit(cache=True)
+def efficiency_curve(theta, theta_c):
+    """Relative deposition efficiency ``cos^2(pi/2 (theta/theta_c)^2)``, 0 beyond ``theta_c``."""
+    if theta >= theta_c:
+        return 0.0
+    x = theta / theta_c
+    c = math.cos(0.5 * math.pi * x * x)
+    return c * c
+
+
+@njit(cache=True)
+def _smoothed_normal(H, cell, x, y, k):
+    """Upward unit normal from central differences over +-k cells around ``(x, y)``."""
+    ny, nx = H.shape
+    i = min(max(int(x / cell), 0), nx - 1)
+    j = min(max(int(y / cell), 0), ny - 1)
+    i0 = max(i - k, 0)
+    i1 = min(i + k, nx - 1)
+    j0 = max(j - k, 0)
+    j1 = min(j + k, ny - 1)
+    gx = (H[j, i1] - H[j, i0]) / ((i1 - i0) * cell) if i1 > i0 else 0.0
+    gy = (H[j1, i] - H[j0, i]) / ((j1 - j0) * cell) if j1 > j0 else 0.0
+    n = math.sqrt(gx * gx + gy * gy + 1.0)
+    return -gx / n, -gy / n, 1.0 / n
+
+
+@njit(cache=True)
+def _splat(H, bmax, zmax, cell, x, y, vol):
+    """Add ``vol`` [mm^3] at ``(x, y)`` onto the four nearest cell centres (bilinear weights)."""
+    ny, nx = H.shape
+    u = x / cell - 0.5
+    v = y / cell - 0.5
+    i0 = int(math.floor(u))
+    j0 = int(math.floor(v))
+    fu = u - i0
+    fv = v - j0
+    dh = vol / (cell * cell)
+    for dj in range(2):
+        wj = fv if dj == 1 else 1.0 - fv
+        j = min(max(j0 + dj, 0), ny - 1)
+        for di in range(2):
+            wi = fu if di == 1 else 1.0 - fu
+            i = min(max(i0 + di, 0), nx - 1)
+            H[j, i] += dh * wi * wj
+            h = H[j, i]
+            raise_block_max(bmax, j, i, h)
+            if h > zmax[0]:
+                zmax[0] = h
+
+
+@njit(cache=True)
+def spray_step(H, bmax, zmax, cell, thickness, state, lam, spot, axis, sigma, back_mm,
+               v_packet, zeta0, theta_c, normal_cells):
+    """Draw ``Poisson(lam)`` packets from the plume at ``spot`` along ``axis`` and deposit them.
+
+    Returns
+    -------
+    (deposited volume [mm^3], packets drawn, packets that missed the plate)
+    """
+    ax = axis[0]
+    ay = axis[1]
+    az = axis[2]
+    an = math.sqrt(ax * ax + ay * ay + az * az)
+    ax /= an
+    ay /= an
+    az /= an
+    # orthonormal basis (e1, e2) of the plane across the jet
+    if abs(az) < 0.9:
+        e1x, e1y, e1z = ay, -ax, 0.0
+    else:
+        e1x, e1y, e1z = 0.0, az, -ay
+    n1 = math.sqrt(e1x * e1x + e1y * e1y + e1z * e1z)
+    e1x /= n1
+    e1y /= n1
+    e1z /= n1
+    e2x = ay * e1z - az * e1y
+    e2y = az * e1x - ax * e1z
+    e2z = ax * e1y - ay * e1x
+    vertical = abs(ax) < 1e-12 and abs(ay) < 1e-12 and az < 0.0
+    n_packets = poisson(state, lam)
+    deposited = 0.0
+    missed = 0
+    for _ in range(n_packets):
+        u1 = 1.0 - uniform(state)
+        u2 = uniform(state)
+        r = sigma * math.sqrt(-2.0 * math.log(u1))
+        g1 = r * math.cos(2.0 * math.pi * u2)
+        g2 = r * math.sin(2.0 * math.pi * u2)
+        ox = spot[0] + g1 * e1x + g2 * e2x - back_mm * ax
+        oy = spot[1] + g1 * e1y + g2 * e2y - back_mm * ay
+        oz = spot[2] + g1 * e1z + g2 * e2z - back_mm * az
+        if vertical:  # straight down: the hit is the surface height under the packet
+            hz = bilinear_height(H, cell, ox, oy)
+            t = oz - hz if hz == hz else np.inf
+        else:
+            t = ray_one(H, bmax, cell, thickness, zmax[0], ox, oy, oz, ax, ay, az, np.inf)
+        if not t < np.inf:
+            missed += 1
+            continue
+        hx = ox + t * ax
+        hy = oy + t * ay
+        nx_, ny_, nz_ = _smoothed_normal(H, cell, hx, hy, normal_cells)
+        cos_t = -(ax * nx_ + ay * ny_ + az * nz_)
+        if cos_t <= 0.0:
+            continue
+        theta = math.acos(min(cos_t, 1.0))
+        vol = v_packet * min(zeta0 * efficiency_curve(theta, theta_c), 1.0)
+        if vol > 0.0:
+            _splat(H, bmax, zmax, cell, hx, hy, vol)
+            deposited += vol
+    return deposited, n_packets, missed
+
+
+@njit(cache=True)
+def spray_samples(H, bmax, zmax, cell, thickness, state, lam, spots, axes, sigma, back_mm,
+                  v_packet, zeta0, theta_c, normal_cells, out_vol, out_counts):
+    """:func:`spray_step` for each executed-motion sample ``k`` (``lam[k] == 0`` skips it)."""
+    for k in range(spots.shape[0]):
+        if lam[k] <= 0.0:
+            out_vol[k] = 0.0
+            continue
+        vol, n, missed = spray_step(H, bmax, zmax, cell, thickness, state, lam[k], spots[k],
+                                    axes[k], sigma[k], back_mm[k], v_packet, zeta0[k],
+                                    theta_c, normal_cells)
+        out_vol[k] = vol
+        out_counts[0] += n
+        out_counts[1] += missed
