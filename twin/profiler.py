@@ -1,0 +1,278 @@
+"""Virtual laser-line profilers modelled on a scanCONTROL 29xx, and their trigger schedule.
+
+A profiler emits a fan of ``sensors.points`` rays from the origin of its frame ``S``, in the
+x_S-z_S plane, spaced evenly in x at ``z = z_end_mm`` so that the fan is ``x_width_end_mm`` wide
+there. A point is valid only when the laser ray reaches the surface inside the measuring range
+``[z_start_mm, z_end_mm]`` and the triangulation camera at ``(0, camera_baseline_mm, 0)`` in S
+sees the lit spot: both rays are cast on the deposit height field (a ray marcher, so the deposit
+may change every step), against the plate's side faces, and against analytic occluders such
+as the nozzle body (:mod:`twin.occluders`). Intensity follows the cosine of the incidence
+angle. Noise is applied along each ray (range): Gaussian range noise, spatially correlated
+speckle, dropouts and rare multiple-reflection ghosts that appear beyond the surface. The
+random stream of a profile is seeded from ``(seed, sensor, counter)``, so a profile does not
+depend on the order in which profiles are generated. Invalid points carry ``valid = False``
+and NaN coordinates, as the real sensor reports them.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from dm2.config import NoiseConfig, SensorConfig
+from dm2.frames import invert
+from dm2.messages import COUNTER_MODULO, SENSOR_IDS, Profile
+
+log = logging.getLogger(__name__)
+
+# Why a point is missing (ProfileTrace.reason).
+VALID = 0
+NO_SURFACE = 1  # nothing hit inside the measuring range
+LASER_BLOCKED = 2  # an occluder (nozzle, robot) stops the laser before the surface
+CAMERA_SHADOW = 3  # the deposit or plate hides the lit spot from the camera
+CAMERA_BLOCKED = 4  # an occluder hides the lit spot from the camera
+BACK_FACING = 5  # the camera looks at the back of the lit surface
+TOO_DARK = 6  # incidence so grazing that the return is below the intensity floor
+DROPOUT = 7  # random loss
+REASONS = ("valid", "no_surface", "laser_blocked", "camera_shadow", "camera_blocked",
+           "back_facing", "too_dark", "dropout")
+
+_LIFT_MM = 0.01  # camera rays start this far off the surface, along its normal
+_FACE_TOL_MM = 1e-6  # hits this far below the top surface lie on a plate face
+
+
+def fan_directions_S(sensors: SensorConfig) -> np.ndarray:
+    """Unit laser-ray directions ``(points, 3)`` in S, ordered by increasing x_S."""
+    half = sensors.x_width_end_mm / 2.0
+    x = np.linspace(-half, half, sensors.points)
+    d = np.column_stack([x, np.zeros_like(x), np.full_like(x, sensors.z_end_mm)])
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+@dataclass(frozen=True)
+class ProfileTrace:
+    """Noise-free result of one scan, before the sensor's noise and output format.
+
+    Attributes
+    ----------
+    range_mm : (n,) float64 [mm], distance from the S origin to the lit point (inf: no hit)
+    reason : (n,) int8, ``VALID`` or why the point is missing (see ``REASONS``)
+    cos_incidence : (n,) float64, cosine between the surface normal and the reversed laser ray
+    points_O : (n, 3) float64 [mm], lit points in O (NaN where there is no hit)
+    """
+
+    range_mm: np.ndarray
+    reason: np.ndarray
+    cos_incidence: np.ndarray
+    points_O: np.ndarray
+
+
+class VirtualProfiler:
+    """One laser profiler fixed in the cell.
+
+    Parameters
+    ----------
+    sensor_id : one of ``SENSOR_IDS``
+    T_B_S : (4, 4) float64, the profiler's true pose in the robot base [mm]
+    sensors, noise : the scenario's ``[sensors]`` and ``[noise]`` sections
+    seed : int, scenario seed; the profile noise stream is ``(seed, sensor, counter)``
+    """
+
+    def __init__(self, sensor_id: str, T_B_S: np.ndarray, sensors: SensorConfig,
+                 noise: NoiseConfig, seed: int = 0):
+        if sensor_id not in SENSOR_IDS:
+            raise ValueError(f"VirtualProfiler: sensor_id {sensor_id!r} not in {SENSOR_IDS}")
+        T = np.asarray(T_B_S, dtype=np.float64)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise ValueError(f"VirtualProfiler {sensor_id}: T_B_S must be a finite (4, 4) pose")
+        self.sensor_id = sensor_id
+        self.sensor_index = SENSOR_IDS.index(sensor_id)
+        self.T_B_S = T
+        self.sensors = sensors
+        self.noise = noise
+        self.seed = int(seed) & 0xFFFFFFFFFFFFFFFF
+        self.dirs_S = fan_directions_S(sensors)
+        self.camera_S = np.array([0.0, sensors.camera_baseline_mm, 0.0])
+        self._t_min = sensors.z_start_mm / self.dirs_S[:, 2]
+        self._t_max = sensors.z_end_mm / self.dirs_S[:, 2]
+
+    # ------------------------------------------------------------------ geometry
+    def trace(self, hf, T_B_O: np.ndarray, occluders: Sequence | None = None) -> ProfileTrace:
+        """Cast the fan on the height field ``hf`` (in O, posed by ``T_B_O``); no noise."""
+        occluders = tuple(occluders or ())
+        n = self.dirs_S.shape[0]
+        T_O_S = invert(T_B_O) @ self.T_B_S
+        R_O_S, o_O = T_O_S[:3, :3], T_O_S[:3, 3]
+        dirs_O = self.dirs_S @ R_O_S.T
+        origins_O = np.broadcast_to(o_O, (n, 3)).copy()
+        t_hit = np.asarray(hf.raycast(origins_O, dirs_O, max_range_mm=float(self._t_max.max())),
+                           dtype=np.float64)
+        in_range = np.isfinite(t_hit) & (t_hit >= self._t_min) & (t_hit <= self._t_max)
+        reason = np.where(in_range, VALID, NO_SURFACE).astype(np.int8)
+
+        points_O = np.full((n, 3), np.nan)
+        hit = np.isfinite(t_hit)
+        points_O[hit] = o_O + t_hit[hit, None] * dirs_O[hit]
+        normals_O = np.zeros((n, 3))
+        normals_O[hit] = _solid_normals(hf, points_O[hit])
+        cos_inc = np.clip(-np.einsum("ij,ij->i", normals_O, dirs_O), 0.0, 1.0)
+
+        if occluders:
+            origins_B = np.broadcast_to(self.T_B_S[:3, 3], (n, 3))
+            dirs_B = self.dirs_S @ self.T_B_S[:3, :3].T
+            t_occ = _first_occluder_hit(occluders, origins_B, dirs_B)
+            reason[(reason == VALID) & (t_occ < t_hit)] = LASER_BLOCKED
+
+        cand = np.flatnonzero(reason == VALID)
+        if cand.size:
+            reason[cand] = self._camera_visibility(hf, T_B_O, T_O_S, points_O[cand],
+                                                   normals_O[cand], occluders)
+        dark = (reason == VALID) & (cos_inc < self.noise.min_intensity)
+        reason[dark] = TOO_DARK
+        return ProfileTrace(t_hit, reason, cos_inc, points_O)
+
+    def _camera_visibility(self, hf, T_B_O, T_O_S, hits_O, normals_O,
+                           occluders) -> np.ndarray:
+        """Reason codes (VALID or a camera failure) for lit points ``hits_O (m, 3)``."""
+        camera_O = T_O_S[:3, :3] @ self.camera_S + T_O_S[:3, 3]
+        to_cam = camera_O - hits_O
+        dist = np.linalg.norm(to_cam, axis=1)
+        u = to_cam / dist[:, None]
+        out = np.full(hits_O.shape[0], VALID, dtype=np.int8)
+        facing = np.einsum("ij,ij->i", normals_O, u) > 1e-9
+        out[~facing] = BACK_FACING
+        starts = hits_O + _LIFT_MM * normals_O
+        remaining = np.linalg.norm(camera_O - starts, axis=1)
+        u = (camera_O - starts) / remaining[:, None]
+        t_hf = np.asarray(hf.raycast(starts, u, max_range_mm=float(remaining.max())),
+                          dtype=np.float64)
+        shadow = t_hf < remaining
+        out[facing & shadow] = CAMERA_SHADOW
+        if occluders:
+            starts_B = starts @ T_B_O[:3, :3].T + T_B_O[:3, 3]
+            u_B = u @ T_B_O[:3, :3].T
+            blocked = _first_occluder_hit(occluders, starts_B, u_B) < remaining
+            out[(out == VALID) & blocked] = CAMERA_BLOCKED
+        return out
+
+    # ------------------------------------------------------------------ sensor output
+    def scan(self, hf, T_B_O: np.ndarray, stamp_s: float, counter: int,
+             occluders: Sequence | None = None) -> Profile:
+        """One profile of ``hf`` with the plate at ``T_B_O``, stamped ``stamp_s``.
+
+        Parameters
+        ----------
+        hf : twin.heightfield.HeightField (anything with ``raycast``, ``height_at``,
+            ``size_mm`` and ``thickness_mm``), the true surface in O
+        T_B_O : (4, 4) float64, plate pose in the robot base at ``stamp_s`` [mm]
+        stamp_s : float [s]; counter : int, the 24-bit profile counter
+        occluders : objects with ``hit_t(origins_B, dirs_B) -> t_mm`` (e.g. the nozzle body)
+        """
+        trace = self.trace(hf, T_B_O, occluders)
+        return self.measure(trace, stamp_s, counter)
+
+    def measure(self, trace: ProfileTrace, stamp_s: float, counter: int) -> Profile:
+        """Apply the sensor's noise to a trace and format it as a :class:`Profile`."""
+        counter = int(counter)
+        if not 0 <= counter < COUNTER_MODULO:
+            raise ValueError(f"{self.sensor_id}: counter {counter} outside the 24-bit range")
+        noisy_range, reason, intensity = self._noise(trace, counter)
+        z = noisy_range * self.dirs_S[:, 2]
+        reason[(reason == VALID) & ((z < self.sensors.z_start_mm)
+                                    | (z > self.sensors.z_end_mm))] = NO_SURFACE
+        valid = reason == VALID
+        xz = np.full((reason.size, 2), np.nan)
+        xz[valid, 0] = noisy_range[valid] * self.dirs_S[valid, 0]
+        xz[valid, 1] = z[valid]
+        intensity = np.where(valid, intensity, 0.0).astype(np.float32)
+        return Profile(self.sensor_id, stamp_s, counter, xz, valid, intensity)
+
+    def _noise(self, trace: ProfileTrace, counter: int):
+        """Noisy ranges, reasons and intensities; every draw is made whatever the settings."""
+        nz = self.noise
+        n = trace.range_mm.size
+        rng = np.random.default_rng([self.seed, self.sensor_index, counter])
+        gauss = rng.standard_normal(n)
+        speckle = _correlated_normal(rng, n, nz.speckle_length_points)
+        u_drop = rng.random(n)
+        u_ghost = rng.random(n)
+        ghost_mm = rng.uniform(nz.outlier_offset_mm[0], nz.outlier_offset_mm[1], n)
+
+        reason = trace.reason.copy()
+        rng_mm = trace.range_mm + nz.range_sigma_mm * gauss + nz.speckle_sigma_mm * speckle
+        ghost = (reason == VALID) & (u_ghost < nz.outlier_prob)
+        rng_mm = np.where(ghost, rng_mm + ghost_mm, rng_mm)
+        intensity = np.where(ghost, 0.5 * trace.cos_incidence, trace.cos_incidence)
+        reason[(reason == VALID) & (u_drop < nz.dropout_prob)] = DROPOUT
+        return rng_mm, reason, intensity
+
+
+def _correlated_normal(rng: np.random.Generator, n: int, length_points: float) -> np.ndarray:
+    """Unit-variance Gaussian noise ``(n,)`` correlated over ``length_points`` along the line."""
+    half = int(np.ceil(3.0 * length_points))
+    white = rng.standard_normal(n + 2 * half)
+    k = np.exp(-0.5 * (np.arange(-half, half + 1) / length_points) ** 2)
+    k /= np.sqrt(np.sum(k * k))
+    return np.convolve(white, k, mode="valid")
+
+
+def _first_occluder_hit(occluders, origins_B: np.ndarray, dirs_B: np.ndarray) -> np.ndarray:
+    t = np.full(origins_B.shape[0], np.inf)
+    for occ in occluders:
+        t = np.minimum(t, occ.hit_t(origins_B, dirs_B))
+    return t
+
+
+def _solid_normals(hf, points_O: np.ndarray) -> np.ndarray:
+    """Outward unit normals ``(m, 3)`` of the plate-and-deposit solid at surface points.
+
+    Points on the top surface take the exact bilinear-patch normal; points below it lie on
+    the plate's side faces or bottom and take that face's normal.
+    """
+    if points_O.shape[0] == 0:
+        return np.zeros((0, 3))
+    normals = np.asarray(hf.normals_at(points_O[:, :2]), dtype=np.float64).copy()
+    top_z = np.asarray(hf.height_at(points_O[:, :2]), dtype=np.float64)
+    on_face = ~(points_O[:, 2] >= top_z - _FACE_TOL_MM)  # NaN height: just off the plate
+    if np.any(on_face):
+        p = points_O[on_face]
+        lx, ly = float(hf.size_mm[0]), float(hf.size_mm[1])
+        gaps = np.column_stack([p[:, 0], lx - p[:, 0], p[:, 1], ly - p[:, 1],
+                                p[:, 2] + float(hf.thickness_mm)])
+        faces = np.array([[-1.0, 0, 0], [1.0, 0, 0], [0, -1.0, 0], [0, 1.0, 0], [0, 0, -1.0]])
+        normals[on_face] = faces[np.argmin(np.abs(gaps), axis=1)]
+    return normals
+
+
+def trigger_schedule(t_end_s: float, sensors: SensorConfig, t0_s: float = 0.0,
+                     start_counter: int | Sequence[int] = 0
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Profile stamps of the cascaded trigger box from ``t0_s`` up to ``t_end_s`` inclusive.
+
+    Trigger ``k`` fires sensor ``j`` at ``t0_s + k / rate_hz + j * cascade_s``; each sensor's
+    24-bit counter is ``(start_counter[j] + k) mod 2**24``.
+
+    Returns
+    -------
+    stamps_s : (m,) float64 [s], ascending
+    sensor_index : (m,) int64, index into ``SENSOR_IDS``
+    counter : (m,) int64
+    """
+    n_sensors = len(SENSOR_IDS)
+    starts = np.broadcast_to(np.asarray(start_counter, dtype=np.int64), (n_sensors,))
+    if np.any(starts < 0):
+        raise ValueError(f"trigger_schedule: start_counter must be >= 0, got {start_counter}")
+    if not np.isfinite(t_end_s) or t_end_s < t0_s:
+        return np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    n_trig = int(np.floor((t_end_s - t0_s) * sensors.rate_hz)) + 2
+    k = np.repeat(np.arange(n_trig, dtype=np.int64), n_sensors)
+    j = np.tile(np.arange(n_sensors, dtype=np.int64), n_trig)
+    stamps = t0_s + k / sensors.rate_hz + j * sensors.cascade_s
+    keep = stamps <= t_end_s
+    stamps, k, j = stamps[keep], k[keep], j[keep]
+    order = np.argsort(stamps, kind="stable")
+    counter = (starts[j] + k) % COUNTER_MODULO
+    return stamps[order], j[order], counter[order]
