@@ -72,18 +72,23 @@ class ProcessConfig(_Model):
 
 class CellConfig(_Model):
     robot: Literal["irb4600"] = "irb4600"
-    nozzle_exit_B_mm: tuple[float, float, float] = (1300.0, 0.0, 900.0)
+    nozzle_exit_B_mm: tuple[float, float, float] = (1700.0, 0.0, 1300.0)
     nozzle_length_mm: float = Field(268.0, gt=0)
     nozzle_body_diameter_mm: float = Field(40.0, gt=0)
     plate_size_mm: tuple[float, float, float] = (120.0, 120.0, 6.0)
-    plate_on_flange_mm: tuple[float, float, float] = (-60.0, -60.0, 150.0)
-    plate_on_flange_rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    # plate corner on the flange; the 50 degree bracket puts the plate centre 150 mm out on
+    # the flange axis and keeps axis 5 near -64 deg, clear of its limit and singularity
+    plate_on_flange_mm: tuple[float, float, float] = (-38.567, -60.0, 104.037)
+    plate_on_flange_rpy_deg: tuple[float, float, float] = (0.0, -50.0, 0.0)
     sensor_distance_mm: float = Field(95.0, gt=0)
     sensor_elevation_deg: float = Field(55.0, gt=0, lt=90)
     sensor_azimuth_deg: tuple[float, float, float] = (90.0, 210.0, 330.0)
     robot_state_hz: float = Field(250.0, gt=0)
     accel_mm_s2: float = Field(500.0, gt=0)
-    home_joints_deg: tuple[float, float, float, float, float, float] = (0, 20, 20, 0, 50, 0)
+    home_joints_deg: tuple[float, float, float, float, float, float] = (0, 24, 1, 0, -64, 0)
+    work_yaw_deg: float = 0.0  # plate x axis about z_B when the plate is level
+    max_reorient_deg_s: float = Field(90.0, gt=0)  # spray-axis reorientation rate limit
+    wrist_singularity_deg: float = Field(5.0, ge=0, lt=90)  # smallest allowed |axis 5|
 
 
 class SensorConfig(_Model):
