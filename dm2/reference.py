@@ -19,8 +19,9 @@ Model choices (documented, deliberately simple, independent of the twin's physic
   cosine-based falloff from ``process.deposition_efficiency`` at normal impact to 0 at
   ``process.critical_angle_deg``.
 * ``sigma`` is ``process.plume_sigma_mm`` when given, else half the plume radius at the
-  standoff, the plume widening from the nozzle exit with a half angle of
-  ``PLUME_HALF_ANGLE_DEG``: ``sigma = (nozzle_exit_mm / 2 + standoff_mm * tan(2.5 deg)) / 2``.
+  standoff, the plume widening from the nozzle exit with the half angle
+  ``process.plume_half_angle_deg``: ``sigma = (nozzle_exit_mm / 2 + standoff_mm * tan(a)) / 2``
+  (6.55 mm exit, 30 mm standoff, 5 deg: 2.95 mm).
 * The powder feed is on whenever robot states arrive (cold spray keeps powder flowing through a
   layer); callers that know better pass ``spray_on``.
 """
@@ -39,7 +40,7 @@ from dm2.refmap import ReferenceMap
 
 log = logging.getLogger(__name__)
 
-PLUME_HALF_ANGLE_DEG = 2.5
+PLUME_HALF_ANGLE_DEG = 5.0  # used when the process config has no plume_half_angle_deg
 FOOTPRINT_SIGMAS = 4.0  # footprint truncated at 4 sigma (0.03 % of the mass is left out)
 MAX_INTEGRATION_GAP_S = 1.0  # longer gaps between robot states are not integrated
 
@@ -48,8 +49,9 @@ def plume_sigma_mm(process) -> float:
     """Standard deviation of the Gaussian footprint [mm] (see module docstring)."""
     if process.plume_sigma_mm is not None:
         return float(process.plume_sigma_mm)
+    half_angle = getattr(process, "plume_half_angle_deg", PLUME_HALF_ANGLE_DEG)
     radius = 0.5 * process.nozzle_exit_mm + process.standoff_mm * math.tan(
-        math.radians(PLUME_HALF_ANGLE_DEG))
+        math.radians(half_angle))
     return 0.5 * radius
 
 

@@ -43,20 +43,11 @@ class ReferenceMap:
         return nx * self.cell_mm, ny * self.cell_mm
 
     def _frac(self, xy_O: np.ndarray):
-        ny, nx = self.heights_mm.shape
-        fx = np.clip(xy_O[:, 0] / self.cell_mm - 0.5, 0.0, nx - 1.0)
-        fy = np.clip(xy_O[:, 1] / self.cell_mm - 0.5, 0.0, ny - 1.0)
-        i0 = np.minimum(fx.astype(np.int64), nx - 2)
-        j0 = np.minimum(fy.astype(np.int64), ny - 2)
-        return i0, j0, fx - i0, fy - j0
+        return _cell_fractions(self.heights_mm.shape, self.cell_mm, xy_O)
 
     def height_at(self, xy_O) -> np.ndarray:
         """Bilinear reference height [mm] at ``xy_O`` (n, 2); clamped at the map's border."""
-        xy = np.asarray(xy_O, dtype=np.float64).reshape(-1, 2)
-        h = self.heights_mm
-        i0, j0, tx, ty = self._frac(xy)
-        return ((1 - tx) * (1 - ty) * h[j0, i0] + tx * (1 - ty) * h[j0, i0 + 1]
-                + (1 - tx) * ty * h[j0 + 1, i0] + tx * ty * h[j0 + 1, i0 + 1])
+        return bilinear_height(self.heights_mm, self.cell_mm, xy_O)
 
     def gradient_at(self, xy_O) -> np.ndarray:
         """``(dh/dx, dh/dy)`` (n, 2) of the bilinear surface at ``xy_O``."""
@@ -114,3 +105,21 @@ class ReferenceMap:
 
         verts, faces = self.mesh_arrays()
         return trimesh.Trimesh(verts, faces, process=False)
+
+
+def _cell_fractions(shape, cell_mm: float, xy_O: np.ndarray):
+    ny, nx = shape
+    fx = np.clip(xy_O[:, 0] / cell_mm - 0.5, 0.0, nx - 1.0)
+    fy = np.clip(xy_O[:, 1] / cell_mm - 0.5, 0.0, ny - 1.0)
+    i0 = np.minimum(fx.astype(np.int64), nx - 2)
+    j0 = np.minimum(fy.astype(np.int64), ny - 2)
+    return i0, j0, fx - i0, fy - j0
+
+
+def bilinear_height(heights_mm: np.ndarray, cell_mm: float, xy_O) -> np.ndarray:
+    """Bilinear interpolation [mm] (n,) of a cell-centred height grid (ny, nx) at ``xy_O``."""
+    xy = np.asarray(xy_O, dtype=np.float64).reshape(-1, 2)
+    h = heights_mm
+    i0, j0, tx, ty = _cell_fractions(h.shape, cell_mm, xy)
+    return ((1 - tx) * (1 - ty) * h[j0, i0] + tx * (1 - ty) * h[j0, i0 + 1]
+            + (1 - tx) * ty * h[j0 + 1, i0] + tx * ty * h[j0 + 1, i0 + 1])

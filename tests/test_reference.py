@@ -65,8 +65,8 @@ def test_straight_pass_matches_analytic_gaussian_integral(sigma, v, rate):
 
 def test_default_sigma_formula_and_efficiency_falloff():
     proc = ProcessConfig()
-    r = 6.55 / 2 + 30.0 * math.tan(math.radians(2.5))
-    assert plume_sigma_mm(proc) == pytest.approx(r / 2)
+    r = 6.55 / 2 + 30.0 * math.tan(math.radians(5.0))
+    assert plume_sigma_mm(proc) == pytest.approx(r / 2) == pytest.approx(2.95, abs=0.01)
     z = deposition_efficiency(np.radians([0.0, 35.0, 75.0, 80.0]), proc)
     c = math.cos(math.radians(75.0))
     assert z[0] == pytest.approx(0.5)

@@ -1,0 +1,102 @@
+"""Real-time deviation: exact column deviation, and a defect flagged within 1 s of its start."""
+
+import numpy as np
+import pytest
+
+from dm2.config import MonitorConfig
+from dm2.realtime import OVER, UNDER, RealtimeDeviation
+from dm2.refmap import ReferenceMap
+from dm2.tsdf import SparseTSDF
+
+MON = MonitorConfig()
+CELL = 0.25
+
+
+def pad(height=2.4, side=60.0, size=120.0):
+    n = int(size / CELL)
+    c = (np.arange(n) + 0.5) * CELL
+    xx, yy = np.meshgrid(c, c)
+    inside = (np.abs(xx - 60) <= side / 2) & (np.abs(yy - 60) <= side / 2)
+    return np.where(inside, height, 0.0)
+
+
+def bump(xy, centre=(60.0, 60.0), height=1.0, fwhm=5.0):
+    s = fwhm / 2.3548
+    r2 = ((xy[:, 0] - centre[0]) ** 2 + (xy[:, 1] - centre[1]) ** 2)
+    return height * np.exp(-r2 / (2 * s * s))
+
+
+def test_dense_box_gives_exact_signed_deviation():
+    ref = ReferenceMap(pad(), CELL)
+    rt = RealtimeDeviation(MON)
+    v = MON.voxel_mm
+    origin = (100, 100, 0)  # x, y from 50 mm, z from 0
+    nx, ny, nz = 20, 20, 16
+    zc = (np.arange(nz) + 0.5) * v
+    surface = np.full((nx, ny), 2.4 + 0.7)
+    surface[:, 10:] = 2.4 - 0.55  # half the box under, half over
+    surface[:5, :] = 2.4 + 0.1  # a strip inside the tolerance
+    d = (zc[None, None, :] - surface[:, :, None]).astype(np.float32)
+    w = np.full(d.shape, 3.0, np.float32)
+    w[15:, :, :] = 0.0  # unobserved columns: no deviation at all
+    fd = rt.update(1.0, d, w, origin, ref)
+    assert len(fd.deviation_mm) == 15 * 20
+    gi = np.round(fd.xy_O[:, 0] / v - 0.5).astype(int) - 100
+    gj = np.round(fd.xy_O[:, 1] / v - 0.5).astype(int) - 100
+    assert np.allclose(fd.deviation_mm, surface[gi, gj] - 2.4, atol=1e-5)
+    assert fd.over_area_mm2 == pytest.approx(10 * 10 * v * v)
+    assert fd.under_area_mm2 == pytest.approx(10 * 10 * v * v)
+    assert rt.flagged_area_mm2(OVER) == pytest.approx(25.0)
+    assert {a.kind for a in fd.alarms} == {"overbuild", "underbuild"}
+    assert np.isnan(rt.deviation_map_mm[100 + 5, 100 + 16])  # (row y, column x) unobserved
+
+
+def _sensor_lines(spot, n=400, half_len=20.0):
+    """Three laser lines through the spot and their sensor origins (95 mm, 55 deg up)."""
+    pts, origins = [], []
+    for az in np.radians([90.0, 210.0, 330.0]):
+        u = np.array([np.cos(az), np.sin(az)])
+        across = np.array([-u[1], u[0]])
+        s = np.linspace(-half_len, half_len, n)
+        xy = spot[:2] + s[:, None] * across
+        o = np.array([*(spot[:2] + 95 * np.cos(np.radians(55)) * u),
+                      spot[2] + 95 * np.sin(np.radians(55))])
+        keep = np.all(np.abs(xy - 60.0) < 28.0, axis=1)  # the pad's top, away from its walls
+        pts.append(xy[keep])
+        origins.append(np.tile(o, (int(keep.sum()), 1)))
+    return np.vstack(pts), np.vstack(origins)
+
+
+def _run(defect: bool):
+    ref = ReferenceMap(pad(), CELL)
+    tsdf = SparseTSDF(MON.voxel_mm, MON.truncation_voxels * MON.voxel_mm, MON.weight_cap)
+    rt = RealtimeDeviation(MON)
+    v_mm_s, t0 = 30.0, 25.0 / 30.0  # the spot reaches x = 60 at t0
+    for k in range(int(2.0 * 10)):
+        t = k / 10.0
+        spot = np.array([35.0 + v_mm_s * t, 60.0, 2.4])
+        xy, origins = _sensor_lines(spot)
+        z = ref.height_at(xy) + (bump(xy) if defect and t >= t0 else 0.0)
+        pts = np.column_stack([xy, z])
+        tsdf.integrate(origins, pts, np.ones(len(pts), bool))
+        rt.update_from_tsdf(tsdf, spot, t, ref)
+    return rt, t0
+
+
+def test_defect_flagged_within_one_second_of_process_time():
+    rt, t0 = _run(defect=True)
+    over = [a for a in rt.alarms if a.kind == "overbuild"]
+    assert over and not [a for a in rt.alarms if a.kind == "underbuild"]
+    first = over[0]
+    assert t0 <= first.stamp_s <= t0 + 1.0
+    assert np.allclose(first.centroid_xy_O, (60.0, 60.0), atol=2.0)
+    assert first.area_mm2 >= MON.min_region_area_mm2
+    assert np.nanmax(rt.deviation_map_mm) == pytest.approx(1.0, abs=0.15)
+    assert rt.flagged_area_mm2(UNDER) == 0.0
+
+
+def test_fault_free_stream_raises_no_alarm():
+    rt, _ = _run(defect=False)
+    assert rt.alarms == []
+    assert np.nanmax(np.abs(rt.deviation_map_mm)) < 0.25  # sparse oblique rays: ~0.2 mm
+    assert not rt.flag_map.any()
