@@ -57,19 +57,35 @@ def simulate(
 
         result = run_simulation(sc, out, truth, progress, simulation=sim,
                                 on_message=viewer.on_message if viewer is not None else None)
+    if viewer is not None:
+        viewer.cell.close()
     c = result.counts
     console.print(f"wrote {out}: {result.process_s:.1f} s of process, {result.n_layers} layers, "
                   f"{c.get('Profile', 0)} profiles, {c.get('RobotState', 0)} robot states"
                   + (f"; truth in {truth}" if truth is not None else ""))
 
 
-def _open_gui(sim):
+class _GuiView:
+    """Mirror the recorded robot states in pybullet's GUI (every tenth state)."""
+
+    def __init__(self, cell):
+        from twin.pybullet_cell import PybulletCell
+
+        self.cell = PybulletCell(cell, gui=True)
+
+    def on_message(self, msg) -> None:
+        from dm2.messages import RobotState
+
+        if isinstance(msg, RobotState) and msg.seq % 10 == 0:
+            self.cell.set_joints(msg.joints_rad)
+
+
+def _open_gui(sim) -> _GuiView:
     import os
 
     if not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY"):
         fail("--gui needs a display (DISPLAY is not set); run without --gui")
     try:
-        from twin.pybullet_cell import PybulletCell
-    except ImportError as exc:
-        fail(f"--gui: the pybullet cell view is unavailable: {exc}")
-    return PybulletCell(sim.cell, gui=True)
+        return _GuiView(sim.cell)
+    except Exception as exc:  # noqa: BLE001 - pybullet reports GUI failures many ways
+        fail(f"--gui: cannot open pybullet's GUI: {exc}")

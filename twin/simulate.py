@@ -1,0 +1,222 @@
+"""The twin's orchestrator: one scenario in, the pipeline's message stream out.
+
+:class:`Simulation` builds the part, its toolpath, the cell and the robot's executed motion,
+then :meth:`Simulation.messages` steps through the motion at the controller rate: it grows
+the true part (Gaussian spray plus injected faults), reports each robot state (the reported
+flange pose carries ``noise.robot_repeatability_mm``, the truth does not), marks layer starts,
+fires the cascaded profiler triggers (each scan sees the plate pose interpolated at its own
+stamp) and, at the end of each layer, writes the ground truth. :func:`iter_messages` is that
+generator; :func:`simulate` records it to MCAP with the scenario, toolpath and calibration
+attached, so replaying a recording gives the pipeline exactly what an in-process run gives.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import Counter
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from dm2.config import Scenario, dump_toml
+from dm2.frames import PoseInterpolator
+from dm2.messages import SENSOR_IDS, Calibration, LayerMark, Profile, RobotState
+
+log = logging.getLogger(__name__)
+
+HEIGHTFIELD_CELL_MM = 0.25
+ROBOT_NOISE_SEED_OFFSET = 1_000_003
+Progress = Callable[[float, float], None]  # (process seconds done, total process seconds)
+
+
+@dataclass(frozen=True)
+class SimulationResult:
+    """What :func:`simulate` wrote.
+
+    Attributes
+    ----------
+    out_path : the MCAP recording
+    truth_dir : folder with per-layer ground truth, or None
+    process_s : float [s], simulated process time covered
+    counts : dict message kind -> number written (``Profile``, ``RobotState``, ``LayerMark``)
+    n_layers : int, layers started within the simulated time
+    calibration : the calibration handed to the pipeline (perturbed per the scenario)
+    """
+
+    out_path: Path
+    truth_dir: Path | None
+    process_s: float
+    counts: dict
+    n_layers: int
+    calibration: Calibration
+
+
+class Simulation:
+    """Everything fixed before the clock starts (part, toolpath, cell, motion, models).
+
+    Attributes
+    ----------
+    scenario : the scenario
+    toolpath : dm2.messages.Toolpath in O
+    cell : twin.cell.CellModel
+    motion : twin.motion.ExecutedMotion (sampled at ``cell.robot_state_hz``)
+    true_calibration, calibration : the cell's true calibration and the one the pipeline gets
+    end_s : float [s], last process time simulated (``scenario.duration_s`` cuts it short)
+    """
+
+    def __init__(self, scenario: Scenario):
+        from dm2.toolpath import generate_toolpath
+        from scenarios.parts import build_part
+        from twin.cell import CellModel
+        from twin.faults import FaultSchedule, perturbed_calibration
+        from twin.motion import execute_toolpath
+
+        self.scenario = scenario
+        plate = scenario.cell.plate_size_mm
+        self.part_mesh_O = build_part(scenario.part, plate)
+        self.toolpath = generate_toolpath(self.part_mesh_O, scenario.toolpath)
+        self.cell = CellModel.from_scenario(scenario)
+        self.faults = FaultSchedule(scenario.faults, self.toolpath, self.cell)
+        self.motion = execute_toolpath(self.toolpath, self.cell,
+                                       rate_hz=self.cell.robot_state_hz,
+                                       accel_mm_s2=self.cell.accel_mm_s2,
+                                       dwell=self.faults.corner_dwell_s(self.toolpath))
+        self.true_calibration = self.cell.calibration()
+        self.calibration = perturbed_calibration(self.true_calibration,
+                                                 scenario.calibration_error)
+        t = self.motion.t_s
+        self.end_s = float(t[-1]) if scenario.duration_s is None else min(
+            float(t[-1]), float(scenario.duration_s))
+        log.info("simulation: %d toolpath points, %d layers, %.1f s of process time",
+                 len(self.toolpath), self.toolpath.n_layers, self.end_s)
+
+    def attachments(self) -> dict[str, bytes]:
+        """Scenario (resolved TOML), toolpath (canonical CSV) and calibration (TOML)."""
+        from dm2.calibration_io import calibration_to_toml
+        from dm2.toolpath.formats import format_csv
+
+        return {"scenario.toml": dump_toml(self.scenario.to_toml_dict()).encode(),
+                "toolpath.csv": format_csv(self.toolpath).encode(),
+                "calibration.toml": calibration_to_toml(self.calibration).encode()}
+
+    def messages(self, truth_dir: str | Path | None = None,
+                 progress: Progress | None = None) -> Iterator[Profile | RobotState | LayerMark]:
+        """The message stream in stamp order (deterministic for the scenario's seed)."""
+        from twin.deposition import SprayModel
+        from twin.heightfield import HeightField
+        from twin.occluders import nozzle_occluder
+        from twin.profiler import VirtualProfiler, trigger_schedule
+
+        sc, cell, motion, faults = self.scenario, self.cell, self.motion, self.faults
+        plate = sc.cell.plate_size_mm
+        hf = HeightField(size_mm=(plate[0], plate[1]), cell_mm=HEIGHTFIELD_CELL_MM,
+                         thickness_mm=plate[2])
+        spray = SprayModel(sc.process, seed=sc.seed)
+        profilers = [VirtualProfiler(sid, cell.T_B_S[sid], sc.sensors, sc.noise, seed=sc.seed)
+                     for sid in SENSOR_IDS]
+        occluders = [nozzle_occluder(cell.T_B_N, sc.cell)]
+        truth = _TruthWriter(truth_dir, sc, faults) if truth_dir is not None else None
+        robot_rng = np.random.default_rng([sc.seed, ROBOT_NOISE_SEED_OFFSET])
+        robot_sigma = sc.noise.robot_repeatability_mm
+
+        t = motion.t_s
+        n = int(np.searchsorted(t, self.end_s, side="right"))
+        dt = 1.0 / cell.robot_state_hz
+        trig_s, trig_j, trig_c = trigger_schedule(float(t[n - 1]), sc.sensors)
+        trig_T_B_O = (PoseInterpolator(t[:n], motion.T_B_O[:n])(trig_s) if n >= 2 and trig_s.size
+                      else np.zeros((0, 4, 4)))
+        layers = motion.layer[:n]
+        feed = faults.feed_factor(t[:n], layers)
+        efficiency = faults.efficiency_factor(layers)
+        standoff = faults.standoff_delta_mm(t[:n], layers)
+        k = 0  # next trigger
+        layer_prev = -1
+        for i in range(n):
+            t_i, layer = float(t[i]), int(motion.layer[i])
+            if layer != layer_prev:
+                if layer_prev >= 0:
+                    self._finish_layer(hf, layer_prev, truth)
+                yield LayerMark(t_i, layer)
+                layer_prev = layer
+            T_B_F = motion.T_B_F[i]
+            if robot_sigma > 0:
+                T_B_F = T_B_F.copy()
+                T_B_F[:3, 3] += robot_rng.normal(0.0, robot_sigma, 3)
+            yield RobotState(t_i, i, motion.joints_rad[i], T_B_F)
+            if motion.spray_on[i]:
+                spray.deposit(hf, motion.position_O[i], motion.axis_O[i], dt,
+                              feed_factor=float(feed[i]), efficiency_factor=float(efficiency[i]),
+                              standoff_delta_mm=float(standoff[i]))
+            t_next = float(t[i + 1]) if i + 1 < n else np.inf
+            while k < trig_s.size and trig_s[k] < t_next:
+                prof = profilers[int(trig_j[k])]
+                yield prof.scan(hf, trig_T_B_O[k], float(trig_s[k]), int(trig_c[k]), occluders)
+                k += 1
+            if progress is not None and (i % 250 == 0 or i == n - 1):
+                progress(t_i, self.end_s)
+        if layer_prev >= 0 and n == len(t):
+            self._finish_layer(hf, layer_prev, truth)
+        elif layer_prev >= 0 and truth is not None:  # stopped early: truth as it stands
+            truth.layer(hf, layer_prev)
+        if truth is not None:
+            truth.finish(self.toolpath)
+        self.final_heightfield = hf
+
+    def _finish_layer(self, hf, layer: int, truth) -> None:
+        self.faults.apply_blobs(hf, layer)
+        if truth is not None:
+            truth.layer(hf, layer)
+
+
+class _TruthWriter:
+    """Ground truth beside a run: the true top surface after each layer, and the faults."""
+
+    def __init__(self, truth_dir, scenario: Scenario, faults):
+        self.dir = Path(truth_dir)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.scenario, self.faults = scenario, faults
+
+    def layer(self, hf, layer: int) -> None:
+        from twin.truth import write_layer_surface
+
+        write_layer_surface(hf, self.dir / f"layer_{layer:03d}.npz")
+
+    def finish(self, toolpath) -> None:
+        from twin.truth import write_fault_truth
+
+        write_fault_truth(self.dir / "faults.json", self.scenario.faults, toolpath=toolpath,
+                          cell=self.faults)
+
+
+def iter_messages(scenario: Scenario, truth_dir: str | Path | None = None,
+                  progress: Progress | None = None) -> Iterator[Profile | RobotState | LayerMark]:
+    """The scenario's message stream, generated in process (same seed, same messages)."""
+    yield from Simulation(scenario).messages(truth_dir, progress)
+
+
+def simulate(scenario: Scenario, out_path: str | Path, truth_dir: str | Path | None = None,
+             progress: Progress | None = None, *, simulation: Simulation | None = None,
+             on_message: Callable[[object], None] | None = None) -> SimulationResult:
+    """Run the twin and record it to MCAP at ``out_path`` (written as ``.part``, then renamed).
+
+    ``simulation`` reuses an already prepared :class:`Simulation` of ``scenario``;
+    ``on_message`` sees every message after it is written (e.g. a viewer).
+    Raises ConfigError / ReachError before anything is written when the scenario is unusable.
+    """
+    from dm2.recording import RecordingWriter
+
+    sim = simulation if simulation is not None else Simulation(scenario)
+    counts: Counter = Counter()
+    with RecordingWriter(out_path, attachments=sim.attachments()) as writer:
+        writer.write_static_tf(sim.calibration)
+        for msg in sim.messages(truth_dir, progress):
+            writer.write(msg)
+            counts[type(msg).__name__] += 1
+            if on_message is not None:
+                on_message(msg)
+    return SimulationResult(out_path=Path(out_path),
+                            truth_dir=Path(truth_dir) if truth_dir is not None else None,
+                            process_s=sim.end_s, counts=dict(counts),
+                            n_layers=counts[LayerMark.__name__], calibration=sim.calibration)
