@@ -1,0 +1,139 @@
+"""report.json (schema-versioned), tracks.csv and the comparison with injected-fault truth."""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import numpy as np
+
+from dm2.track import Track
+
+REPORT_SCHEMA = "dm2.report/1"
+# which track kind an injected fault is expected to produce (sign of the fault's effect)
+_FAULT_KIND = {"bump": "overbuild", "dent": "underbuild", "corner_dwell": "overbuild",
+               "clog": "underbuild", "feed_drop": "underbuild"}
+
+
+def _clean(obj):
+    """JSON-safe copy: numpy to Python, non-finite floats to None."""
+    if isinstance(obj, dict):
+        return {str(k): _clean(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_clean(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _clean(obj.tolist())
+    if isinstance(obj, np.integer | np.bool_):
+        return obj.item()
+    if isinstance(obj, float | np.floating):
+        return float(obj) if math.isfinite(obj) else None
+    return obj
+
+
+def expected_kind(fault: dict) -> str | None:
+    """The track kind a fault entry should produce, or None where the sign is not implied."""
+    kind = fault.get("kind")
+    if kind in _FAULT_KIND:
+        return _FAULT_KIND[kind]
+    factor = fault.get("factor")
+    if kind in ("feed_step", "feed_drift") and factor is not None:
+        return "overbuild" if factor > 1 else "underbuild"
+    if kind == "efficiency_drift":
+        per = fault.get("per_layer", fault.get("factor"))
+        return None if per is None else ("overbuild" if per > 0 else "underbuild")
+    return fault.get("expected_kind")
+
+
+def _track_near(track: Track, xy, within_mm: float) -> float:
+    """Smallest xy distance [mm] from ``xy`` to the track's centroids; inf if none."""
+    c = np.array([h["centroid_O_mm"][:2] for h in track.history])
+    return float(np.min(np.linalg.norm(c - np.asarray(xy, float), axis=1))) if len(c) else np.inf
+
+
+def compare_with_truth(tracks: list[Track], faults: list[dict], within_mm: float = 10.0) -> list:
+    """For each injected fault: whether a track of the expected kind explains it.
+
+    A fault entry is a dict with ``kind`` and optionally ``center_O_mm`` (xy), ``layers``
+    ``[first, last]``, ``factor`` / ``per_layer`` and ``expected_kind``. A track matches when its
+    kind family equals the expected kind (global or local), it is seen within the fault's
+    layers (or after them), and, for located faults, its centroid comes within ``within_mm``.
+    """
+    out = []
+    for f in faults:
+        want = expected_kind(f)
+        first = (f.get("layers") or [None])[0]
+        best, best_d = None, np.inf
+        for t in tracks:
+            if want is not None and t.kind.replace("local_", "") != want:
+                continue
+            if first is not None and t.last_layer < first:
+                continue
+            d = _track_near(t, f["center_O_mm"][:2], within_mm) if f.get("center_O_mm") else 0.0
+            if d <= within_mm and d < best_d:
+                best, best_d = t, d
+        out.append({"fault": f, "expected_kind": want, "detected": best is not None,
+                    "track_id": None if best is None else best.id,
+                    "distance_mm": None if best is None else best_d,
+                    "first_layer_detected": None if best is None else best.first_layer})
+    return out
+
+
+def check_expectations(tracks: list[Track], expect) -> list[dict]:
+    """Hold the tracks to a scenario's ``[expect]`` section; one result per expectation."""
+    results = []
+    for e in expect.tracks:
+        hits = [t for t in tracks if t.kind == e.kind
+                and (e.from_layer is None or t.last_layer >= e.from_layer)
+                and (e.near_mm is None or _track_near(t, e.near_mm, e.within_mm) <= e.within_mm)]
+        results.append({"expect": f"{e.kind} track" + (f" near {list(e.near_mm)}" if e.near_mm
+                                                        else ""),
+                        "passed": bool(hits), "track_ids": [t.id for t in hits]})
+    if expect.no_tracks:
+        results.append({"expect": "no tracks", "passed": not tracks,
+                        "track_ids": [t.id for t in tracks]})
+    return results
+
+
+def build_report(results, tracks: list[Track], *, dropped: dict | None = None,
+                 timing: dict | None = None, fault_truth: dict | list | None = None,
+                 expect=None, files: dict | None = None, meta: dict | None = None) -> dict:
+    """The report.json content (top-level: schema, meta, layers, tracks, dropped, timing, ...).
+
+    ``results`` is a list of dm2.defects.LayerResult; ``fault_truth`` a dict with ``faults``
+    (or a list of fault dicts) as written by the twin.
+    """
+    layers = []
+    for r in results:
+        layers.append({"layer": r.layer, "stamp_s": r.deviation.stamp_s,
+                       "statistics": r.statistics(), "timing_s": r.timing_s,
+                       "regions": [{**reg.to_dict(), "track_id": tid}
+                                   for reg, tid in zip(r.regions, r.track_ids, strict=True)]})
+    doc = {"schema": REPORT_SCHEMA, "meta": meta or {}, "layers": layers,
+           "tracks": [t.to_dict() for t in tracks], "dropped": dict(dropped or {}),
+           "timing": dict(timing or {}), "files": files or {}}
+    if fault_truth is not None:
+        faults = fault_truth.get("faults", []) if isinstance(fault_truth, dict) else fault_truth
+        doc["fault_truth"] = compare_with_truth(tracks, list(faults))
+    if expect is not None:
+        doc["expectations"] = check_expectations(tracks, expect)
+    return _clean(doc)
+
+
+TRACK_CSV_FIELDS = ("track_id", "kind", "layer", "state", "area_mm2", "height_mm",
+                    "max_deviation_mm", "mean_deviation_mm", "centroid_x_mm", "centroid_y_mm",
+                    "area_rate_mm2_per_layer", "height_rate_mm_per_layer", "trend")
+
+
+def write_tracks_csv(path: str | Path, tracks: list[Track]) -> None:
+    """One row per track and layer."""
+    with open(path, "w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        w.writerow(TRACK_CSV_FIELDS)
+        for t in tracks:
+            for h in t.history:
+                w.writerow([t.id, t.kind, h["layer"], h["state"], f"{h['area_mm2']:.4f}",
+                            f"{h['height_mm']:.4f}", f"{h['max_deviation_mm']:.4f}",
+                            f"{h['mean_deviation_mm']:.4f}", f"{h['centroid_O_mm'][0]:.3f}",
+                            f"{h['centroid_O_mm'][1]:.3f}", f"{h['area_rate_mm2_per_layer']:.4f}",
+                            f"{h['height_rate_mm_per_layer']:.4f}", t.trend])

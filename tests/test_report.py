@@ -1,0 +1,98 @@
+"""Report folder: report.json, tracks.csv, PLY scalar fields, STL, PNGs, index.html, atomicity."""
+
+import csv
+import json
+
+import numpy as np
+import pytest
+import trimesh
+from test_deviation import CELL, MON, gaussian, pad_heights, top_surface
+
+from dm2.config import ExpectConfig, ExpectTrack
+from dm2.defects import DefectMonitor
+from dm2.refmap import ReferenceMap
+from dm2.report import REPORT_SCHEMA, check_output_dir, write_report
+from dm2.report.meshes import read_ply_vertex_fields
+
+CENTRE = (50.0, 70.0)
+
+
+@pytest.fixture(scope="module")
+def monitored():
+    mon = DefectMonitor(MON)
+    for layer in range(6):
+        ref_h, xx, yy = pad_heights(layer)
+        meas = ref_h + (gaussian(xx, yy, CENTRE, 0.6 + 0.2 * layer, 5.0) if layer >= 2 else 0)
+        mon.analyse_layer(top_surface(meas), ReferenceMap(ref_h, CELL, layer))
+    mon.finish()
+    return mon
+
+
+def test_report_folder_contents(tmp_path, monitored):
+    out = tmp_path / "run" / "report"
+    truth = {"faults": [{"kind": "bump", "center_O_mm": list(CENTRE), "layers": [2, 5]},
+                        {"kind": "dent", "center_O_mm": [90.0, 20.0], "layers": [1, 3]}]}
+    expect = ExpectConfig(tracks=(ExpectTrack(kind="overbuild", near_mm=(52.0, 68.0)),))
+    rep = write_report(out, monitored.results, monitored.tracker.tracks,
+                       config_toml='name = "x"\n', dropped={"stale_pose": 3},
+                       timing={"monitor_s": 1.5}, fault_truth=truth, expect=expect)
+    on_disk = json.loads((out / "report.json").read_text())
+    assert on_disk == rep
+    assert {"schema", "layers", "tracks", "dropped", "timing"} <= set(rep)
+    assert rep["schema"] == REPORT_SCHEMA and rep["dropped"] == {"stale_pose": 3}
+    (track,) = rep["tracks"]
+    assert (track["id"], track["kind"], track["first_layer"], track["last_layer"]) == \
+        (1, "overbuild", 2, 5)
+    assert track["trend"] == "amplifying"
+    heights = [track["height_mm"][str(k)] for k in range(2, 6)]
+    assert np.allclose(heights, [1.0, 1.2, 1.4, 1.6], atol=0.05)
+    assert all(track["area_mm2"][str(k)] > 10 for k in range(2, 6))
+    assert [len(layer["regions"]) for layer in rep["layers"]] == [0, 0, 1, 1, 1, 1]
+    assert rep["layers"][3]["regions"][0]["track_id"] == 1
+    assert rep["fault_truth"][0]["detected"] and rep["fault_truth"][0]["track_id"] == 1
+    assert not rep["fault_truth"][1]["detected"]
+    assert rep["expectations"] == [{"expect": "overbuild track near [52.0, 68.0]",
+                                    "passed": True, "track_ids": [1]}]
+    assert (out / "config.toml").read_text() == 'name = "x"\n'
+    rows = list(csv.DictReader(open(out / "tracks.csv")))
+    assert [int(r["layer"]) for r in rows] == [2, 3, 4, 5]
+    assert rows[1]["state"] == "growing"
+    # PLY scalar fields round-trip
+    res = monitored.results[4]
+    fields = read_ply_vertex_fields(out / "meshes" / "layer_004.ply")
+    assert {"scalar_signed_distance", "scalar_class", "scalar_weight", "red"} <= set(fields)
+    assert np.allclose(fields["scalar_signed_distance"], res.deviation.signed_distance_mm,
+                       atol=1e-5)
+    assert np.array_equal(fields["scalar_class"], res.deviation.class_code)
+    ply = trimesh.load(out / "meshes" / "layer_004.ply", process=False)
+    assert len(ply.faces) == len(res.deviation.faces)
+    stl = trimesh.load(out / rep["files"]["reference"][0])
+    assert stl.bounds[1][2] == pytest.approx(0.8 * 6, abs=1e-6)
+    for name in rep["files"]["deviation_maps"] + rep["files"]["track_plots"]:
+        assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert len(rep["files"]["deviation_maps"]) == 6
+    html = (out / "index.html").read_text()
+    for name in rep["files"]["track_plots"] + rep["files"]["meshes"] + ["report.json"]:
+        assert f'"{name}"' in html
+    assert [p.name for p in out.parent.iterdir()] == ["report"]  # no temp folders left
+
+
+def test_rewrite_replaces_and_failure_leaves_nothing(tmp_path, monitored):
+    out = tmp_path / "rep"
+    write_report(out, monitored.results, monitored.tracker.tracks)
+    (out / "stale.txt").write_text("old")
+    write_report(out, monitored.results[:2], [], map_layers=[1])
+    assert not (out / "stale.txt").exists()
+    assert json.loads((out / "report.json").read_text())["tracks"] == []
+    with pytest.raises(ValueError, match="map layer 9"):
+        write_report(tmp_path / "bad", monitored.results, [], map_layers=[9])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rep"]
+
+
+def test_unwritable_output_is_refused_before_work(tmp_path):
+    blocker = tmp_path / "file.txt"
+    blocker.write_text("x")
+    with pytest.raises(ValueError, match="file.txt"):
+        check_output_dir(blocker / "report")
+    with pytest.raises(ValueError, match="not a folder"):
+        check_output_dir(blocker)
