@@ -118,3 +118,14 @@ def test_from_mesh_and_to_mesh_round_trip():
     assert m.is_watertight and abs(m.volume - 40 * 30 * 7.5) < 1e-6
     top = flat.to_mesh()
     assert np.allclose(top.bounds, [[0, 0, 1.5], [40, 30, 1.5]])
+
+
+def test_to_mesh_window_keeps_only_the_requested_cells():
+    hf = _plane_field()
+    m = hf.to_mesh(window_mm=(10.0, 5.0, 20.0, 12.0))
+    assert m.bounds[0, 0] >= 10.0 and m.bounds[1, 0] <= 20.0
+    assert m.bounds[0, 1] >= 5.0 and m.bounds[1, 1] <= 12.0
+    v = m.vertices
+    np.testing.assert_allclose(v[:, 2], 0.1 * v[:, 0] + 0.05 * v[:, 1] + 1.0, atol=1e-12)
+    with pytest.raises(ValueError, match="window"):
+        hf.to_mesh(window_mm=(10.0, 5.0, 10.1, 5.1))

@@ -190,29 +190,40 @@ class HeightField:
         log.debug("rasterised mesh of %d faces onto %s cells", len(faces), hf.shape)
         return hf
 
-    def to_mesh(self, closed: bool = False):
+    def to_mesh(self, closed: bool = False, window_mm=None):
         """The surface as a ``trimesh.Trimesh`` in O [mm].
 
         Vertices are the cell centres plus the plate border (flat extension), two triangles per
         quad; the bilinear patches are split along one diagonal. ``closed=True`` adds the plate's
-        side faces and bottom for a watertight solid.
+        side faces and bottom for a watertight solid. ``window_mm = (xmin, ymin, xmax, ymax)``
+        keeps only the cell centres inside that rectangle (no border, no closing).
         """
         import trimesh
 
-        ny, nx = self._h.shape
-        c = self.cell_mm
-        xs = np.concatenate([[0.0], (np.arange(nx) + 0.5) * c, [self.size_mm[0]]])
-        ys = np.concatenate([[0.0], (np.arange(ny) + 0.5) * c, [self.size_mm[1]]])
-        zp = np.pad(self._h, 1, mode="edge")
+        x, y = self.centres_mm()
+        if window_mm is not None:
+            x0, y0, x1, y1 = (float(v) for v in window_mm)
+            ci = np.flatnonzero((x >= x0) & (x <= x1))
+            cj = np.flatnonzero((y >= y0) & (y <= y1))
+            if len(ci) < 2 or len(cj) < 2:
+                raise ValueError(f"HeightField.to_mesh: window {window_mm} holds fewer than "
+                                 f"2 x 2 cell centres")
+            xs, ys = x[ci], y[cj]
+            zp = self._h[cj[0]:cj[-1] + 1, ci[0]:ci[-1] + 1]
+            closed = False
+        else:
+            xs = np.concatenate([[0.0], x, [self.size_mm[0]]])
+            ys = np.concatenate([[0.0], y, [self.size_mm[1]]])
+            zp = np.pad(self._h, 1, mode="edge")
         gx, gy = np.meshgrid(xs, ys)
         verts = np.column_stack([gx.ravel(), gy.ravel(), zp.ravel()])
-        W = nx + 2
-        jj, ii = np.meshgrid(np.arange(ny + 1), np.arange(nx + 1), indexing="ij")
+        H, W = zp.shape
+        jj, ii = np.meshgrid(np.arange(H - 1), np.arange(W - 1), indexing="ij")
         a = (jj * W + ii).ravel()
         b, d, e = a + 1, a + W, a + W + 1
         faces = np.concatenate([np.column_stack([a, b, e]), np.column_stack([a, e, d])])
         if closed:
-            verts, faces = _close_solid(verts, faces, ny + 2, W, -self.thickness_mm)
+            verts, faces = _close_solid(verts, faces, H, W, -self.thickness_mm)
         return trimesh.Trimesh(vertices=verts, faces=faces, process=False)
 
 
