@@ -7,12 +7,18 @@ azimuths. Prints the median rays per second over several repeats (serial and par
 
 from __future__ import annotations
 
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
-from twin import heightfield_kernels as K
-from twin.heightfield import HeightField
+# run as a script, this folder would come first on sys.path and benchmarks/twin.py would shadow
+# the twin package
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).parent.resolve()]
+
+from twin import heightfield_kernels as K  # noqa: E402
+from twin.heightfield import HeightField  # noqa: E402
 
 
 def build_field() -> HeightField:
