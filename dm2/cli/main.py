@@ -5,6 +5,7 @@ from dm2.cli.common import app
 # Each command module registers itself on ``app`` when imported (one line per module).
 COMMAND_MODULES = [
     "cmd_simulate",
+    "cmd_toolpath",
 ]
 
 for _name in COMMAND_MODULES:

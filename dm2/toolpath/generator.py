@@ -18,7 +18,8 @@ Strategies: ``single`` = infill then one contour per layer. ``double`` = infill 
 infill of layer k+1 (the reverse pass, starting where the first ended, same raster direction),
 then the contours of both layers' outlines, labelled layer k+1 (they come after its infill).
 
-Corners of every spraying chain are rounded with arcs of radius ``zone_mm``; spraying moves
+Corners of every spraying chain are rounded like a robot zone of ``zone_mm`` (the arc leaves
+the path ``zone_mm`` before the corner and rejoins it ``zone_mm`` after); spraying moves
 are split so no move is longer than the line spacing. The point ``i`` carries the kind, speed
 and spray state of the move *into* it; a skip's arrival point already carries the axis of the
 stroke it leads into.

@@ -13,6 +13,7 @@ CLIP_INSET_MM = 0.05  # line ends stay this far inside the region, so short link
 # neighbouring ends stay inside it too (also along gently curved or slightly tilted edges)
 COVER_SLACK = 0.05  # fraction of a spacing the raster may leave uncovered at each side
 MIN_PIECE_MM = 0.05  # raster pieces shorter than this (grazing a corner) are dropped
+MIN_SLIVER_LENGTH = 2.0  # uncovered strips longer than this many spacings get an extra line
 
 
 def raster_segments(region, angle_rad: float, spacing_mm: float) -> tuple[np.ndarray, np.ndarray]:
@@ -48,7 +49,10 @@ def raster_segments(region, angle_rad: float, spacing_mm: float) -> tuple[np.nda
     ends = offsets[:, None] * across + a1 * direction
     lines = shapely.linestrings(np.stack([starts, ends], axis=1))
     clipped = shapely.intersection(lines, clip)
+    clipped, index_extra = _fill_slivers(clipped, clip, direction, across, offsets, spacing_mm,
+                                         (a0, a1))
     parts, index = shapely.get_parts(clipped, return_index=True)
+    index = index_extra[index]
     keep = shapely.get_type_id(parts) == 1  # LineString pieces only (drop touching points)
     parts, index = parts[keep], index[keep]
     if len(parts) == 0:
@@ -63,3 +67,32 @@ def raster_segments(region, angle_rad: float, spacing_mm: float) -> tuple[np.nda
     segs[flip] = segs[flip][:, ::-1]
     order = np.lexsort(((segs[:, 0] @ direction), index))
     return segs[order], index[order].astype(np.int64)
+
+
+def _fill_slivers(clipped, clip, direction, across, offsets, spacing_mm, along_range):
+    """Add raster lines through long uncovered strips (edges parallel to the raster).
+
+    Where an outline edge runs parallel to the raster between two lines, buffering the lines
+    by half a spacing leaves a strip uncovered; a line along the middle of each such strip
+    (clipped to the region near it) closes it. Returns the clipped geometries and, for each,
+    the index of the nearest regular raster line.
+    """
+    index = np.arange(len(clipped))
+    covered = shapely.union_all(shapely.buffer(clipped, spacing_mm / 2, quad_segs=4))
+    missing = clip.difference(covered)
+    extra, extra_index = [], []
+    for piece in shapely.get_parts(missing):
+        if piece.area < 0.25 * spacing_mm ** 2:
+            continue
+        c = shapely.get_coordinates(piece)
+        if np.ptp(c @ direction) < MIN_SLIVER_LENGTH * spacing_mm:
+            continue
+        off = (np.max(c @ across) + np.min(c @ across)) / 2
+        line = shapely.linestrings([off * across + along_range[0] * direction,
+                                    off * across + along_range[1] * direction])
+        extra.append(shapely.intersection(line, clip.intersection(piece.buffer(spacing_mm / 2))))
+        extra_index.append(int(np.argmin(np.abs(offsets - off))))
+    if not extra:
+        return clipped, index
+    return np.concatenate([clipped, np.asarray(extra, dtype=object)]), \
+        np.concatenate([index, extra_index])

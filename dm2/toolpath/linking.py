@@ -44,14 +44,9 @@ class Region:
         b = np.asarray(b, dtype=np.float64)
         if np.linalg.norm(b - a) < 1e-9 or self.contains_line(a, b) or not self.rings:
             return b[None]
-        line = LineString([a, b])
-        pa = Point(a)
-        order = np.argsort([r.distance(pa) for r in self.rings])
-        for i in order:
-            ring = self.rings[i]
-            if ring.intersects(line):
-                return drop_repeats(np.vstack([_walk_ring(self._loops[i], ring, a, b), b]))
-        return b[None]
+        outside = LineString([a, b]).difference(self._tol)
+        i = int(np.argmin([r.distance(outside) for r in self.rings]))
+        return drop_repeats(np.vstack([_walk_ring(self._loops[i], self.rings[i], a, b), b]))
 
 
 def _walk_ring(loop: np.ndarray, ring, a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -153,7 +148,10 @@ class PathBuilder:
         if self.pos_xy is None:
             self._append(target_xy[None], z_mm, axis_at_target, kind_if_first, layer)
             return
+        if np.linalg.norm(target_xy - self.pos_xy) < 1e-9:
+            return
         route = region.route(self.pos_xy, target_xy)
+        route = route[np.cumsum(np.linalg.norm(route - self.pos_xy, axis=1) > 1e-9) > 0]
         if len(route) > 1:
             self._append(route[:-1], z_mm, DOWN_O, KIND_CODE["skip"], layer)
         self._append(route[-1:], z_mm, axis_at_target, KIND_CODE["skip"], layer)

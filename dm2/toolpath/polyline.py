@@ -33,8 +33,11 @@ def fillet(xy: np.ndarray, radius_mm: float, arc_step_rad: float = ARC_STEP_RAD,
            ) -> tuple[np.ndarray, np.ndarray]:
     """Round every interior corner of an open polyline with a tangent arc.
 
-    The tangent length at a corner is limited to half of each adjacent segment so that
-    neighbouring arcs never overlap (the arc radius shrinks there). End points are kept.
+    As with a robot's zone, the corner path leaves the polyline ``radius_mm`` before the
+    corner and rejoins it ``radius_mm`` after it (a 90 degree corner gets an arc of exactly
+    that radius; sharper corners a tighter arc, gentler ones a wider arc). The distance is
+    limited to half of each adjacent segment so that neighbouring arcs never overlap. End
+    points are kept.
 
     Parameters
     ----------
@@ -59,7 +62,7 @@ def fillet(xy: np.ndarray, radius_mm: float, arc_step_rad: float = ARC_STEP_RAD,
     half = np.zeros(n)
     half[1:-1] = np.minimum(seg_len[:-1], seg_len[1:]) / 2
     tan_half = np.tan(np.minimum(np.abs(theta), np.pi - 1e-6) / 2)
-    t = np.where(turn, np.minimum(radius_mm * tan_half, half), 0.0)
+    t = np.where(turn, np.minimum(radius_mm, half), 0.0)
     r_eff = np.where(turn, t / np.where(turn, tan_half, 1.0), 0.0)
     u_in = np.zeros((n, 2))
     u_in[1:] = u
