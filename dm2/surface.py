@@ -1,0 +1,220 @@
+"""Surface extraction from the sparse TSDF: incremental marching cubes, per-vertex weight.
+
+The field is cut into chunks of ``CHUNK_BLOCKS**3`` blocks. Each chunk is gathered into a dense
+sub-volume with a one-voxel apron on its upper faces and triangulated with
+``skimage.measure.marching_cubes``, only in cubes whose eight corners were observed with weight
+``>= min_weight``. Chunk meshes are cached; an update re-meshes only the chunks whose blocks
+(or apron) were touched since the last extraction. Vertices shared by neighbouring chunks are merged
+when the chunks are assembled.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.ndimage import map_coordinates
+
+from dm2.messages import MessageError
+from dm2.tsdf import SparseTSDF
+from dm2.tsdf_kernels import BLOCK
+
+CHUNK_BLOCKS = 4
+
+
+@dataclass(frozen=True)
+class SurfaceMesh:
+    """A reconstructed surface in the work-object frame.
+
+    Attributes
+    ----------
+    vertices_O : (n, 3) float64 [mm]
+    faces : (m, 3) int64, vertex indices, counter-clockwise seen from outside
+    weight : (n,) float32, fused TSDF weight at each vertex (confidence)
+    normals_O : (n, 3) float64, unit outward normals (pointing into observed free space)
+    """
+
+    vertices_O: np.ndarray
+    faces: np.ndarray
+    weight: np.ndarray
+    normals_O: np.ndarray
+
+    def __post_init__(self):
+        v = np.ascontiguousarray(self.vertices_O, dtype=np.float64).reshape(-1, 3)
+        n = v.shape[0]
+        f = np.ascontiguousarray(self.faces, dtype=np.int64).reshape(-1, 3)
+        w = np.ascontiguousarray(self.weight, dtype=np.float32)
+        nrm = np.ascontiguousarray(self.normals_O, dtype=np.float64).reshape(-1, 3)
+        if w.shape != (n,) or nrm.shape != (n, 3):
+            raise MessageError(f"SurfaceMesh: weight {w.shape} / normals {nrm.shape} do not "
+                               f"match {n} vertices")
+        if f.size and (f.min() < 0 or f.max() >= n):
+            raise MessageError("SurfaceMesh.faces: vertex index out of range")
+        if not np.all(np.isfinite(v)):
+            raise MessageError("SurfaceMesh.vertices_O: contains NaN or infinite values")
+        for name, arr in (("vertices_O", v), ("faces", f), ("weight", w), ("normals_O", nrm)):
+            arr.setflags(write=False)
+            object.__setattr__(self, name, arr)
+
+    @classmethod
+    def empty(cls) -> SurfaceMesh:
+        return cls(np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros(0, np.float32),
+                   np.zeros((0, 3)))
+
+    @property
+    def n_vertices(self) -> int:
+        return int(self.vertices_O.shape[0])
+
+    @property
+    def n_faces(self) -> int:
+        return int(self.faces.shape[0])
+
+    def area_mm2(self) -> float:
+        if not self.n_faces:
+            return 0.0
+        a, b, c = (self.vertices_O[self.faces[:, k]] for k in range(3))
+        return float(0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1).sum())
+
+    def to_trimesh(self):
+        import trimesh
+
+        return trimesh.Trimesh(vertices=self.vertices_O, faces=self.faces,
+                               vertex_normals=self.normals_O, process=False)
+
+    def to_open3d(self):
+        import open3d as o3d
+
+        m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(self.vertices_O),
+                                      o3d.utility.Vector3iVector(self.faces.astype(np.int32)))
+        m.vertex_normals = o3d.utility.Vector3dVector(self.normals_O)
+        return m
+
+    def write_ply(self, path: str | Path) -> None:
+        """Binary little-endian PLY with normals and a ``scalar_weight`` vertex property."""
+        path = Path(path)
+        n, m = self.n_vertices, self.n_faces
+        header = (
+            "ply\nformat binary_little_endian 1.0\ncomment frame O, units mm\n"
+            f"element vertex {n}\nproperty double x\nproperty double y\nproperty double z\n"
+            "property double nx\nproperty double ny\nproperty double nz\n"
+            "property float scalar_weight\n"
+            f"element face {m}\nproperty list uchar int vertex_indices\nend_header\n"
+        )
+        vdt = np.dtype([("p", "<f8", 3), ("n", "<f8", 3), ("w", "<f4")])
+        vert = np.empty(n, dtype=vdt)
+        vert["p"], vert["n"], vert["w"] = self.vertices_O, self.normals_O, self.weight
+        fdt = np.dtype([("k", "u1"), ("i", "<i4", 3)])
+        face = np.empty(m, dtype=fdt)
+        face["k"], face["i"] = 3, self.faces
+        tmp = path.with_name(path.name + ".part")
+        with open(tmp, "wb") as fh:
+            fh.write(header.encode("ascii"))
+            fh.write(vert.tobytes())
+            fh.write(face.tobytes())
+        tmp.replace(path)
+
+
+def read_ply(path: str | Path) -> SurfaceMesh:
+    """Read a PLY written by :meth:`SurfaceMesh.write_ply`."""
+    data = Path(path).read_bytes()
+    end = data.find(b"end_header\n")
+    if end < 0:
+        raise MessageError(f"{path}: not a PLY file (no end_header)")
+    header = data[:end].decode("ascii", "replace").splitlines()
+    counts = {ln.split()[1]: int(ln.split()[2]) for ln in header if ln.startswith("element")}
+    if "scalar_weight" not in " ".join(header):
+        raise MessageError(f"{path}: PLY has no scalar_weight property")
+    n, m = counts.get("vertex", 0), counts.get("face", 0)
+    vdt = np.dtype([("p", "<f8", 3), ("n", "<f8", 3), ("w", "<f4")])
+    fdt = np.dtype([("k", "u1"), ("i", "<i4", 3)])
+    off = end + len(b"end_header\n")
+    vert = np.frombuffer(data, vdt, n, off)
+    face = np.frombuffer(data, fdt, m, off + n * vdt.itemsize)
+    return SurfaceMesh(vert["p"], face["i"].astype(np.int64), vert["w"], vert["n"])
+
+
+class SurfaceExtractor:
+    """Incremental marching cubes over a :class:`SparseTSDF`.
+
+    Parameters
+    ----------
+    tsdf : the field to triangulate
+    min_weight : cubes with any corner weight below this are left open (not observed)
+    """
+
+    def __init__(self, tsdf: SparseTSDF, min_weight: float = 1.0):
+        self.tsdf = tsdf
+        self.min_weight = float(min_weight)
+        self._chunks: dict[tuple[int, int, int], tuple[np.ndarray, ...]] = {}
+
+    def update(self) -> SurfaceMesh:
+        """Re-mesh chunks touched since the last call and return the whole surface."""
+        blocks = self.tsdf.take_touched()
+        if len(blocks):
+            # a block is also the upper apron of the chunks below/behind it
+            chunks = set()
+            base = np.floor_divide(blocks, CHUNK_BLOCKS)
+            at_low = (blocks - base * CHUNK_BLOCKS) == 0
+            for dx in (0, 1):
+                for dy in (0, 1):
+                    for dz in (0, 1):
+                        shift = np.array([dx, dy, dz])
+                        sel = np.all(at_low | (shift == 0), axis=1)
+                        for c in map(tuple, (base[sel] - shift).tolist()):
+                            chunks.add(c)
+            for c in chunks:
+                self._chunks[c] = self._mesh_chunk(np.array(c))
+        return self.assemble()
+
+    def _mesh_chunk(self, chunk: np.ndarray):
+        from skimage.measure import marching_cubes
+
+        n = CHUNK_BLOCKS * BLOCK
+        origin = chunk * n
+        d, w = self.tsdf.dense(origin, (n + 1, n + 1, n + 1))
+        seen = w >= self.min_weight  # skimage meshes a cube only if all 8 corners are masked
+        if not (np.any(d[seen] < 0) and np.any(d[seen] > 0)):
+            return None
+        vox = self.tsdf.voxel_mm
+        try:
+            verts, faces, normals, _ = marching_cubes(d, 0.0, spacing=(vox, vox, vox),
+                                                      gradient_direction="descent", mask=seen,
+                                                      allow_degenerate=False)
+        except (ValueError, RuntimeError):
+            return None  # no zero crossing inside the observed cubes
+        # keep only triangles inside cubes whose eight corners were all observed
+        cube = seen[:-1, :-1, :-1] & seen[1:, :-1, :-1] & seen[:-1, 1:, :-1] & seen[:-1, :-1, 1:] \
+            & seen[1:, 1:, :-1] & seen[1:, :-1, 1:] & seen[:-1, 1:, 1:] & seen[1:, 1:, 1:]
+        centre = verts[faces].mean(axis=1) / vox
+        ijk = np.clip(np.floor(centre).astype(np.int64), 0, n - 1)
+        faces = faces[cube[ijk[:, 0], ijk[:, 1], ijk[:, 2]]]
+        if not len(faces):
+            return None
+        used = np.unique(faces)
+        remap = np.full(len(verts), -1, dtype=np.int64)
+        remap[used] = np.arange(len(used))
+        verts, normals, faces = verts[used], normals[used], remap[faces]
+        wv = map_coordinates(w, (verts / vox).T, order=1, mode="nearest").astype(np.float32)
+        verts_O = verts + (origin + 0.5) * vox  # voxel centres sit at (i + 0.5) * voxel
+        return verts_O, faces.astype(np.int64), wv, -normals.astype(np.float64)  # point outward
+
+    def assemble(self) -> SurfaceMesh:
+        parts = [m for m in self._chunks.values() if m is not None]
+        if not parts:
+            return SurfaceMesh.empty()
+        offs = np.cumsum([0] + [len(p[0]) for p in parts])
+        verts = np.concatenate([p[0] for p in parts])
+        faces = np.concatenate([p[1] + o for p, o in zip(parts, offs[:-1], strict=True)])
+        weight = np.concatenate([p[2] for p in parts])
+        normals = np.concatenate([p[3] for p in parts])
+        # merge vertices duplicated on chunk borders
+        key = np.round(verts / (1e-4 * self.tsdf.voxel_mm)).astype(np.int64)
+        _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+        inverse = inverse.ravel()
+        faces = inverse[faces]
+        keep = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & \
+            (faces[:, 0] != faces[:, 2])
+        nrm = normals[first]
+        nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
+        return SurfaceMesh(verts[first], faces[keep], weight[first], nrm)

@@ -1,0 +1,309 @@
+"""Stream synchronisation: reorder window, pose interpolation at profile stamps, drop counting.
+
+The stream is never trusted to be ordered or complete. Robot states go into a time-sorted pose
+buffer as they arrive; profiles and layer marks wait in a heap ordered by stamp and are released
+in stamp order as soon as the pose buffer reaches past their stamp, or at the latest when the
+newest stamp seen is ``reorder_window_s`` beyond them. Poses are interpolated (SLERP rotation,
+linear translation) between the two robot states that bracket a profile's stamp, only if those
+are at most ``max_pose_gap_s`` apart.
+
+Drop reasons (``StreamSync.dropped``; message counts unless marked as points):
+
+``bad_message``      not a Profile / RobotState / LayerMark
+``unknown_sensor``   profile from a sensor the calibration does not know
+``late_message``     stamp older than the newest stamp seen minus ``reorder_window_s``
+``duplicate_counter`` a profile whose (sensor, counter) was already received
+``duplicate_state``  a robot state with the stamp of one already buffered
+``duplicate_mark``   a layer mark for a layer already marked
+``nan_points``       points (not profiles) flagged valid whose coordinates are not finite
+``empty_profile``    a profile without any valid finite point
+``pose_gap``         a profile whose stamp is not bracketed by poses within ``max_pose_gap_s``
+"""
+
+from __future__ import annotations
+
+import heapq
+import logging
+from collections import Counter
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from dm2.messages import LayerMark, Profile, RobotState
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class SyncedProfile:
+    """A profile with its usable points and the flange pose interpolated at its stamp.
+
+    Attributes
+    ----------
+    profile : the original message
+    xz_S : (k, 2) float64 [mm], valid finite points only
+    T_B_F : (4, 4) float64, flange pose at ``profile.stamp_s``
+    """
+
+    profile: Profile
+    xz_S: np.ndarray
+    T_B_F: np.ndarray
+
+
+class PoseBuffer:
+    """Time-sorted robot flange poses with bracketed SLERP interpolation.
+
+    Parameters
+    ----------
+    horizon_s : float [s], poses older than the newest minus this are pruned
+    """
+
+    def __init__(self, horizon_s: float = 5.0, capacity: int = 4096):
+        self.horizon_s = float(horizon_s)
+        self._t = np.empty(capacity)
+        self._T = np.empty((capacity, 4, 4))
+        self._n = 0
+
+    def __len__(self) -> int:
+        return self._n
+
+    @property
+    def latest_s(self) -> float:
+        return float(self._t[self._n - 1]) if self._n else -np.inf
+
+    @property
+    def stamps_s(self) -> np.ndarray:
+        return self._t[: self._n]
+
+    def add(self, stamp_s: float, T_B_F: np.ndarray) -> bool:
+        """Insert a pose; False when a pose with the same stamp is already buffered."""
+        if self._n + 1 >= len(self._t):
+            self._compact()
+        n = self._n
+        if n and stamp_s <= self._t[n - 1]:
+            i = int(np.searchsorted(self._t[:n], stamp_s))
+            if i < n and self._t[i] == stamp_s:
+                return False
+            self._t[i + 1: n + 1] = self._t[i:n].copy()
+            self._T[i + 1: n + 1] = self._T[i:n].copy()
+        else:
+            i = n
+        self._t[i] = stamp_s
+        self._T[i] = T_B_F
+        self._n = n + 1
+        return True
+
+    def _compact(self) -> None:
+        n = self._n
+        keep = self._t[:n] >= self._t[n - 1] - self.horizon_s
+        k = int(keep.sum())
+        if k + 2 >= len(self._t):  # horizon holds more than capacity: grow
+            self._t = np.concatenate([self._t, np.empty(len(self._t))])
+            self._T = np.concatenate([self._T, np.empty_like(self._T)])
+        first = n - k
+        self._t[:k] = self._t[first:n].copy()
+        self._T[:k] = self._T[first:n].copy()
+        self._n = k
+
+    def covers(self, stamp_s: float) -> bool:
+        return self._n > 0 and self._t[self._n - 1] >= stamp_s
+
+    def poses_at(self, stamps_s: np.ndarray, max_gap_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """Interpolated poses ``(k, 4, 4)`` at ``stamps_s (k,)`` and ``ok (k,) bool`` (False
+        where no two poses at most ``max_gap_s`` apart bracket the stamp)."""
+        q = np.ascontiguousarray(stamps_s, dtype=np.float64).reshape(-1)
+        out = np.empty((q.size, 4, 4))
+        ok = np.zeros(q.size, dtype=np.bool_)
+        _poses_at(self._t, self._T, self._n, q, float(max_gap_s), out, ok)
+        return out, ok
+
+
+@njit(cache=True)
+def _poses_at(t, T, n, q_s, max_gap_s, out, ok):
+    for k in range(q_s.shape[0]):
+        out[k] = np.eye(4)
+        ok[k] = False
+        if n == 0:
+            continue
+        i1 = np.searchsorted(t[:n], q_s[k])
+        if i1 < n and t[i1] == q_s[k]:
+            out[k] = T[i1]
+            ok[k] = True
+        elif 0 < i1 < n and t[i1] - t[i1 - 1] <= max_gap_s:
+            _interp_pose(T, t, i1 - 1, i1, q_s[k], out[k])
+            ok[k] = True
+
+
+@njit(cache=True)
+def _quat_from_matrix(R):
+    """Unit quaternion (w, x, y, z) of a rotation matrix (Shepperd's method)."""
+    tr = R[0, 0] + R[1, 1] + R[2, 2]
+    q = np.empty(4)
+    if tr > 0.0:
+        s = 2.0 * np.sqrt(tr + 1.0)
+        q[0], q[1] = 0.25 * s, (R[2, 1] - R[1, 2]) / s
+        q[2], q[3] = (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s
+    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
+        q[0], q[1] = (R[2, 1] - R[1, 2]) / s, 0.25 * s
+        q[2], q[3] = (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s
+    elif R[1, 1] > R[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
+        q[0], q[1] = (R[0, 2] - R[2, 0]) / s, (R[0, 1] + R[1, 0]) / s
+        q[2], q[3] = 0.25 * s, (R[1, 2] + R[2, 1]) / s
+    else:
+        s = 2.0 * np.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
+        q[0], q[1] = (R[1, 0] - R[0, 1]) / s, (R[0, 2] + R[2, 0]) / s
+        q[2], q[3] = (R[1, 2] + R[2, 1]) / s, 0.25 * s
+    return q / np.sqrt((q * q).sum())
+
+
+@njit(cache=True)
+def _interp_pose(T, t, a, b, q_s, out):
+    """SLERP rotation and lerp translation between poses ``T[a]`` and ``T[b]`` at ``q_s``."""
+    alpha = (q_s - t[a]) / (t[b] - t[a])
+    q0 = _quat_from_matrix(T[a, :3, :3])
+    q1 = _quat_from_matrix(T[b, :3, :3])
+    dot = (q0 * q1).sum()
+    if dot < 0.0:
+        q1, dot = -q1, -dot
+    if dot > 0.9995:
+        q = q0 + alpha * (q1 - q0)
+    else:
+        th = np.arccos(min(dot, 1.0))
+        q = (np.sin((1.0 - alpha) * th) * q0 + np.sin(alpha * th) * q1) / np.sin(th)
+    w, x, y, z = q / np.sqrt((q * q).sum())
+    out[0, 0], out[0, 1], out[0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - z * w), \
+        2 * (x * z + y * w)
+    out[1, 0], out[1, 1], out[1, 2] = 2 * (x * y + z * w), 1 - 2 * (x * x + z * z), \
+        2 * (y * z - x * w)
+    out[2, 0], out[2, 1], out[2, 2] = 2 * (x * z - y * w), 2 * (y * z + x * w), \
+        1 - 2 * (x * x + y * y)
+    for j in range(3):
+        out[j, 3] = (1.0 - alpha) * T[a, j, 3] + alpha * T[b, j, 3]
+    out[3, :3] = 0.0
+    out[3, 3] = 1.0
+
+
+class StreamSync:
+    """Reorders a message stream and attaches interpolated poses to profiles.
+
+    Parameters
+    ----------
+    sensor_ids : sensors the calibration knows
+    max_pose_gap_s : float [s], largest robot-state gap to interpolate across
+    reorder_window_s : float [s], how late a message may arrive and still be used
+    """
+
+    def __init__(self, sensor_ids, max_pose_gap_s: float = 0.05, reorder_window_s: float = 0.5):
+        self.sensor_ids = frozenset(sensor_ids)
+        self.max_pose_gap_s = float(max_pose_gap_s)
+        self.reorder_window_s = float(reorder_window_s)
+        self.poses = PoseBuffer(horizon_s=max(2.0, 4 * (reorder_window_s + max_pose_gap_s)))
+        self.dropped: Counter = Counter()
+        self.watermark_s = -np.inf
+        self._heap: list = []
+        self._tie = 0
+        self._seen_counters: dict[str, dict[int, float]] = {s: {} for s in self.sensor_ids}
+        self._marked_layers: set[int] = set()
+
+    def push(self, msg) -> list:
+        """Take one message; return what became ready: ``SyncedProfile`` and ``LayerMark``
+        items in stamp order."""
+        if isinstance(msg, RobotState):
+            if msg.stamp_s < self.watermark_s - self.reorder_window_s:
+                self.dropped["late_message"] += 1
+                return []
+            if not self.poses.add(msg.stamp_s, msg.T_B_F):
+                self.dropped["duplicate_state"] += 1
+                return []
+            self._advance(msg.stamp_s)
+            return self._release(final=False)
+        if isinstance(msg, Profile):
+            if not self._accept_profile(msg):
+                return []
+        elif isinstance(msg, LayerMark):
+            if msg.stamp_s < self.watermark_s - self.reorder_window_s:
+                self.dropped["late_message"] += 1
+                return []
+            if msg.layer in self._marked_layers:
+                self.dropped["duplicate_mark"] += 1
+                return []
+            self._marked_layers.add(msg.layer)
+        else:
+            self.dropped["bad_message"] += 1
+            log.debug("StreamSync: ignoring %s", type(msg).__name__)
+            return []
+        heapq.heappush(self._heap, (msg.stamp_s, self._tie, msg))
+        self._tie += 1
+        self._advance(msg.stamp_s)
+        return self._release(final=False)
+
+    def flush(self) -> list:
+        """Release everything still waiting (end of stream)."""
+        return self._release(final=True)
+
+    @property
+    def pending(self) -> int:
+        return len(self._heap)
+
+    def _advance(self, stamp_s: float) -> None:
+        if stamp_s > self.watermark_s:
+            self.watermark_s = stamp_s
+
+    def _accept_profile(self, p: Profile) -> bool:
+        if p.sensor_id not in self.sensor_ids:
+            self.dropped["unknown_sensor"] += 1
+            return False
+        if p.stamp_s < self.watermark_s - self.reorder_window_s:
+            self.dropped["late_message"] += 1
+            return False
+        seen = self._seen_counters[p.sensor_id]
+        if p.counter in seen:
+            self.dropped["duplicate_counter"] += 1
+            return False
+        seen[p.counter] = p.stamp_s
+        if len(seen) > 4096:  # forget counters far outside the window (24-bit counters wrap)
+            horizon = self.watermark_s - 10 * (self.reorder_window_s + 1.0)
+            for c in [c for c, t in seen.items() if t < horizon]:
+                del seen[c]
+        return True
+
+    def _release(self, final: bool) -> list:
+        popped = []
+        limit = self.watermark_s - self.reorder_window_s
+        heap = self._heap
+        while heap:
+            stamp = heap[0][0]
+            if not (final or stamp <= limit or self.poses.covers(stamp)):
+                break
+            popped.append(heapq.heappop(heap)[2])
+        if not popped:
+            return popped
+        profiles = [m for m in popped if isinstance(m, Profile)]
+        if not profiles:
+            return popped
+        T, ok = self.poses.poses_at(np.array([p.stamp_s for p in profiles]), self.max_pose_gap_s)
+        synced = iter(self._synced(p, T[k], ok[k]) for k, p in enumerate(profiles))
+        ready = []
+        for m in popped:
+            item = m if isinstance(m, LayerMark) else next(synced)
+            if item is not None:
+                ready.append(item)
+        return ready
+
+    def _synced(self, p: Profile, T_B_F: np.ndarray, pose_ok: bool) -> SyncedProfile | None:
+        valid = p.valid
+        finite = np.isfinite(p.xz_S).all(axis=1)
+        n_nan = int(np.count_nonzero(valid & ~finite))
+        if n_nan:
+            self.dropped["nan_points"] += n_nan
+        use = valid & finite
+        if not use.any():
+            self.dropped["empty_profile"] += 1
+            return None
+        if not pose_ok:
+            self.dropped["pose_gap"] += 1
+            return None
+        return SyncedProfile(p, p.xz_S[use], T_B_F)
