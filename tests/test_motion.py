@@ -121,23 +121,25 @@ def test_reversal_residence_exceeds_straight_pass_by_model_prediction(cell, zone
     s1 = 80.0  # arc length at the first corner
     t_in, t_out = np.interp([s1 - margin, s1 + step + margin], em.arc_mm, em.t_s)
     window = 2 * margin + step
-    # Model: each 90 deg corner is a zone of half-width d = min(zone, step/2) crossed at
-    # v_c = sqrt(a * d / tan(45 deg)); braking into the first and accelerating out of the
-    # last zone each cost (V - v_c)^2 / (2 a V); the straight rest of the step between the
-    # zones (length l) is a trapezoid or triangle starting and ending at v_c.
+    # Model: each 90 deg corner is blended with d = min(zone, step/2), radius R = d / tan(45)
+    # and v_c = sqrt(a R), held over the arc length R * pi / 2 centred on the vertex; braking
+    # into the first and accelerating out of the last slow stretch each cost
+    # (V - v_c)^2 / (2 a V); the straight rest of the step between the slow stretches
+    # (length l) is a trapezoid or triangle starting and ending at v_c.
     d = min(zone, step / 2)
     vc = np.sqrt(ACCEL * d)
+    h = d * np.pi / 4  # half the blend arc
     extra = 2 * (V - vc) ** 2 / (2 * ACCEL * V)
     if d > 0:
-        extra += 4 * d * (1 / vc - 1 / V)
-    ell = step - 2 * d
+        extra += 4 * h * (1 / vc - 1 / V)
+    ell = step - 2 * h
     if ell > 0:
         vp = min(V, np.sqrt(ACCEL * ell + vc * vc))
         t_mid = 2 * (vp - vc) / ACCEL + (ell - (vp * vp - vc * vc) / ACCEL) / vp
         extra += t_mid - ell / V
     assert t_out - t_in - window / V == pytest.approx(extra, rel=1e-6, abs=1e-9)
     assert extra > 0.03  # measurably longer than a straight pass
-    slow = (np.abs(em.arc_mm - s1) < d - 1e-6) | (np.abs(em.arc_mm - s1 - step) < d - 1e-6)
+    slow = (np.abs(em.arc_mm - s1) < h - 1e-6) | (np.abs(em.arc_mm - s1 - step) < h - 1e-6)
     if d > 0:
         np.testing.assert_allclose(em.speed_mm_s[slow], vc, rtol=1e-9)
 

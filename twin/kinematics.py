@@ -57,22 +57,23 @@ def _fk(q, out):
     z = g[1] + g[2] * math.cos(q[1]) - g[4] * math.sin(phi) + g[3] * math.cos(phi)
     # R03 = Rz(q1) Ry(phi); R36 = Rx(q4) Ry(q5) Rx(q6); flange = R06 Ry(90 deg).
     cp, sp = math.cos(phi), math.sin(phi)
-    R03 = np.array([[c1 * cp, -s1, c1 * sp], [s1 * cp, c1, s1 * sp], [-sp, 0.0, cp]])
     ca, sa = math.cos(q[3]), math.sin(q[3])
     cb, sb = math.cos(q[4]), math.sin(q[4])
     cc, sc = math.cos(q[5]), math.sin(q[5])
-    R36 = np.array([[cb, sb * sc, sb * cc],
-                    [sa * sb, ca * cc - sa * cb * sc, -ca * sc - sa * cb * cc],
-                    [-ca * sb, sa * cc + ca * cb * sc, -sa * sc + ca * cb * cc]])
-    R06 = R03 @ R36
-    # Ry(+90 deg): columns x -> -z, z -> +x.
+    # R36 columns 0..2 (rows a, b, c), R03 = [[c1 cp, -s1, c1 sp], [s1 cp, c1, s1 sp],
+    # [-sp, 0, cp]]; flange = R06 Ry(90 deg): x_F = -col2, y_F = col1, z_F = col0.
+    m00, m10, m20 = cb, sa * sb, -ca * sb
+    m01, m11, m21 = sb * sc, ca * cc - sa * cb * sc, sa * cc + ca * cb * sc
+    m02, m12, m22 = sb * cc, -ca * sc - sa * cb * cc, -sa * sc + ca * cb * cc
+    for col, (x0, x1, x2), sign in ((2, (m00, m10, m20), 1.0), (1, (m01, m11, m21), 1.0),
+                                    (0, (m02, m12, m22), -1.0)):
+        out[0, col] = sign * (c1 * cp * x0 - s1 * x1 + c1 * sp * x2)
+        out[1, col] = sign * (s1 * cp * x0 + c1 * x1 + s1 * sp * x2)
+        out[2, col] = sign * (-sp * x0 + cp * x2)
+    out[0, 3] = r * c1 + g[5] * out[0, 2]
+    out[1, 3] = r * s1 + g[5] * out[1, 2]
+    out[2, 3] = z + g[5] * out[2, 2]
     for i in range(3):
-        out[i, 0] = -R06[i, 2]
-        out[i, 1] = R06[i, 1]
-        out[i, 2] = R06[i, 0]
-    wc = np.array([r * c1, r * s1, z])
-    for i in range(3):
-        out[i, 3] = wc[i] + g[5] * out[i, 2]
         out[3, i] = 0.0
     out[3, 3] = 1.0
 
@@ -130,14 +131,18 @@ def _ik_branch(T, branch, seed, out):
     phi = q2 + q3
     c1, s1 = math.cos(q1), math.sin(q1)
     cp, sp = math.cos(phi), math.sin(phi)
-    R03 = np.array([[c1 * cp, -s1, c1 * sp], [s1 * cp, c1, s1 * sp], [-sp, 0.0, cp]])
-    # R06 = R_B_F Ry(90)^T: columns (z_F, y_F, -x_F).
-    R06 = np.empty((3, 3))
-    for i in range(3):
-        R06[i, 0] = T[i, 2]
-        R06[i, 1] = T[i, 1]
-        R06[i, 2] = -T[i, 0]
-    M = R03.T @ R06
+    # M = R03^T R06 with R06 columns (z_F, y_F, -x_F); R03 rows as in _fk.
+    M = np.empty((3, 3))
+    for col in range(3):
+        if col == 0:
+            x0, x1, x2 = T[0, 2], T[1, 2], T[2, 2]
+        elif col == 1:
+            x0, x1, x2 = T[0, 1], T[1, 1], T[2, 1]
+        else:
+            x0, x1, x2 = -T[0, 0], -T[1, 0], -T[2, 0]
+        M[0, col] = c1 * cp * x0 + s1 * cp * x1 - sp * x2
+        M[1, col] = -s1 * x0 + c1 * x1
+        M[2, col] = c1 * sp * x0 + s1 * sp * x1 + cp * x2
     sb = math.sqrt(M[1, 0] * M[1, 0] + M[2, 0] * M[2, 0])
     sgn = -1.0 if branch & 4 else 1.0
     q5 = math.atan2(sgn * sb, M[0, 0])

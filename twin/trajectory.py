@@ -10,8 +10,10 @@ corners are already rounded). The controller's model:
   zone radius ``z`` is blended by an arc tangent to both segments at distance
   ``d = min(z, L_in / 2, L_out / 2)`` from the vertex, of radius ``R = d / tan(theta / 2)``.
   The speed through the vertex is limited by the path acceleration acting centripetally:
-  ``v_corner = sqrt(accel * R)``. Zone 0 (a fine point), a reversal, the path ends, a
-  requested dwell and a pure reorientation all stop the motion (``v = 0``).
+  ``v_corner = sqrt(accel * R)``, and it is held over the length of the blend arc,
+  ``R * theta``, centred on the vertex (the target itself stays on the polyline, so it passes
+  every vertex exactly). Zone 0 (a fine point), a reversal, the path ends, a requested dwell
+  and a pure reorientation all stop the motion (``v = 0``).
 - **Look-ahead.** A backward then a forward pass caps every vertex speed so that it can be
   reached from, and braked to, its neighbours with ``|a| <= accel``.
 - **Segments** are trapezoids (or triangles) between their end speeds: accelerate at
@@ -29,6 +31,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 _EPS_MM = 1e-9
 _EPS_RAD = 1e-9
@@ -142,8 +145,13 @@ def plan_path(position_O: np.ndarray, axis_O: np.ndarray, speed_mm_s: np.ndarray
         turn = _angles(u[:-1], u[1:])
         zone = np.asarray(zone_mm, float)[idx][1:-1]
         vcorner[1:-1] = corner_speed_limit(turn, zone, L[1:-1], L[2:], a)
-        dzone[1:-1] = np.where(np.isfinite(vcorner[1:-1]),
-                               np.minimum(zone, np.minimum(L[1:-1], L[2:]) / 2.0), 0.0)
+        # the blend arc (radius R, turn theta) is R * theta long: cross that at v_corner,
+        # centred on the vertex (never longer than the 2 d of polyline it replaces)
+        d = np.minimum(zone, np.minimum(L[1:-1], L[2:]) / 2.0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            half_arc = 0.5 * turn * d / np.tan(turn / 2.0)
+        ok = np.isfinite(vcorner[1:-1]) & (vcorner[1:-1] > 0.0)
+        dzone[1:-1] = np.where(ok, np.minimum(half_arc, d), 0.0)
         stop = ~moving[1:-1] | ~moving[2:]
         vcorner[1:-1][stop] = 0.0
         dzone[1:-1][stop] = 0.0
@@ -179,38 +187,9 @@ def plan_path(position_O: np.ndarray, axis_O: np.ndarray, speed_mm_s: np.ndarray
     kv[0] = kv[-1] = 0.0
     kl = np.r_[0.0, np.diff(ks)]
     kv = _look_ahead(kv, kl, a)
-    # Phases.
-    t = 0.0
-    arrive = np.zeros(k)
-    depart = np.zeros(k)
-    ph = []  # (t0, seg, s0, v0, acc, kind, T)
-    for j in range(ks.size):
-        i = kvert[j]
-        if j > 0 and kl[j] > _EPS_MM:
-            v0, v1, vc, Lj = kv[j - 1], kv[j], cap[j], kl[j]
-            vp = max(min(vc, np.sqrt(a * Lj + 0.5 * (v0 * v0 + v1 * v1))), v0, v1)
-            ta, tdec = (vp - v0) / a, (vp - v1) / a
-            da, dd = (vp * vp - v0 * v0) / (2 * a), (vp * vp - v1 * v1) / (2 * a)
-            tc = max(Lj - da - dd, 0.0) / vp
-            for T, v_start, acc, s0 in ((ta, v0, a, ks[j - 1]), (tc, vp, 0.0, ks[j - 1] + da),
-                                        (tdec, vp, -a, ks[j] - dd)):
-                if T > 0.0:
-                    ph.append((t, owner[j], s0, v_start, acc, 0, T))
-                    t += T
-        if i < 0:
-            continue
-        if i > 0 and not moving[i]:
-            T = 1.5 * ang[i] / max_reorient_rad_s
-            ph.append((t, i, ks[j], 0.0, 0.0, 2, T))
-            t += T
-        arrive[i] = t
-        if dwell_k[i] > 0:
-            ph.append((t, i, ks[j], 0.0, 0.0, 1, dwell_k[i]))
-            t += dwell_k[i]
-        depart[i] = t
-    if not ph:
-        ph.append((0.0, 0, 0.0, 0.0, 0.0, 1, 0.0))
-    arr = np.array(ph, dtype=np.float64)
+    ph, arrive, depart, t = _phases(ks, kv, kvert, kl, cap, owner, moving, ang, dwell_k, a,
+                                    float(max_reorient_rad_s))
+    arr = ph
     return PathTiming(
         vertex_index=idx, group_last=group_last, position_O=P, axis_O=A, seg_len_mm=L,
         seg_angle_rad=ang, arc_mm=arc, v_vertex=kv[kvert >= 0], arrive_s=arrive, depart_s=depart,
@@ -219,6 +198,53 @@ def plan_path(position_O: np.ndarray, axis_O: np.ndarray, speed_mm_s: np.ndarray
         phase_T=arr[:, 6], duration_s=float(t))
 
 
+@njit(cache=True)
+def _phases(ks, kv, kvert, kl, cap, owner, moving, ang, dwell_k, a, max_reorient):
+    """Trapezoid phases between knots, reorientations and dwells, in time order.
+
+    Returns (phases (p, 7): t0, seg, s0, v0, acc, kind, T; arrive (k,); depart (k,); end time).
+    """
+    k = moving.size
+    ph = np.zeros((3 * ks.size + 2 * k + 1, 7))
+    arrive = np.zeros(k)
+    depart = np.zeros(k)
+    n = 0
+    t = 0.0
+    for j in range(ks.size):
+        i = kvert[j]
+        if j > 0 and kl[j] > _EPS_MM:
+            v0, v1, vc, Lj = kv[j - 1], kv[j], cap[j], kl[j]
+            vp = max(min(vc, math.sqrt(a * Lj + 0.5 * (v0 * v0 + v1 * v1))), v0, v1)
+            ta, tdec = (vp - v0) / a, (vp - v1) / a
+            da, dd = (vp * vp - v0 * v0) / (2 * a), (vp * vp - v1 * v1) / (2 * a)
+            tc = max(Lj - da - dd, 0.0) / vp
+            for T, v_start, acc, s0 in ((ta, v0, a, ks[j - 1]), (tc, vp, 0.0, ks[j - 1] + da),
+                                        (tdec, vp, -a, ks[j] - dd)):
+                if T > 0.0:
+                    ph[n, 0], ph[n, 1], ph[n, 2], ph[n, 3] = t, owner[j], s0, v_start
+                    ph[n, 4], ph[n, 5], ph[n, 6] = acc, 0.0, T
+                    n += 1
+                    t += T
+        if i < 0:
+            continue
+        if i > 0 and not moving[i]:
+            T = 1.5 * ang[i] / max_reorient
+            ph[n, 0], ph[n, 1], ph[n, 2], ph[n, 5], ph[n, 6] = t, i, ks[j], 2.0, T
+            n += 1
+            t += T
+        arrive[i] = t
+        if dwell_k[i] > 0:
+            ph[n, 0], ph[n, 1], ph[n, 2], ph[n, 5], ph[n, 6] = t, i, ks[j], 1.0, dwell_k[i]
+            n += 1
+            t += dwell_k[i]
+        depart[i] = t
+    if n == 0:
+        n = 1  # a single point: one empty dwell phase
+        ph[0, 5] = 1.0
+    return ph[:n], arrive, depart, t
+
+
+@njit(cache=True)
 def _look_ahead(v: np.ndarray, L: np.ndarray, a: float) -> np.ndarray:
     """Cap knot speeds ``v`` so each is reachable from and brakeable to its neighbours."""
     v = v.copy()
