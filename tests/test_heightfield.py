@@ -20,16 +20,24 @@ def _plane_field(a=0.1, b=0.05, c=1.0):
 def test_raycast_hits_slope_exactly():
     hf = _plane_field()
     rng = np.random.default_rng(0)
-    n = 3000
+    n = 20000  # large enough for the parallel kernel
     xy = np.column_stack([rng.uniform(1, 39, n), rng.uniform(1, 29, n)])
     p = np.column_stack([xy, 0.1 * xy[:, 0] + 0.05 * xy[:, 1] + 1.0])
     d = rng.normal(size=(n, 3))
     d[:, 2] = -np.abs(d[:, 2]) - 0.3
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     t_true = rng.uniform(5, 80, n)
-    t = hf.raycast(p - d * t_true[:, None], d)
+    o = p - d * t_true[:, None]
+    t = hf.raycast(o, d)
     assert np.all(np.isfinite(t))
-    assert np.max(np.abs(t - t_true)) < 1e-6
+    early = np.abs(t - t_true) >= 1e-6
+    # the only other hits allowed: entering the plate's side face under the surface first
+    hit = o[early] + d[early] * t[early, None]
+    on_side = np.isclose(hit[:, 0], 0) | np.isclose(hit[:, 0], 40) | \
+        np.isclose(hit[:, 1], 0) | np.isclose(hit[:, 1], 30)
+    assert np.all(on_side) and np.all(t[early] < t_true[early])
+    assert np.all(hit[:, 2] <= hf.height_at(hit[:, :2]) + 1e-9)
+    assert early.sum() < 5
     # the serial kernel (small batches) agrees with the parallel one
     t_small = hf.raycast(p[:50] - d[:50] * t_true[:50, None], d[:50])
     assert np.max(np.abs(t_small - t_true[:50])) < 1e-6
