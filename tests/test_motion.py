@@ -77,6 +77,7 @@ def test_ik_fk_round_trip_along_whole_toolpath(executed, cell):
                 np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-300), 0, 1)
     assert np.abs(a + u[:, None] * ab - em.position_O).max() < 1e-9
     np.testing.assert_array_equal(em.layer, tp.layer[i])
+    assert np.all(np.diff(em.segment) >= 0) and em.segment[-1] == len(tp) - 1
     assert em.layer[-1] == 1 and em.kind[-1] == 1
     # joints move continuously on one branch (axis 5 keeps its sign)
     assert np.all(np.sign(em.joints_rad[:, 4]) == np.sign(cell.home_joints_rad[4]))
