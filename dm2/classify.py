@@ -5,7 +5,7 @@ metric is the curvature-weighted signed distance, normalised to be dimensionless
 
     lambda = (d / delta_G) * min(1, |H| * LOCAL_CURVATURE_RADIUS_MM)
 
-with ``H`` the discrete mean curvature (cotangent Laplacian, smoothed over the 1-ring). A flat
+with ``H`` the discrete mean curvature (cotangent Laplacian, smoothed through the faces). A flat
 offset (``H ~ 0``) is not a local defect however thick; a curved feature (radius of curvature up
 to ``LOCAL_CURVATURE_RADIUS_MM``) counts with its full normalised deviation. ``lambda > delta_L``
 is local overbuild, ``lambda < -delta_L`` local underbuild. Vertices whose fusion weight is below
@@ -17,7 +17,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import sparse
 
 NORMAL, OVERBUILD, UNDERBUILD, LOCAL_OVERBUILD, LOCAL_UNDERBUILD, UNOBSERVED = range(6)
 CLASS_NAMES = ("normal", "overbuild", "underbuild", "local_overbuild", "local_underbuild",
@@ -43,23 +42,36 @@ class VertexClasses:
     mean_curvature: np.ndarray
 
 
-def vertex_adjacency(n: int, faces: np.ndarray) -> sparse.csr_matrix:
-    """Symmetric (n, n) 0/1 vertex adjacency of a triangle mesh."""
-    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    a = sparse.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)).tocsr()
-    a = ((a + a.T) > 0).astype(np.float64)
-    return a
+def _accumulate(n: int, faces: np.ndarray, per_corner: list) -> np.ndarray:
+    """Sum (m, 3) vectors given per face corner into (n, 3) per-vertex sums."""
+    idx = faces.T.ravel()
+    vals = np.concatenate(per_corner)
+    return np.column_stack([np.bincount(idx, vals[:, c], minlength=n) for c in range(3)])
 
 
-def boundary_vertices(n: int, faces: np.ndarray) -> np.ndarray:
-    """(n,) bool, vertices on an edge used by a single triangle."""
-    e = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
-    key = e[:, 0].astype(np.int64) * n + e[:, 1]
-    uniq, count = np.unique(key, return_counts=True)
-    once = uniq[count == 1]
-    out = np.zeros(n, bool)
-    out[once // n] = True
-    out[once % n] = True
+def boundary_vertices(vertices_O: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(n,) bool, vertices on the border of a consistently oriented triangle mesh.
+
+    Around an interior vertex the edges opposite to it close a loop, so their vectors sum to
+    zero; at a border vertex the loop is open.
+    """
+    v = vertices_O
+    n = len(v)
+    opp = [v[faces[:, (k + 2) % 3]] - v[faces[:, (k + 1) % 3]] for k in range(3)]
+    loop = _accumulate(n, faces, opp)
+    scale = np.linalg.norm(v[faces[:, 1]] - v[faces[:, 0]], axis=1).mean()
+    return np.linalg.norm(loop, axis=1) > 1e-6 * scale
+
+
+def smooth_over_faces(values: np.ndarray, faces: np.ndarray, iterations: int) -> np.ndarray:
+    """Average per-vertex ``values`` through the incident faces ``iterations`` times."""
+    n = len(values)
+    count = np.maximum(np.bincount(faces.ravel(), minlength=n), 1)
+    out = values
+    for _ in range(iterations):
+        face_mean = out[faces].mean(axis=1)
+        acc = np.bincount(faces.ravel(), np.repeat(face_mean, 3), minlength=n)
+        out = np.where(count > 0, acc / count, out)
     return out
 
 
@@ -71,42 +83,32 @@ def mean_curvature(vertices_O: np.ndarray, faces: np.ndarray, normals_O=None,
     else against the area-weighted face normals.
     """
     v = np.asarray(vertices_O, dtype=np.float64)
+    faces = np.asarray(faces, dtype=np.int64)
     n = len(v)
     if len(faces) == 0:
         return np.zeros(n)
-    tri = v[faces]
-    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    e = [v[faces[:, (k + 1) % 3]] - v[faces[:, k]] for k in range(3)]  # edge k -> k+1
+    cross = np.cross(e[0], -e[2])
     dbl_area = np.maximum(np.linalg.norm(cross, axis=1), 1e-12)
-    rows, cols, vals = [], [], []
-    for k in range(3):  # corner k: cotangent weights the opposite edge (i, j)
-        i, j = faces[:, (k + 1) % 3], faces[:, (k + 2) % 3]
-        a = v[i] - v[faces[:, k]]
-        b = v[j] - v[faces[:, k]]
-        cot = np.einsum("ij,ij->i", a, b) / dbl_area
-        rows += [i, j]
-        cols += [j, i]
-        vals += [0.5 * cot, 0.5 * cot]
-    w = sparse.coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                          shape=(n, n)).tocsr()
-    lap = w @ v - np.asarray(w.sum(axis=1)).reshape(-1, 1) * v  # sum_j w_ij (v_j - v_i)
+    contrib = [np.zeros((len(faces), 3)) for _ in range(3)]
+    for k in range(3):  # corner k: its cotangent weights the opposite edge (i, j)
+        i, j = (k + 1) % 3, (k + 2) % 3
+        cot = -np.einsum("ij,ij->i", e[k], e[(k + 2) % 3]) / dbl_area  # a.b / |a x b|
+        half = 0.5 * cot[:, None] * e[i]  # e[i] = v_j - v_i
+        contrib[i] += half
+        contrib[j] -= half
+    lap = _accumulate(n, faces, contrib)  # sum_j w_ij (v_j - v_i)
     area = np.bincount(faces.ravel(), np.repeat(dbl_area / 6.0, 3), minlength=n)
     hn = lap / np.maximum(area, 1e-12)[:, None]  # = 2 H n (points into a convex surface)
     if normals_O is None:
-        normals = np.zeros((n, 3))
-        for k in range(3):
-            np.add.at(normals, faces[:, k], cross)
+        normals = _accumulate(n, faces, [cross, cross, cross])
     else:
         normals = np.asarray(normals_O, dtype=np.float64)
     normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
     h = -0.5 * np.einsum("ij,ij->i", hn, normals)
-    h[boundary_vertices(n, faces)] = 0.0
+    h[boundary_vertices(v, faces)] = 0.0
     h[area <= 1e-12] = 0.0
-    if smooth_iterations > 0:
-        adj = vertex_adjacency(n, faces) + sparse.identity(n, format="csr")
-        deg = np.asarray(adj.sum(axis=1)).reshape(-1)
-        for _ in range(smooth_iterations):
-            h = (adj @ h) / deg
-    return h
+    return smooth_over_faces(h, faces, smooth_iterations)
 
 
 def classify_vertices(vertices_O, faces, weight, signed_distance_mm, monitor_cfg,

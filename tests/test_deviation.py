@@ -171,3 +171,18 @@ def test_local_overbuild_inside_tolerance():
     # a flat offset of the same size is not a local defect
     dev = layer_deviation(top_surface(ref_h + 0.35), ReferenceMap(ref_h, CELL, 3), MON)
     assert segment_regions(dev, 1.0) == []
+
+
+def test_mean_curvature_of_a_sphere_and_open_boundary():
+    import trimesh
+
+    from dm2.classify import boundary_vertices, mean_curvature
+
+    s = trimesh.creation.icosphere(4, radius=5.0)
+    h = mean_curvature(s.vertices, s.faces, smooth_iterations=0)
+    assert np.median(h) == pytest.approx(0.2, rel=0.03) and h.min() > 0.19
+    assert not boundary_vertices(s.vertices, s.faces).any()
+    cap = s.submesh([s.vertices[s.faces].mean(axis=1)[:, 2] > 0], append=True)
+    border = boundary_vertices(cap.vertices, cap.faces)
+    assert border.sum() > 0 and np.abs(cap.vertices[border, 2]).max() < 0.25
+    assert np.all(mean_curvature(cap.vertices, cap.faces, smooth_iterations=0)[border] == 0)
