@@ -117,7 +117,7 @@ class Simulation:
         profilers = [VirtualProfiler(sid, cell.T_B_S[sid], sc.sensors, sc.noise, seed=sc.seed)
                      for sid in SENSOR_IDS]
         occluders = [nozzle_occluder(cell.T_B_N, sc.cell)]
-        truth = _TruthWriter(truth_dir, sc, faults) if truth_dir is not None else None
+        truth = _TruthWriter(truth_dir, self) if truth_dir is not None else None
         robot_rng = np.random.default_rng([sc.seed, ROBOT_NOISE_SEED_OFFSET])
         robot_sigma = sc.noise.robot_repeatability_mm
 
@@ -160,9 +160,35 @@ class Simulation:
             self._finish_layer(hf, layer_prev, truth)
         elif layer_prev >= 0 and truth is not None:  # stopped early: truth as it stands
             truth.layer(hf, layer_prev)
-        if truth is not None:
-            truth.finish(self.toolpath)
+        if truth is not None and n:
+            truth.finish(int(motion.segment[n - 1]))
         self.final_heightfield = hf
+
+    def nominal_layer_heights(self, last_segment: int, layers: list[int]) -> dict:
+        """Heights (ny, nx) [mm] after each of ``layers`` of the fault-free run (same seed, no
+        corner dwell), which stops where the faulty run's toolpath move ``last_segment`` ends."""
+        from twin.deposition import SprayModel
+        from twin.heightfield import HeightField
+        from twin.motion import execute_toolpath
+
+        motion = self.motion
+        if any(f.kind == "corner_dwell" for f in self.scenario.faults):
+            motion = execute_toolpath(self.toolpath, self.cell, rate_hz=self.cell.robot_state_hz,
+                                      accel_mm_s2=self.cell.accel_mm_s2)
+        plate = self.scenario.cell.plate_size_mm
+        hf = HeightField(size_mm=(plate[0], plate[1]), cell_mm=HEIGHTFIELD_CELL_MM,
+                         thickness_mm=plate[2])
+        spray = SprayModel(self.scenario.process, seed=self.scenario.seed)
+        n = int(np.searchsorted(motion.segment, last_segment, side="right"))
+        dt = 1.0 / self.cell.robot_state_hz
+        out, wanted = {}, set(layers)
+        for i in range(n):
+            if motion.spray_on[i]:
+                spray.deposit(hf, motion.position_O[i], motion.axis_O[i], dt)
+            layer = int(motion.layer[i])
+            if layer in wanted and (i + 1 == n or int(motion.layer[i + 1]) != layer):
+                out[layer] = hf.heights_mm.copy()
+        return out
 
     def _finish_layer(self, hf, layer: int, truth) -> None:
         self.faults.apply_blobs(hf, layer)
@@ -171,23 +197,29 @@ class Simulation:
 
 
 class _TruthWriter:
-    """Ground truth beside a run: the true top surface after each layer, and the faults."""
+    """Ground truth beside a run: the true top surface after each layer (PLY in O) and
+    ``faults.json``, each fault's effect measured against a fault-free run with the same seed."""
 
-    def __init__(self, truth_dir, scenario: Scenario, faults):
+    def __init__(self, truth_dir, sim: Simulation):
         self.dir = Path(truth_dir)
         self.dir.mkdir(parents=True, exist_ok=True)
-        self.scenario, self.faults = scenario, faults
+        self.sim = sim
+        self.faulty: dict[int, np.ndarray] = {}
 
     def layer(self, hf, layer: int) -> None:
         from twin.truth import write_layer_surface
 
-        write_layer_surface(hf, self.dir / f"layer_{layer:03d}.npz")
+        write_layer_surface(hf, self.dir / f"layer_{layer:03d}.ply")
+        self.faulty[layer] = hf.heights_mm.copy()
 
-    def finish(self, toolpath) -> None:
+    def finish(self, last_segment: int) -> None:
         from twin.truth import write_fault_truth
 
-        write_fault_truth(self.dir / "faults.json", self.scenario.faults, toolpath=toolpath,
-                          cell=self.faults)
+        sc = self.sim.scenario
+        nominal = (self.sim.nominal_layer_heights(last_segment, sorted(self.faulty))
+                   if sc.faults else self.faulty)
+        write_fault_truth(self.dir / "faults.json", sc.faults, self.faulty, nominal,
+                          toolpath=self.sim.toolpath, cell_mm=HEIGHTFIELD_CELL_MM)
 
 
 def iter_messages(scenario: Scenario, truth_dir: str | Path | None = None,

@@ -37,6 +37,8 @@ def simulate(
             sc = sc.model_copy(update={"duration_s": duration_s})
         if not out.parent.exists():
             raise FileNotFoundError(f"--out {out}: folder {out.parent} does not exist")
+    if gui:
+        _require_display()
     from twin.kinematics import ReachError
     from twin.simulate import Simulation
     from twin.simulate import simulate as run_simulation
@@ -80,11 +82,14 @@ class _GuiView:
             self.cell.set_joints(msg.joints_rad)
 
 
-def _open_gui(sim) -> _GuiView:
+def _require_display() -> None:
     import os
 
     if not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY"):
         fail("--gui needs a display (DISPLAY is not set); run without --gui")
+
+
+def _open_gui(sim) -> _GuiView:
     try:
         return _GuiView(sim.cell)
     except Exception as exc:  # noqa: BLE001 - pybullet reports GUI failures many ways
