@@ -121,7 +121,7 @@ class CellModel:
             az_r, el_r = np.deg2rad(az), np.deg2rad(cell.sensor_elevation_deg)
             d = np.array([np.cos(el_r) * np.cos(az_r), np.cos(el_r) * np.sin(az_r), np.sin(el_r)])
             T_B_S[sid] = frames.look_at(spot_B + cell.sensor_distance_mm * d, spot_B,
-                                        up_hint=(0.0, 0.0, 1.0))
+                                        up_hint=(0.0, 0.0, -1.0))
         home = np.deg2rad(np.asarray(cell.home_joints_deg, dtype=np.float64))
         lim = kin.JOINT_LIMITS_RAD
         for j in range(6):
