@@ -31,7 +31,11 @@ def monitored():
 def test_report_folder_contents(tmp_path, monitored):
     out = tmp_path / "run" / "report"
     truth = {"faults": [{"kind": "bump", "center_O_mm": list(CENTRE), "layers": [2, 5]},
-                        {"kind": "dent", "center_O_mm": [90.0, 20.0], "layers": [1, 3]}]}
+                        {"kind": "dent", "center_O_mm": [90.0, 20.0], "layers": [1, 3]},
+                        {"id": 2, "kind": "feed_step", "sign": 1, "layers": [2, 3, 4],
+                         "region_O": {"bbox": [45.0, 66.0, 48.0, 75.0], "centers": []}},
+                        {"id": 3, "kind": "clog", "sign": -1, "layers": [3],
+                         "region_O": {"bbox": [45.0, 66.0, 48.0, 75.0], "centers": []}}]}
     expect = ExpectConfig(tracks=(ExpectTrack(kind="overbuild", near_mm=(52.0, 68.0)),))
     rep = write_report(out, monitored.results, monitored.tracker.tracks,
                        config_toml='name = "x"\n', dropped={"stale_pose": 3},
@@ -51,6 +55,10 @@ def test_report_folder_contents(tmp_path, monitored):
     assert rep["layers"][3]["regions"][0]["track_id"] == 1
     assert rep["fault_truth"][0]["detected"] and rep["fault_truth"][0]["track_id"] == 1
     assert not rep["fault_truth"][1]["detected"]
+    assert rep["fault_truth"][2]["detected"] and rep["fault_truth"][2]["distance_mm"] == \
+        pytest.approx(2.0, abs=0.3)
+    assert rep["fault_truth"][2]["detection_delay_layers"] == 0
+    assert not rep["fault_truth"][3]["detected"]  # wrong sign
     assert rep["expectations"] == [{"expect": "overbuild track near [52.0, 68.0]",
                                     "passed": True, "track_ids": [1]}]
     assert (out / "config.toml").read_text() == 'name = "x"\n'

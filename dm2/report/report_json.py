@@ -33,6 +33,9 @@ def _clean(obj):
 
 def expected_kind(fault: dict) -> str | None:
     """The track kind a fault entry should produce, or None where the sign is not implied."""
+    sign = fault.get("sign")
+    if sign is not None and sign != 0:
+        return "overbuild" if sign > 0 else "underbuild"
     kind = fault.get("kind")
     if kind in _FAULT_KIND:
         return _FAULT_KIND[kind]
@@ -51,31 +54,55 @@ def _track_near(track: Track, xy, within_mm: float) -> float:
     return float(np.min(np.linalg.norm(c - np.asarray(xy, float), axis=1))) if len(c) else np.inf
 
 
+def _fault_distance(track: Track, fault: dict, within_mm: float) -> float:
+    """xy distance [mm] from a track to a fault's location (0 inside its box; 0 if global)."""
+    region = fault.get("region_O") or {}
+    dists = []
+    if region.get("bbox"):
+        x0, y0, x1, y1 = region["bbox"]
+        for h in track.history:
+            cx, cy = h["centroid_O_mm"][:2]
+            dists.append(float(np.hypot(max(x0 - cx, 0, cx - x1), max(y0 - cy, 0, cy - y1))))
+    for c in region.get("centers") or []:
+        dists.append(_track_near(track, c, within_mm))
+    if fault.get("center_O_mm"):
+        dists.append(_track_near(track, fault["center_O_mm"][:2], within_mm))
+    return min(dists) if dists else 0.0
+
+
+def _first_layer(fault: dict):
+    layers = fault.get("layers")
+    return min(layers) if layers else None
+
+
 def compare_with_truth(tracks: list[Track], faults: list[dict], within_mm: float = 10.0) -> list:
     """For each injected fault: whether a track of the expected kind explains it.
 
-    A fault entry is a dict with ``kind`` and optionally ``center_O_mm`` (xy), ``layers``
-    ``[first, last]``, ``factor`` / ``per_layer`` and ``expected_kind``. A track matches when its
-    kind family equals the expected kind (global or local), it is seen within the fault's
-    layers (or after them), and, for located faults, its centroid comes within ``within_mm``.
+    A fault entry is a dict as twin.truth writes it (``kind``, ``sign``, ``layers``,
+    ``region_O`` with ``bbox`` / ``centers``) or a scenario-style fault (``kind``,
+    ``center_O_mm``, ``layers`` [first, last], ``factor``). A track matches when its kind
+    family equals the expected one (global or local), it lasts to the fault's first layer or
+    beyond, and for located faults it comes within ``within_mm`` of the fault's region.
     """
     out = []
     for f in faults:
         want = expected_kind(f)
-        first = (f.get("layers") or [None])[0]
+        first = _first_layer(f)
         best, best_d = None, np.inf
         for t in tracks:
             if want is not None and t.kind.replace("local_", "") != want:
                 continue
             if first is not None and t.last_layer < first:
                 continue
-            d = _track_near(t, f["center_O_mm"][:2], within_mm) if f.get("center_O_mm") else 0.0
+            d = _fault_distance(t, f, within_mm)
             if d <= within_mm and d < best_d:
                 best, best_d = t, d
         out.append({"fault": f, "expected_kind": want, "detected": best is not None,
                     "track_id": None if best is None else best.id,
                     "distance_mm": None if best is None else best_d,
-                    "first_layer_detected": None if best is None else best.first_layer})
+                    "first_layer_detected": None if best is None else best.first_layer,
+                    "detection_delay_layers": None if best is None or first is None
+                    else best.first_layer - first})
     return out
 
 
