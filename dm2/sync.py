@@ -271,24 +271,26 @@ class StreamSync:
         return True
 
     def _release(self, final: bool) -> list:
-        popped = []
+        """Pop waiting messages in stamp order: a profile as soon as two poses within the gap
+        bracket it, at the latest when the window has passed it (then possibly as pose_gap)."""
+        ready = []
         limit = self.watermark_s - self.reorder_window_s
         heap = self._heap
         while heap:
-            stamp = heap[0][0]
-            if not (final or stamp <= limit or self.poses.covers(stamp)):
+            stamp, _, msg = heap[0]
+            due = final or stamp <= limit
+            if isinstance(msg, LayerMark):
+                if not (due or self.poses.covers(stamp)):
+                    break
+                ready.append(heapq.heappop(heap)[2])
+                continue
+            if not (due or self.poses.covers(stamp)):
                 break
-            popped.append(heapq.heappop(heap)[2])
-        if not popped:
-            return popped
-        profiles = [m for m in popped if isinstance(m, Profile)]
-        if not profiles:
-            return popped
-        T, ok = self.poses.poses_at(np.array([p.stamp_s for p in profiles]), self.max_pose_gap_s)
-        synced = iter(self._synced(p, T[k], ok[k]) for k, p in enumerate(profiles))
-        ready = []
-        for m in popped:
-            item = m if isinstance(m, LayerMark) else next(synced)
+            T, ok = self.poses.poses_at(np.array([stamp]), self.max_pose_gap_s)
+            if not (ok[0] or due):
+                break  # a missing robot state may still arrive within the window
+            heapq.heappop(heap)
+            item = self._synced(msg, T[0], bool(ok[0]))
             if item is not None:
                 ready.append(item)
         return ready
