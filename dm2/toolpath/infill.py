@@ -14,6 +14,7 @@ CLIP_INSET_MM = 0.05  # line ends stay this far inside the region, so short link
 COVER_SLACK = 0.05  # fraction of a spacing the raster may leave uncovered at each side
 MIN_PIECE_MM = 0.05  # raster pieces shorter than this (grazing a corner) are dropped
 MIN_SLIVER_LENGTH = 2.0  # uncovered strips longer than this many spacings get an extra line
+PARALLEL_SIN = np.sin(np.radians(12.0))  # outline edges this close to the raster can leave strips
 
 
 def raster_segments(region, angle_rad: float, spacing_mm: float) -> tuple[np.ndarray, np.ndarray]:
@@ -78,6 +79,8 @@ def _fill_slivers(clipped, clip, direction, across, offsets, spacing_mm, along_r
     the index of the nearest regular raster line.
     """
     index = np.arange(len(clipped))
+    if not _has_parallel_run(clip, direction, MIN_SLIVER_LENGTH * spacing_mm):
+        return clipped, index
     covered = shapely.union_all(shapely.buffer(clipped, spacing_mm / 2, quad_segs=4))
     missing = clip.difference(covered)
     extra, extra_index = [], []
@@ -96,3 +99,24 @@ def _fill_slivers(clipped, clip, direction, across, offsets, spacing_mm, along_r
         return clipped, index
     return np.concatenate([clipped, np.asarray(extra, dtype=object)]), \
         np.concatenate([index, extra_index])
+
+
+def _has_parallel_run(region, direction, min_length_mm: float) -> bool:
+    """Whether some stretch of the outline, ``min_length_mm`` long, runs along the raster."""
+    for ring in shapely.get_rings(shapely.get_parts(region)):
+        c = shapely.get_coordinates(ring)
+        e = np.diff(c, axis=0)
+        length = np.linalg.norm(e, axis=1)
+        sin = np.abs(e[:, 0] * direction[1] - e[:, 1] * direction[0]) / np.maximum(length, 1e-12)
+        par = sin < PARALLEL_SIN
+        if not par.any():
+            continue
+        if par.all():
+            return True
+        start = int(np.argmin(par))  # begin the scan on a non-parallel edge (runs wrap)
+        run = 0.0
+        for ok, ln in zip(np.roll(par, -start), np.roll(length, -start), strict=True):
+            run = run + ln if ok else 0.0
+            if run >= min_length_mm:
+                return True
+    return False
