@@ -17,6 +17,7 @@ check them against ``mcap_ros2``'s independent decoder.
 
 from __future__ import annotations
 
+import math
 import struct
 
 import numpy as np
@@ -224,7 +225,7 @@ def decode_cloud(data: bytes) -> tuple[int, str, np.ndarray, np.ndarray, np.ndar
     return stamp_ns, frame_id, xz_mm, valid, column("intensity").astype(np.float32)
 
 
-def encode_joint_state(stamp_ns: int, joints_rad: np.ndarray) -> bytes:
+def _encode_joint_state_general(stamp_ns: int, joints_rad) -> bytes:
     w = _Writer()
     w.header(stamp_ns, "")
     w.u32(len(JOINT_NAMES))
@@ -237,6 +238,20 @@ def encode_joint_state(stamp_ns: int, joints_rad: np.ndarray) -> bytes:
     return bytes(w.buf)
 
 
+_JOINT_TEMPLATE = _encode_joint_state_general(0, [0.0] * 6)
+_JOINT_POS_OFFSET = len(_JOINT_TEMPLATE) - 8 - 48  # then empty velocity and effort
+
+
+def encode_joint_state(stamp_ns: int, joints_rad: np.ndarray) -> bytes:
+    """JointState with ``joint_1..joint_6`` positions [rad] (fixed layout, from a template)."""
+    if len(joints_rad) != 6:
+        return _encode_joint_state_general(stamp_ns, joints_rad)
+    buf = bytearray(_JOINT_TEMPLATE)
+    struct.pack_into("<iI", buf, 4, *split_ns(stamp_ns))
+    buf[_JOINT_POS_OFFSET:_JOINT_POS_OFFSET + 48] = np.asarray(joints_rad, "<f8").tobytes()
+    return bytes(buf)
+
+
 def decode_joint_state(data: bytes) -> tuple[int, list[str], np.ndarray]:
     """``(stamp_ns, names, position_rad)`` of a JointState."""
     r = _Reader(data)
@@ -247,31 +262,62 @@ def decode_joint_state(data: bytes) -> tuple[int, list[str], np.ndarray]:
     return stamp_ns, names, position
 
 
+def quat_xyzw(R: np.ndarray) -> tuple[float, float, float, float]:
+    """Unit quaternion ``(x, y, z, w)`` with ``w >= 0`` of a rotation matrix (Shepperd)."""
+    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = np.asarray(R)[:3, :3].tolist()
+    tr = m00 + m11 + m22
+    if tr > max(m00, m11, m22):
+        s = 2.0 * math.sqrt(1.0 + tr)
+        q = ((m21 - m12) / s, (m02 - m20) / s, (m10 - m01) / s, 0.25 * s)
+    elif m00 >= m11 and m00 >= m22:
+        s = 2.0 * math.sqrt(1.0 + m00 - m11 - m22)
+        q = (0.25 * s, (m01 + m10) / s, (m02 + m20) / s, (m21 - m12) / s)
+    elif m11 >= m22:
+        s = 2.0 * math.sqrt(1.0 + m11 - m00 - m22)
+        q = ((m01 + m10) / s, 0.25 * s, (m12 + m21) / s, (m02 - m20) / s)
+    else:
+        s = 2.0 * math.sqrt(1.0 + m22 - m00 - m11)
+        q = ((m02 + m20) / s, (m12 + m21) / s, 0.25 * s, (m10 - m01) / s)
+    n = math.sqrt(sum(v * v for v in q))
+    sign = 1.0 if q[3] >= 0 else -1.0
+    return tuple(sign * v / n for v in q)
+
+
 def encode_tf(transforms: list[tuple[int, str, str, np.ndarray]]) -> bytes:
     """TFMessage of ``(stamp_ns, parent, child, T_parent_child)`` (translation mm -> m)."""
-    from dm2.frames import to_quat_abb
-
     w = _Writer()
     w.u32(len(transforms))
     for stamp_ns, parent, child, T in transforms:
         w.header(stamp_ns, parent)
         w.string(child)
-        t_mm, q_wxyz = to_quat_abb(T)
-        w.f64s([*(t_mm / MM_PER_M), q_wxyz[1], q_wxyz[2], q_wxyz[3], q_wxyz[0]])
+        t_m = (np.asarray(T, dtype=np.float64)[:3, 3] / MM_PER_M).tolist()
+        w.f64s([*t_m, *quat_xyzw(T)])
     return bytes(w.buf)
+
+
+def matrix_from_quat_xyzw(x: float, y: float, z: float, w: float) -> np.ndarray:
+    """(3, 3) rotation of a quaternion ``(x, y, z, w)`` (normalised first)."""
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    if not n > 0 or not math.isfinite(n):
+        raise CdrError(f"invalid quaternion {(x, y, z, w)}")
+    x, y, z, w = x / n, y / n, z / n, w / n
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
 
 
 def decode_tf(data: bytes) -> list[tuple[int, str, str, np.ndarray]]:
     """Inverse of :func:`encode_tf`: ``(stamp_ns, parent, child, T_parent_child [mm])``."""
-    from dm2.frames import from_quat_abb
-
     r = _Reader(data)
     out = []
     for _ in range(r.u32()):
         stamp_ns = r.time_ns()
         parent, child = r.string(), r.string()
         v = r.f64s(7)
-        out.append((stamp_ns, parent, child, from_quat_abb(v[:3] * MM_PER_M, v[[6, 3, 4, 5]])))
+        T = np.eye(4)
+        T[:3, :3] = matrix_from_quat_xyzw(*v[3:].tolist())
+        T[:3, 3] = v[:3] * MM_PER_M
+        out.append((stamp_ns, parent, child, T))
     return out
 
 
