@@ -173,6 +173,7 @@ class SurfaceExtractor:
         n = CHUNK_BLOCKS * BLOCK
         origin = chunk * n
         d, w = self.tsdf.dense(origin, (n + 1, n + 1, n + 1))
+        d[w <= 0] = self.tsdf.truncation_mm  # never updated: free space, never exactly level
         seen = w >= self.min_weight  # skimage meshes a cube only if all 8 corners are masked
         if not (np.any(d[seen] < 0) and np.any(d[seen] > 0)):
             return None

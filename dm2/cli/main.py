@@ -6,6 +6,8 @@ from dm2.cli.common import app
 COMMAND_MODULES = [
     "cmd_simulate",
     "cmd_toolpath",
+    "cmd_monitor",
+    "cmd_calibrate",
 ]
 
 for _name in COMMAND_MODULES:
