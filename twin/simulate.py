@@ -125,8 +125,10 @@ class Simulation:
         n = int(np.searchsorted(t, self.end_s, side="right"))
         dt = 1.0 / cell.robot_state_hz
         trig_s, trig_j, trig_c = trigger_schedule(float(t[n - 1]), sc.sensors)
-        trig_T_B_O = (PoseInterpolator(t[:n], motion.T_B_O[:n])(trig_s) if n >= 2 and trig_s.size
-                      else np.zeros((0, 4, 4)))
+        if n >= 2:
+            trig_T_B_O = PoseInterpolator(t[:n], motion.T_B_O[:n])(trig_s)
+        else:  # a single sample: every trigger (at most one, at t[0]) sees that pose
+            trig_T_B_O = np.repeat(motion.T_B_O[:1], trig_s.size, axis=0)
         layers = motion.layer[:n]
         feed = faults.feed_factor(t[:n], layers)
         efficiency = faults.efficiency_factor(layers)
