@@ -1,0 +1,153 @@
+"""Fusion benchmark: points fused per second (sync + registration + TSDF), per-frame-set latency,
+peak memory, on synthetic profiles over a twisted-tower-sized volume (60 x 60 x 100 mm).
+
+Three profilers (640 points each) look at a growing 60 x 60 mm block while the spot rasters over
+its top, which rises 100 mm over the run. Profiles are cast analytically before timing starts.
+
+Run: ``.venv/bin/python benchmarks/fusion.py [--frames 1200] [--repeats 3]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import statistics
+import sys
+import time
+import tracemalloc
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from test_monitor_scene import Scene, make_calibration, raster_run  # noqa: E402
+
+from dm2.config import MonitorConfig, ProcessConfig  # noqa: E402
+from dm2.messages import Profile  # noqa: E402
+from dm2.pipeline import Monitor  # noqa: E402
+from dm2.tsdf import SparseTSDF  # noqa: E402
+
+
+def make_stream(frames: int):
+    """Messages of ``frames`` frame sets climbing a 60 x 60 x 100 mm tower."""
+    cal = make_calibration()
+    msgs, t, counter = [], 1.0, 0
+    per_line = 60
+    n_lines = max(1, frames // per_line)
+    for k in range(n_lines):
+        z = 100.0 * k / max(n_lines - 1, 1)
+        scene = Scene(boxes=[((30, 30, -1), (90, 90, z))])
+        y = 32 + (k * 7.0) % 56
+        a, b = (30, y, z), (90, y, z)
+        m, _ = raster_run(scene, cal, [(a, b) if k % 2 == 0 else (b, a)], step_mm=1.0,
+                          t0_s=t, counter0=counter, noise_mm=0.05, seed=k)
+        msgs += m
+        t, counter = m[-1].stamp_s + 0.1, counter + per_line + 1
+    return cal, msgs
+
+
+def run_once(cal, msgs, measure_latency: bool):
+    mon = Monitor(cal, MonitorConfig(), ProcessConfig())
+    lat, acc = [], 0.0
+    t0 = time.perf_counter()
+    if measure_latency:
+        for m in msgs:
+            s = time.perf_counter()
+            before = mon.profiles_fused
+            mon.feed(m)
+            acc += time.perf_counter() - s
+            if mon.profiles_fused != before:  # a frame set was fused: its total cost
+                lat.append(acc)
+                acc = 0.0
+    else:
+        for m in msgs:
+            mon.feed(m)
+    mon._flush()
+    elapsed = time.perf_counter() - t0
+    return mon, elapsed, lat
+
+
+def numpy_baseline(origins, points, voxel, trunc):
+    """The same projective update with numpy scatter into a dense grid (samples per voxel)."""
+    d = points - origins
+    r = np.linalg.norm(d, axis=1, keepdims=True)
+    u = d / r
+    offs = np.arange(-trunc, trunc + 1e-9, voxel)
+    lo = points.min(0) - 2 * trunc
+    shape = np.ceil((points.max(0) + 2 * trunc - lo) / voxel).astype(int) + 1
+    acc = np.zeros(np.prod(shape))
+    wsum = np.zeros(np.prod(shape))
+    for o in offs:
+        p = points + u * o
+        idx = np.floor((p - lo) / voxel).astype(np.int64)
+        flat = np.ravel_multi_index(idx.T, shape)
+        np.add.at(acc, flat, -o)
+        np.add.at(wsum, flat, 1.0)
+    return acc, wsum
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--frames", type=int, default=1200, help="frame sets (3 profiles each)")
+    ap.add_argument("--repeats", type=int, default=3)
+    args = ap.parse_args()
+    t = time.perf_counter()
+    cal, msgs = make_stream(args.frames)
+    n_prof = sum(isinstance(m, Profile) for m in msgs)
+    print(f"stream: {len(msgs)} messages, {n_prof} profiles, cast in "
+          f"{time.perf_counter() - t:.1f} s")
+    run_once(cal, msgs[:2000], False)  # JIT warm-up
+
+    rates, mon = [], None
+    for _ in range(args.repeats):
+        mon, elapsed, _ = run_once(cal, msgs, False)
+        rates.append(mon.points_fused / elapsed)
+    print(f"end-to-end fusion (sync + registration + TSDF): "
+          f"{statistics.median(rates) / 1e6:.2f} M points/s median of {args.repeats} "
+          f"({mon.points_fused} points, {mon.tsdf.n_blocks} blocks, "
+          f"voxel {mon.cfg.voxel_mm} mm)")
+
+    _, _, lat = run_once(cal, msgs, True)
+    lat_ms = np.array(lat) * 1e3
+    print(f"per-frame-set latency (3 x 640 points + robot states): p50 "
+          f"{np.percentile(lat_ms, 50):.2f} ms, p99 {np.percentile(lat_ms, 99):.2f} ms, "
+          f"max {lat_ms.max():.2f} ms over {len(lat_ms)} frame sets")
+
+    t = time.perf_counter()
+    surf = mon.surface()
+    print(f"surface extraction (all {mon.tsdf.n_blocks} blocks): "
+          f"{time.perf_counter() - t:.2f} s, {surf.n_vertices} vertices")
+
+    # kernel alone against a numpy scatter baseline, same rays
+    rng = np.random.default_rng(0)
+    n = 400_000
+    pts = np.column_stack([rng.uniform(30, 90, n), rng.uniform(30, 90, n), np.full(n, 50.0)])
+    org = pts + np.array([0.0, -54.5, 77.8])
+    tsdf = SparseTSDF(0.5, 1.5, 8.0)
+    tsdf.integrate(org, pts)
+    kt = []
+    for _ in range(args.repeats):
+        s = time.perf_counter()
+        tsdf.integrate(org, pts)
+        kt.append(time.perf_counter() - s)
+    bt = []
+    for _ in range(args.repeats):
+        s = time.perf_counter()
+        numpy_baseline(org, pts, 0.5, 1.5)
+        bt.append(time.perf_counter() - s)
+    k_rate, b_rate = n / statistics.median(kt), n / statistics.median(bt)
+    print(f"TSDF kernel alone: {k_rate / 1e6:.2f} M points/s; numpy scatter baseline "
+          f"{b_rate / 1e6:.2f} M points/s; ratio {k_rate / b_rate:.1f}x")
+
+    tracemalloc.start()
+    mon, _, _ = run_once(cal, msgs, False)
+    mon.surface()
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    print(f"peak traced memory of one run incl. surface: {peak / 2**20:.1f} MiB "
+          f"(TSDF arrays {mon.tsdf.nbytes() / 2**20:.1f} MiB); process max RSS "
+          f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB")
+
+
+if __name__ == "__main__":
+    main()
