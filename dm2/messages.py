@@ -14,6 +14,7 @@ SENSOR_IDS = ("S1", "S2", "S3")
 COUNTER_MODULO = 1 << 24  # scanCONTROL profile counters are 24 bit
 TOOLPATH_KINDS = ("infill", "edge", "skip", "overhang")
 KIND_CODE = {k: i for i, k in enumerate(TOOLPATH_KINDS)}
+_EYE3 = np.eye(3)
 
 
 class MessageError(ValueError):
@@ -107,10 +108,10 @@ class RobotState:
         object.__setattr__(self, "seq", int(self.seq))
         j = _array("RobotState", "joints_rad", self.joints_rad, np.float64, (6,), finite=True)
         T = _array("RobotState", "T_B_F", self.T_B_F, np.float64, (4, 4), finite=True)
-        if not np.allclose(T[3], [0, 0, 0, 1]):
+        if T[3, 0] != 0.0 or T[3, 1] != 0.0 or T[3, 2] != 0.0 or T[3, 3] != 1.0:
             raise MessageError("RobotState.T_B_F: last row must be [0, 0, 0, 1]")
         R = T[:3, :3]
-        if not np.allclose(R.T @ R, np.eye(3), atol=1e-6):
+        if float(np.abs(R.T @ R - _EYE3).max()) > 1e-6:
             raise MessageError("RobotState.T_B_F: rotation part is not orthonormal")
         object.__setattr__(self, "joints_rad", j)
         object.__setattr__(self, "T_B_F", T)

@@ -8,6 +8,7 @@ COMMAND_MODULES = [
     "cmd_toolpath",
     "cmd_monitor",
     "cmd_calibrate",
+    "cmd_run",
 ]
 
 for _name in COMMAND_MODULES:

@@ -1,0 +1,138 @@
+"""``dm2 run``: the main job — simulate a scenario on the twin, monitor it, write the report."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import tempfile
+import time
+from datetime import datetime
+from pathlib import Path
+
+import typer
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from dm2.cli.common import app, bad_input_exits, console, fail
+
+
+def default_run_dir(root: Path, name: str) -> Path:
+    return root / f"{datetime.now().strftime('%Y%m%d-%H%M%S')}-{name}"
+
+
+def link_latest(run_dir: Path) -> None:
+    """Point ``<runs>/latest`` at ``run_dir`` (a relative symlink, replaced atomically)."""
+    latest = run_dir.parent / "latest"
+    tmp = run_dir.parent / f".latest.{run_dir.name}"
+    try:
+        if tmp.is_symlink():
+            tmp.unlink()
+        tmp.symlink_to(run_dir.name)
+        tmp.replace(latest)
+    except OSError:  # filesystems without symlinks: the printed path is enough
+        pass
+
+
+def tracks_table(report: dict) -> Table:
+    table = Table(title="Defect tracks", show_lines=False)
+    for col in ("id", "kind", "layers", "final area mm²", "final height mm", "trend"):
+        table.add_column(col, justify="right" if col != "kind" else "left")
+    for t in report.get("tracks", []):
+        last = str(t["last_layer"])
+        area = t.get("area_mm2", {}).get(last, float("nan"))
+        height = t.get("height_mm", {}).get(last, float("nan"))
+        table.add_row(str(t["id"]), t["kind"], f"{t['first_layer']}–{t['last_layer']}",
+                      f"{area:.1f}", f"{height:.2f}", str(t.get("trend", "")))
+    return table
+
+
+@app.command()
+def run(
+    scenario: str = typer.Argument(None, help="Scenario name or TOML file (default: the "
+                                   "seven-sided part with an injected corner overbuild)."),
+    out: Path = typer.Option(None, "--out", "-o", help="Run folder (default runs/<time>-<name>)."),
+    runs_root: Path = typer.Option(Path("runs"), "--runs", help="Parent of default run folders."),
+    record: bool = typer.Option(True, "--record/--no-record",
+                                help="Also write the raw stream to run.mcap in the run folder."),
+    duration_s: float = typer.Option(None, "--duration", min=0.1,
+                                     help="Stop after this many process seconds."),
+) -> None:
+    """Simulate SCENARIO on the twin, monitor it with the 3D-DM2 pipeline and write a report.
+
+    Example: `dm2 run` or `dm2 run pad --out runs/pad`
+    """
+    from dm2.config import dump_toml, load_scenario
+    from dm2.report import check_output_dir, write_report
+    from dm2.session import MonitoringSession
+    from scenarios import resolve_scenario
+
+    t_start = time.perf_counter()
+    with bad_input_exits():
+        path = resolve_scenario(scenario)
+        sc = load_scenario(path)
+        if duration_s is not None:
+            sc = sc.model_copy(update={"duration_s": duration_s})
+        run_dir = (out or default_run_dir(runs_root, sc.name)).absolute()
+        check_output_dir(run_dir)
+    run_dir.parent.mkdir(parents=True, exist_ok=True)
+    console.print(f"[bold]dm2 run[/] scenario [cyan]{sc.name}[/] ({path})")
+
+    from twin.kinematics import ReachError
+    from twin.simulate import Simulation
+
+    try:
+        sim = Simulation(sc)
+    except ReachError as exc:
+        fail(f"{path}: {exc}")
+    session = MonitoringSession(sim.calibration, sc.monitor, sc.process,
+                                plate_size_mm=sc.cell.plate_size_mm, toolpath=sim.toolpath)
+    scratch = Path(tempfile.mkdtemp(prefix=".dm2-run-", dir=run_dir.parent))
+    try:
+        report = _run(sim, session, scratch, record)
+        report = write_report(
+            run_dir, session.results, session.tracks,
+            config_toml=dump_toml(sc.to_toml_dict()), dropped=session.dropped,
+            timing={**session.timing.to_dict(), "simulated_process_s": sim.end_s,
+                    "wall_s": time.perf_counter() - t_start},
+            fault_truth=_read_json(scratch / "truth" / "faults.json"), expect=sc.expect,
+            meta={"scenario": sc.name, "scenario_file": str(path), "seed": sc.seed,
+                  "layers_simulated": len(session.results)})
+        for name in ("truth", "run.mcap"):
+            if (scratch / name).exists():
+                shutil.move(str(scratch / name), str(run_dir / name))
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+    link_latest(run_dir)
+    console.print(tracks_table(report))
+    for e in report.get("expectations", []):
+        mark = "[green]met[/]" if e.get("passed") else "[red]missed[/]"
+        console.print(f"expectation {e.get('expect')}: {mark}")
+    wall = time.perf_counter() - t_start
+    console.print(f"report: [bold]{run_dir / 'index.html'}[/]  ({wall:.1f} s wall, "
+                  f"{sim.end_s:.1f} s of process time)")
+
+
+def _run(sim, session, scratch: Path, record: bool) -> None:
+    writer = None
+    if record:
+        from dm2.recording import RecordingWriter
+
+        writer = RecordingWriter(scratch / "run.mcap", attachments=sim.attachments())
+        writer.write_static_tf(sim.calibration)
+    with Progress(TextColumn("[progress.description]{task.description}"), BarColumn(),
+                  TextColumn("{task.completed:.0f}/{task.total:.0f} s process"),
+                  TimeElapsedColumn(), console=console, transient=True) as bar:
+        task = bar.add_task("simulating + monitoring", total=sim.end_s)
+        for msg in sim.messages(truth_dir=scratch / "truth",
+                                progress=lambda done, total: bar.update(task, completed=done)):
+            if writer is not None:
+                writer.write(msg)
+            session.feed(msg)
+        bar.update(task, description="closing the last layer")
+        session.finish()
+    if writer is not None:
+        writer.close()
+
+
+def _read_json(path: Path):
+    return json.loads(path.read_text(encoding="utf-8")) if path.exists() else None
