@@ -25,8 +25,10 @@ def _array(name: str, field_name: str, value, dtype, shape, finite: bool = False
     try:
         arr = np.ascontiguousarray(value, dtype=dtype)
     except (TypeError, ValueError) as exc:
-        raise MessageError(f"{name}.{field_name}: cannot convert to {np.dtype(dtype)}: {exc}") from exc
-    if len(shape) != arr.ndim or any(s is not None and s != a for s, a in zip(shape, arr.shape)):
+        raise MessageError(
+            f"{name}.{field_name}: cannot convert to {np.dtype(dtype)}: {exc}") from exc
+    if len(shape) != arr.ndim or any(
+            s is not None and s != a for s, a in zip(shape, arr.shape, strict=True)):
         raise MessageError(f"{name}.{field_name}: expected shape {shape}, got {arr.shape}")
     if finite and arr.size and not np.all(np.isfinite(arr)):
         raise MessageError(f"{name}.{field_name}: contains NaN or infinite values")

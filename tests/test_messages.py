@@ -3,8 +3,15 @@
 import numpy as np
 import pytest
 
-from dm2.messages import (COUNTER_MODULO, Calibration, LayerMark, MessageError, Profile,
-                          RobotState, Toolpath)
+from dm2.messages import (
+    COUNTER_MODULO,
+    Calibration,
+    LayerMark,
+    MessageError,
+    Profile,
+    RobotState,
+    Toolpath,
+)
 
 
 def profile(**kw):
