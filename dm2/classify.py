@@ -3,9 +3,14 @@
 Global: ``d > delta_G`` overbuild, ``d < -delta_G`` underbuild. Inside the tolerance the local
 metric is the curvature-weighted signed distance, normalised to be dimensionless:
 
-    lambda = (d / delta_G) * min(1, |H| * LOCAL_CURVATURE_RADIUS_MM)
+    lambda = (d / delta_G) * min(1, max(0, sign(d) * (H - H_ref)) * LOCAL_CURVATURE_RADIUS_MM)
 
-with ``H`` the discrete mean curvature (cotangent Laplacian, smoothed through the faces). A flat
+with ``H`` the discrete mean curvature (cotangent Laplacian, smoothed through the faces), less
+the reference's own mean curvature at the closest reference point when it is given (a rounded
+edge the reference has too is not a local defect). Curvature and deviation must agree in sign,
+as the paper's product of the two does: a local overbuild is a bump (convex, above), a local
+underbuild a dent (concave, below); a measured edge that is merely sharper or rounder than the
+reference is neither. A flat
 offset (``H ~ 0``) is not a local defect however thick; a curved feature (radius of curvature up
 to ``LOCAL_CURVATURE_RADIUS_MM``) counts with its full normalised deviation. ``lambda > delta_L``
 is local overbuild, ``lambda < -delta_L`` local underbuild. Vertices whose fusion weight is below
@@ -112,7 +117,7 @@ def mean_curvature(vertices_O: np.ndarray, faces: np.ndarray, normals_O=None,
 
 
 def classify_vertices(vertices_O, faces, weight, signed_distance_mm, monitor_cfg,
-                      normals_O=None) -> VertexClasses:
+                      normals_O=None, reference_curvature=None) -> VertexClasses:
     """Class per vertex from the signed deviation (see module docstring).
 
     Parameters
@@ -122,13 +127,18 @@ def classify_vertices(vertices_O, faces, weight, signed_distance_mm, monitor_cfg
     weight : (n,) float64, fusion weight
     signed_distance_mm : (n,) float64 [mm]
     monitor_cfg : has ``delta_global_mm``, ``delta_local``, ``min_weight``
+    normals_O : (n, 3) float64 or None, outward vertex normals (sign of the curvature)
+    reference_curvature : (n,) float64 [1/mm] or None, the reference's mean curvature at each
+        vertex's closest reference point; only curvature beyond it weights the local metric
     """
     d = np.asarray(signed_distance_mm, dtype=np.float64)
     w = np.asarray(weight, dtype=np.float64)
     dg = float(monitor_cfg.delta_global_mm)
     dl = float(monitor_cfg.delta_local)
     h = mean_curvature(vertices_O, np.asarray(faces, dtype=np.int64), normals_O)
-    metric = (d / dg) * np.minimum(1.0, np.abs(h) * LOCAL_CURVATURE_RADIUS_MM)
+    excess = h if reference_curvature is None else h - np.asarray(reference_curvature, float)
+    agree = np.maximum(np.sign(d) * excess, 0.0)  # convex where above, concave where below
+    metric = (d / dg) * np.minimum(1.0, agree * LOCAL_CURVATURE_RADIUS_MM)
     code = np.full(d.shape, NORMAL, dtype=np.int8)
     code[metric > dl] = LOCAL_OVERBUILD
     code[metric < -dl] = LOCAL_UNDERBUILD

@@ -182,7 +182,8 @@ class ExpectTrack(_Model):
 
 class ExpectConfig(_Model):
     tracks: tuple[ExpectTrack, ...] = ()
-    no_tracks: bool = False
+    no_tracks: bool = False  # no global over/underbuild track (local ones are early warnings)
+    no_local_tracks: bool = False  # no local over/underbuild track either
 
 
 class Scenario(_Model):

@@ -219,7 +219,9 @@ def layer_deviation(surface, reference: ReferenceMap, monitor_cfg, layer: int | 
     """
     v, f, w = _surface_arrays(surface)
     d, foot = closest_on_reference(v, reference)
-    classes = classify_vertices(v, f, w, d, monitor_cfg)
+    normals = getattr(surface, "normals_O", None)
+    classes = classify_vertices(v, f, w, d, monitor_cfg, normals_O=normals,
+                                reference_curvature=reference.mean_curvature_at(foot[:, :2]))
     layer = reference.layer if layer is None else int(layer)
     log.debug("layer %d: %d vertices, deviation %.3f..%.3f mm", layer, len(v),
               float(d.min()) if len(d) else 0.0, float(d.max()) if len(d) else 0.0)

@@ -8,10 +8,10 @@ analytic Gaussian footprint at every robot state (paper eq. 1). For a spot with 
 
 with ``V_dot = feed / density`` the powder volume rate [mm^3/s], ``r_perp`` the offset from the
 impact point perpendicular to the axis and ``theta`` the spray angle between ``-a_O`` and the
-build direction ``+z_O`` (the layer's nominal surface normal; the reference does not feed its
-own slopes back into the efficiency). Thickness per horizontal area is ``q * |a_z|`` (mass
-conserving), added along +z_O. For a straight pass at speed ``v`` the peak height is
-``V_dot * zeta / (sqrt(2 pi) * sigma * v)``.
+build direction ``+z_O`` (the layer's nominal surface normal; with ``angle_from_surface=True``
+the reference's own local normal, a central difference over +-0.5 mm). Thickness per horizontal
+area is ``q * |a_z|`` (mass conserving), added along +z_O. For a straight pass at speed ``v``
+the peak height is ``V_dot * zeta / (sqrt(2 pi) * sigma * v)``.
 
 Model choices (documented, deliberately simple, independent of the twin's physics):
 
@@ -42,6 +42,7 @@ log = logging.getLogger(__name__)
 
 PLUME_HALF_ANGLE_DEG = 5.0  # used when the process config has no plume_half_angle_deg
 FOOTPRINT_SIGMAS = 4.0  # footprint truncated at 4 sigma (0.03 % of the mass is left out)
+SLOPE_PROBE_MM = 0.5  # half span of the central difference giving the local surface normal
 MAX_INTEGRATION_GAP_S = 1.0  # longer gaps between robot states are not integrated
 
 
@@ -83,7 +84,8 @@ def _bilinear(h, cell, x, y):
 
 
 @njit(cache=True)
-def _deposit_spots(h, cell, spots, axes, dts, v_dot, zeta0, cos_c, sigma, n_sigma):
+def _deposit_spots(h, cell, spots, axes, dts, v_dot, zeta0, cos_c, sigma, n_sigma,
+                   slope_probe):
     """Add the Gaussian footprint of each spot, in order, to ``h`` (mutated). Returns volume."""
     ny, nx = h.shape
     total = 0.0
@@ -97,7 +99,14 @@ def _deposit_spots(h, cell, spots, axes, dts, v_dot, zeta0, cos_c, sigma, n_sigm
                 px += t * ax
                 py += t * ay
                 pz += t * az
-        cos_t = -az  # spray angle from the build direction +z_O
+        if slope_probe > 0.0:  # spray angle against the local reference surface normal
+            gx = (_bilinear(h, cell, px + slope_probe, py)
+                  - _bilinear(h, cell, px - slope_probe, py)) / (2 * slope_probe)
+            gy = (_bilinear(h, cell, px, py + slope_probe)
+                  - _bilinear(h, cell, px, py - slope_probe)) / (2 * slope_probe)
+            cos_t = (ax * gx + ay * gy - az) / math.sqrt(gx * gx + gy * gy + 1.0)
+        else:  # spray angle from the build direction +z_O
+            cos_t = -az
         zeta = zeta0 * min(max((cos_t - cos_c) / (1.0 - cos_c), 0.0), 1.0)
         if zeta <= 0.0 or dts[k] <= 0.0:
             continue
@@ -132,10 +141,13 @@ class NearNetReference:
     calibration : dm2.messages.Calibration, gives ``T_F_O`` and ``T_B_N``
     size_mm : (2,) plate extent ``(Lx, Ly)`` [mm]
     cell_mm : float [mm], height-map cell (default ``min(0.5, voxel_mm / 2)``)
+    angle_from_surface : bool, spray angle against the reference's own local normal
+        or (default) against the build direction ``+z_O``
     """
 
     def __init__(self, process, monitor_cfg, calibration: Calibration, *,
-                 size_mm=(120.0, 120.0), cell_mm: float | None = None):
+                 size_mm=(120.0, 120.0), cell_mm: float | None = None,
+                 angle_from_surface: bool = False):
         self.process = process
         self.cell_mm = float(cell_mm if cell_mm is not None else min(0.5, monitor_cfg.voxel_mm / 2))
         if self.cell_mm <= 0:
@@ -157,6 +169,8 @@ class NearNetReference:
         self.layers: dict[int, ReferenceMap] = {}
         self.deposited_mm3 = 0.0
         self.gaps_skipped = 0
+        self.angle_from_surface = bool(angle_from_surface)
+        self.slope_probe_mm = max(SLOPE_PROBE_MM, self.cell_mm)
 
     def spot_O(self, T_B_F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Deposition spot and spray axis in ``O`` for flange poses ``T_B_F`` (..., 4, 4)."""
@@ -212,7 +226,8 @@ class NearNetReference:
                                                       axis[:-1][use], axis[1:][use], dt[use])
         vol = _deposit_spots(self.heights_mm, self.cell_mm, sub_spots, sub_axes, sub_dt,
                              self.v_dot_mm3_s, self.process.deposition_efficiency, self._cos_c,
-                             self.sigma_mm, FOOTPRINT_SIGMAS)
+                             self.sigma_mm, FOOTPRINT_SIGMAS,
+                             self.slope_probe_mm if self.angle_from_surface else 0.0)
         self.deposited_mm3 += vol
         return float(vol)
 

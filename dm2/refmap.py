@@ -64,6 +64,21 @@ class ReferenceMap:
         n = np.column_stack([-g[:, 0], -g[:, 1], np.ones(len(g))])
         return n / np.linalg.norm(n, axis=1, keepdims=True)
 
+    def mean_curvature_at(self, xy_O, smooth_mm: float = 0.75) -> np.ndarray:
+        """Mean curvature [1/mm] (n,) of the reference surface at ``xy_O``, + where convex.
+
+        From the height map's derivatives after a Gaussian smoothing of ``smooth_mm``.
+        """
+        from scipy.ndimage import gaussian_filter
+
+        h = gaussian_filter(self.heights_mm, smooth_mm / self.cell_mm, mode="nearest")
+        hy, hx = np.gradient(h, self.cell_mm)
+        hxy, hxx = np.gradient(hx, self.cell_mm)
+        hyy, _ = np.gradient(hy, self.cell_mm)
+        num = (1 + hy * hy) * hxx - 2 * hx * hy * hxy + (1 + hx * hx) * hyy
+        curv = -num / (2.0 * (1 + hx * hx + hy * hy) ** 1.5)
+        return bilinear_height(curv, self.cell_mm, xy_O)
+
     def sdf_at(self, points_O) -> np.ndarray:
         """First-order signed distance [mm] (n,) of ``points_O`` to the reference surface.
 

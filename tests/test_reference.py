@@ -109,3 +109,20 @@ def test_feed_messages_snapshots_layers_and_skips_gaps():
     assert done.heights_mm.sum() < ref.snapshot().heights_mm.sum()
     with pytest.raises(ValueError, match="backwards"):
         ref.add_states([0.0], T[:1])
+
+
+def test_angle_from_surface_uses_the_local_slope():
+    proc = ProcessConfig()
+    slope = math.radians(20.0)
+    ref = NearNetReference(proc, MonitorConfig(), CAL, angle_from_surface=True)
+    x = (np.arange(ref.heights_mm.shape[1]) + 0.5) * ref.cell_mm
+    ref.heights_mm[:] = 5.0 + math.tan(slope) * (x - 60.0)[None, :]  # a 20 degree ramp in x
+    before = ref.heights_mm.sum()
+    ts, T = straight_pass(proc, v=30.0)
+    ts, T = ts[:100], T[:100]  # stay away from the plate border
+    pts = ref.spot_O(T)[0]
+    T = flange_poses(np.column_stack([pts[:, 1] * 0 + 60.0, 20.0 + 30.0 * ts, pts[:, 2]]))
+    ref.add_states(ts, T)
+    expected = volume_rate_mm3_s(proc) * deposition_efficiency(slope, proc) * ts[-1]
+    assert ref.deposited_mm3 == pytest.approx(expected, rel=0.01)
+    assert (ref.heights_mm.sum() - before) * ref.cell_mm ** 2 == pytest.approx(expected, rel=0.01)

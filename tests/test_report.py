@@ -104,3 +104,15 @@ def test_unwritable_output_is_refused_before_work(tmp_path):
         check_output_dir(blocker / "report")
     with pytest.raises(ValueError, match="not a folder"):
         check_output_dir(blocker)
+
+
+def test_expectations_no_tracks_global_and_local(monitored):
+    from dm2.report.report_json import check_expectations
+    from dm2.track import Track
+
+    local = Track(id=7, kind="local_underbuild", first_layer=1, last_layer=1)
+    res = check_expectations([local], ExpectConfig(no_tracks=True))
+    assert res == [{"expect": "no overbuild/underbuild tracks", "passed": True, "track_ids": []}]
+    res = check_expectations([local] + monitored.tracker.tracks,
+                             ExpectConfig(no_tracks=True, no_local_tracks=True))
+    assert [(r["passed"], r["track_ids"]) for r in res] == [(False, [1]), (False, [7])]
