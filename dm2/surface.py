@@ -85,9 +85,9 @@ class SurfaceMesh:
     def to_open3d(self):
         import open3d as o3d
 
-        m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(self.vertices_O),
+        m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(self.vertices_O.copy()),
                                       o3d.utility.Vector3iVector(self.faces.astype(np.int32)))
-        m.vertex_normals = o3d.utility.Vector3dVector(self.normals_O)
+        m.vertex_normals = o3d.utility.Vector3dVector(self.normals_O.copy())
         return m
 
     def write_ply(self, path: str | Path) -> None:
@@ -147,10 +147,13 @@ class SurfaceExtractor:
         self.tsdf = tsdf
         self.min_weight = float(min_weight)
         self._chunks: dict[tuple[int, int, int], tuple[np.ndarray, ...]] = {}
+        self._first = True
 
     def update(self) -> SurfaceMesh:
         """Re-mesh chunks touched since the last call and return the whole surface."""
         blocks = self.tsdf.take_touched()
+        if self._first:  # a new extractor meshes everything observed so far
+            blocks, self._first = self.tsdf.block_coords(), False
         if len(blocks):
             # a block is also the upper apron of the chunks below/behind it
             chunks = set()
