@@ -155,3 +155,17 @@ def test_without_marks_or_toolpath_the_run_is_one_layer(cal):
     assert mon.layer_done == []
     assert [ls.layer for ls in mon.finish()] == [0]
     assert mon.finish() is mon.layer_done  # idempotent
+
+
+def test_points_outside_the_monitored_bounds_are_counted_out_of_range(cal):
+    msgs, hits = raster_run(Scene(), cal, [((40, 60, 0), (60, 60, 0))], step_mm=2.0)
+    bounds = ((50.0, 0.0, -10.0), (120.0, 120.0, 50.0))
+    mon = Monitor(cal, MonitorConfig(voxel_mm=2.0), ProcessConfig(), bounds_O=bounds)
+    mon.feed_all(msgs)
+    surf = mon.finish()[-1].surface
+    outside = int(np.count_nonzero(hits[:, 0] < 50.0))
+    assert outside > 1000
+    assert mon.dropped == {"out_of_range": outside}
+    assert mon.points_fused == len(hits) - outside
+    assert surf.vertices_O[:, 0].min() > 50.0 - 2 * 2.0  # 2 mm voxels
+    assert abs(np.median(surf.vertices_O[:, 2])) < 0.1
