@@ -63,6 +63,6 @@ def test_injected_bump_is_tracked_as_overbuild():
     assert track.first_layer in (2, 3)  # the blob lands when layer 2 ends: seen in layer 3
     h = track.history[0]
     assert np.hypot(h["centroid_O_mm"][0] - 56.0, h["centroid_O_mm"][1] - 60.0) < 2.0
-    assert h["max_deviation_mm"] == pytest.approx(1.0, abs=0.35)
+    assert 0.7 <= h["max_deviation_mm"] <= 1.6  # the 1 mm blob, sprayed over by one layer
     # box height: the bump over the (rippled) reference beneath it
     assert h["max_deviation_mm"] - 0.05 <= h["height_mm"] <= h["max_deviation_mm"] + 0.5
