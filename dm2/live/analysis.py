@@ -1,0 +1,139 @@
+"""A monitoring session with what a live run adds: per-layer reports, transport drop counts,
+out-of-range points and sensor dropouts.
+
+:class:`LayerAnalysis` wraps :class:`~dm2.session.MonitoringSession` (the same object
+``dm2 run`` drives in process, so a live run and an in-process run of the same stream give the
+same layers and tracks), gives the fusion monitor the plate's box so points far outside count
+``out_of_range``, notes sensors silent for longer than allowed (``sensor_dropout`` events) and,
+with an output folder, rewrites the report after every analysed layer.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+from dm2.messages import Profile
+
+log = logging.getLogger(__name__)
+
+OUT_OF_RANGE_MARGIN_MM = 5.0
+MAX_PART_HEIGHT_MM = 200.0
+
+
+class LayerAnalysis:
+    """Monitoring session plus live bookkeeping for one message stream.
+
+    Parameters
+    ----------
+    calibration : dm2.messages.Calibration
+    monitor_cfg, process : dm2.config MonitorConfig and ProcessConfig
+    plate_size_mm : (Lx, Ly, thickness) [mm]; points outside the plate's box (plus a margin,
+        up to ``MAX_PART_HEIGHT_MM``) count ``out_of_range``
+    toolpath : optional dm2.messages.Toolpath (layer changes when there are no marks)
+    out_dir : folder for the report (rewritten after each layer) or None
+    config_toml : resolved configuration text written beside the report
+    max_sensor_gap_s : float [s], a sensor silent longer than this counts ``sensor_dropout``
+    meta : extra entries for report.json's ``meta``
+    """
+
+    def __init__(self, calibration, monitor_cfg, process, plate_size_mm, toolpath=None,
+                 out_dir: str | Path | None = None, config_toml: str | None = None,
+                 max_sensor_gap_s: float = 1.0, meta: dict | None = None):
+        from dm2.session import MonitoringSession
+
+        Lx, Ly, th = (float(v) for v in plate_size_mm)
+        m = OUT_OF_RANGE_MARGIN_MM
+        self.session = MonitoringSession(calibration, monitor_cfg, process,
+                                         plate_size_mm=(Lx, Ly), toolpath=toolpath,
+                                         on_layer=self._on_layer)
+        self.session.monitor.bounds_O = (np.array([-m, -m, -th - m]),
+                                         np.array([Lx + m, Ly + m, MAX_PART_HEIGHT_MM]))
+        self.out_dir = None if out_dir is None else Path(out_dir)
+        self.config_toml = config_toml
+        self.meta = dict(meta or {})
+        self.max_sensor_gap_s = float(max_sensor_gap_s)
+        self.extra_dropped: Counter = Counter()
+        self.drop_sources: list = []  # callables returning dicts of transport drops
+        self.events: Counter = Counter()
+        self.report_s = 0.0
+        self._last_profile_s: dict[str, float] = {}
+        self._finished = False
+
+    @property
+    def monitor(self):
+        return self.session.monitor
+
+    @property
+    def results(self):
+        return self.session.results
+
+    @property
+    def tracks(self):
+        return self.session.tracks
+
+    def feed(self, msg) -> None:
+        """One message of any kind (bad ones are counted, never raised)."""
+        if isinstance(msg, Profile):
+            self._watch_dropout(msg)
+        self.session.feed(msg)
+
+    def _watch_dropout(self, p: Profile) -> None:
+        last = self._last_profile_s.get(p.sensor_id)
+        if last is not None and p.stamp_s - last > self.max_sensor_gap_s:
+            self.events["sensor_dropout"] += 1
+            log.warning("sensor %s was silent for %.2f s (allowed %.2f s)", p.sensor_id,
+                        p.stamp_s - last, self.max_sensor_gap_s)
+        if last is None or p.stamp_s > last:
+            self._last_profile_s[p.sensor_id] = p.stamp_s
+
+    def _on_layer(self, result) -> None:
+        if self.out_dir is not None:
+            self.write_report()
+
+    @property
+    def dropped(self) -> dict[str, int]:
+        """Drops by reason: the session's (sync stage) plus the transport's."""
+        out = Counter(self.session.dropped)
+        out.update(self.extra_dropped)
+        for source in self.drop_sources:
+            out.update(source())
+        return {k: int(v) for k, v in sorted(out.items()) if v}
+
+    def write_report(self) -> dict:
+        """Rewrite the report folder with every layer analysed so far."""
+        from dm2.report import write_report
+
+        t0 = time.perf_counter()
+        results = self.results
+        last = [results[-1].layer] if results else []
+        mon = self.monitor
+        report = write_report(self.out_dir, results, self.tracks, config_toml=self.config_toml,
+                              dropped=self.dropped,
+                              timing={**self.session.timing.to_dict(),
+                                      "report_s": self.report_s},
+                              map_layers=None if self._finished else last,
+                              meta={**self.meta, "events": dict(self.events),
+                                    "profiles_fused": mon.profiles_fused,
+                                    "points_fused": mon.points_fused,
+                                    "complete": self._finished})
+        self.report_s += time.perf_counter() - t0
+        return report
+
+    def finish(self) -> dict | None:
+        """End of stream: analyse the last layer, end the tracks, write the final report."""
+        if self._finished:
+            return None
+        self.session.finish()
+        self._finished = True
+        if self.out_dir is not None:
+            return self.write_report()
+        return None
+
+    def summary(self) -> list[tuple[int, str]]:
+        """``(track id, kind)`` of every track, in id order."""
+        return [(t.id, t.kind) for t in self.tracks]

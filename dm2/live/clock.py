@@ -1,0 +1,113 @@
+"""Align each profiler's clock with the robot controller's clock from arrival times.
+
+Live sources stamp messages with their own clocks (controller time for EGM, sensor time for
+profiles); the pipeline needs profile stamps on the pose clock. For every profile, the pose
+clock's reading at the profile's arrival (interpolated between the pose messages that arrived
+just before and after it, in host time) gives one sample of the skew ``profile stamp - pose
+stamp``. The estimate is the median of the last ``window`` samples, so it follows drift and
+is immune to any scaling of host time (accelerated rehearsals). While the estimate stays within
+``tolerance_s`` the stamps are trusted as they are (a cell with synchronised clocks is passed
+through bit for bit); once it leaves that band the sensor's stamps are corrected from then on.
+
+A profile arriving before its sensor has ``min_samples`` skew samples waits (at most
+``max_waiting`` per sensor; more count ``clock_unsynced``).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import deque
+
+import numpy as np
+
+from dm2.messages import Profile
+
+log = logging.getLogger(__name__)
+
+
+class ClockAligner:
+    """Map profile stamps onto the pose clock.
+
+    Parameters
+    ----------
+    tolerance_s : float [s], skews within this are not corrected
+    window : int, skew samples in the running median
+    min_samples : int, samples needed before a sensor's profiles are released
+    max_waiting : int, profiles held per sensor while waiting for samples
+    """
+
+    def __init__(self, tolerance_s: float = 0.05, window: int = 15, min_samples: int = 3,
+                 max_waiting: int = 64):
+        self.tolerance_s = float(tolerance_s)
+        self.window = int(window)
+        self.min_samples = int(min_samples)
+        self.max_waiting = int(max_waiting)
+        self._pose_arrivals: deque = deque(maxlen=1024)  # (arrival_s, stamp_s)
+        self._samples: dict[str, deque] = {}
+        self._waiting: dict[str, list] = {}
+        self.correction_s: dict[str, float] = {}  # applied correction per sensor (0 = none)
+        self.engaged: set[str] = set()
+        self.dropped: dict[str, int] = {}
+
+    def pose(self, stamp_s: float, arrival_s: float) -> None:
+        """Note a pose message's stamp and arrival (host clock)."""
+        if self._pose_arrivals and arrival_s < self._pose_arrivals[-1][0]:
+            arrival_s = self._pose_arrivals[-1][0]
+        self._pose_arrivals.append((arrival_s, stamp_s))
+
+    def _pose_clock_at(self, arrival_s: float) -> float | None:
+        pa = self._pose_arrivals
+        if len(pa) < 2 or arrival_s > pa[-1][0] + 1.0 or arrival_s < pa[0][0]:
+            return None
+        arr = np.fromiter((a for a, _ in pa), float, len(pa))
+        i = int(np.searchsorted(arr, arrival_s, side="right"))
+        if i >= len(pa):  # after the newest pose: the newest stamp is the best reading
+            return float(max(s for _, s in list(pa)[-8:]))
+        a0, s0 = pa[i - 1]
+        a1, s1 = pa[i]
+        if a1 <= a0:
+            return float(s1)
+        return float(s0 + (s1 - s0) * (arrival_s - a0) / (a1 - a0))
+
+    def profile(self, p: Profile, arrival_s: float) -> list[Profile]:
+        """Take a profile; return the profiles now released, stamps on the pose clock."""
+        sid = p.sensor_id
+        ref = self._pose_clock_at(arrival_s)
+        samples = self._samples.setdefault(sid, deque(maxlen=self.window))
+        if ref is not None:
+            samples.append(p.stamp_s - ref)
+        waiting = self._waiting.setdefault(sid, [])
+        if len(samples) < self.min_samples:
+            if len(waiting) >= self.max_waiting:
+                self.dropped["clock_unsynced"] = self.dropped.get("clock_unsynced", 0) + 1
+            else:
+                waiting.append(p)
+            return []
+        skew = float(np.median(samples))
+        if sid not in self.engaged and abs(skew) > self.tolerance_s:
+            self.engaged.add(sid)
+            log.warning("clock of %s differs from the robot's by %.3f s: correcting its stamps",
+                        sid, skew)
+        corr = skew if sid in self.engaged else 0.0
+        self.correction_s[sid] = corr
+        out = [self._shift(q, corr) for q in waiting] + [self._shift(p, corr)]
+        waiting.clear()
+        return out
+
+    @staticmethod
+    def _shift(p: Profile, corr: float) -> Profile:
+        if corr == 0.0:
+            return p
+        stamp = p.stamp_s - corr
+        if stamp < 0:
+            stamp = 0.0
+        return Profile(p.sensor_id, stamp, p.counter, p.xz_S, p.valid, p.intensity)
+
+    def flush(self) -> list[Profile]:
+        """Release every waiting profile with the correction known now (end of the stream)."""
+        out = []
+        for sid, waiting in self._waiting.items():
+            corr = self.correction_s.get(sid, 0.0)
+            out.extend(self._shift(q, corr) for q in waiting)
+            waiting.clear()
+        return out

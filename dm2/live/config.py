@@ -1,0 +1,158 @@
+"""The cell file of a live run (``dm2 monitor --live CELL.toml``): sources, calibration, limits.
+
+Example::
+
+    schema = 1
+    name = "cold-spray cell 1"
+    calibration = "calibration.toml"      # dm2.calibration_io format, relative to this file
+    toolpath = "toolpath.csv"             # optional: layer changes without controller marks
+    plate_size_mm = [120.0, 120.0, 6.0]
+
+    [process]                             # dm2.config.ProcessConfig
+    standoff_mm = 30.0
+
+    [monitor]                             # dm2.config.MonitorConfig
+    voxel_mm = 0.5
+
+    [live]
+    egm = "127.0.0.1:6510"                # UDP address the EGM stream is sent to
+    controllers = ["127.0.0.1"]           # only datagrams from these addresses are used
+    profiles = "127.0.0.1:6511"           # TCP address profile bridges connect to
+    bridges = ["127.0.0.1"]
+    allow_remote = false                  # binding a non-loopback address needs true
+
+Every model rejects unknown keys; errors are :class:`~dm2.config.ConfigError` naming the file
+and the field.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import tomllib
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, ValidationError, field_validator, model_validator
+
+from dm2.config import (
+    SCHEMA_VERSION,
+    ConfigError,
+    MonitorConfig,
+    ProcessConfig,
+    _Model,
+    format_validation_error,
+)
+
+
+def parse_host_port(text: str, field: str = "address") -> tuple[str, int]:
+    """``"HOST:PORT"`` -> ``(host, port)``; ValueError naming ``field`` otherwise."""
+    host, sep, port = str(text).rpartition(":")
+    if not sep or not host:
+        raise ValueError(f"{field}: expected HOST:PORT, got {text!r}")
+    try:
+        p = int(port)
+    except ValueError:
+        raise ValueError(f"{field}: port {port!r} is not a number") from None
+    if not 0 <= p <= 65535:
+        raise ValueError(f"{field}: port {p} outside 0..65535")
+    return host, p
+
+
+def is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+class ScanControlSensor(_Model):
+    """One scanCONTROL profiler driven directly through the vendor's Python wrapper."""
+
+    sensor_id: Literal["S1", "S2", "S3"]
+    interface: str  # the sensor's IP address (Ethernet interface)
+    resolution: int = Field(640, gt=0)
+
+
+class LiveConfig(_Model):
+    egm: str = "127.0.0.1:6510"
+    controllers: tuple[str, ...] = ("127.0.0.1",)
+    profiles: str = "127.0.0.1:6511"
+    bridges: tuple[str, ...] = ("127.0.0.1",)
+    allow_remote: bool = False
+    scancontrol: tuple[ScanControlSensor, ...] = ()
+    max_datagram_bytes: int = Field(2048, ge=64, le=65507)
+    max_frame_bytes: int = Field(28 + 10 * 4096, ge=28, le=16 << 20)
+    queue_size: int = Field(20000, gt=0)
+    clock_tolerance_s: float = Field(0.05, ge=0)
+    max_sensor_gap_s: float = Field(1.0, gt=0)
+    chunk_s: float = Field(1.0, gt=0, le=10)
+    idle_stop_s: float = Field(10.0, ge=0)  # stop after data stopped this long (0: never)
+    max_duration_s: float | None = Field(None, gt=0)
+
+    @field_validator("egm", "profiles")
+    @classmethod
+    def _address(cls, v: str) -> str:
+        parse_host_port(v)
+        return v
+
+    @model_validator(mode="after")
+    def _loopback_only(self):
+        if not self.allow_remote:
+            for name in ("egm", "profiles"):
+                host, _ = parse_host_port(getattr(self, name), name)
+                if not is_loopback(host):
+                    raise ValueError(f"{name} binds {host}, not loopback: set "
+                                     f"allow_remote = true to listen on other interfaces")
+        return self
+
+
+class CellFile(_Model):
+    """A whole live cell file."""
+
+    schema_: int = Field(SCHEMA_VERSION, alias="schema")
+    name: str = "cell"
+    calibration: str
+    toolpath: str | None = None
+    plate_size_mm: tuple[float, float, float] = (120.0, 120.0, 6.0)
+    process: ProcessConfig = ProcessConfig()
+    monitor: MonitorConfig = MonitorConfig()
+    live: LiveConfig = LiveConfig()
+
+    model_config = _Model.model_config | {"populate_by_name": True}
+
+    @field_validator("schema_")
+    @classmethod
+    def _schema(cls, v: int) -> int:
+        if v != SCHEMA_VERSION:
+            raise ValueError(f"unsupported schema version {v} (this build reads {SCHEMA_VERSION})")
+        return v
+
+
+def load_cell_file(path: str | Path) -> CellFile:
+    """Read and validate a cell file; relative paths in it resolve beside it.
+
+    Raises ConfigError naming the file and the field.
+    """
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read cell file: {exc.strerror}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    try:
+        cell = CellFile.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(format_validation_error(str(path), exc)) from None
+    update = {}
+    for key in ("calibration", "toolpath"):
+        value = getattr(cell, key)
+        if value is not None:
+            p = Path(value)
+            p = p if p.is_absolute() else (path.parent / p).resolve()
+            if not p.is_file():
+                raise ConfigError(f"{path}: field '{key}': file {p} not found")
+            update[key] = str(p)
+    return cell.model_copy(update=update)

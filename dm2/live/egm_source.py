@@ -1,0 +1,234 @@
+"""ABB EGM pose source: EgmRobot protobuf datagrams over UDP -> RobotState (and LayerMark).
+
+The robot controller streams ``EgmRobot`` messages (:mod:`dm2.live.egm_pb2`, compiled from the
+``egm.proto`` beside this file) to the monitoring PC. Units on the wire are ABB's: joints in
+degrees, position in mm, orientation as a unit quaternion ``u0..u3`` (``u0`` = w), header
+``tm`` in ms (uint32, wraps after 49.7 days), ``feedBack.time`` as ``sec`` + ``usec``.
+
+The stamp of a state is ``feedBack.time`` when the controller sends it, else the unwrapped
+header ``tm``. A RAPID program may report the current layer index in
+``RAPIDfromRobot.digVal[0]``; a change of that value becomes a :class:`~dm2.messages.LayerMark`
+stamped like the state that carries it (emitted just before it).
+
+Transport-level drop reasons (counted in the shared :class:`~dm2.live.inbox.Inbox`):
+``oversized_datagram``, ``foreign_sender``, ``malformed_egm``, ``queue_full``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import socket
+import threading
+import time
+
+import numpy as np
+from google.protobuf.message import DecodeError
+
+from dm2.frames import from_quat_abb, to_quat_abb
+from dm2.live import egm_pb2
+from dm2.live.inbox import Inbox
+from dm2.messages import LayerMark, MessageError, RobotState
+
+log = logging.getLogger(__name__)
+
+TM_MODULO = 1 << 32  # header.tm is a uint32 count of milliseconds
+DEFAULT_EGM_PORT = 6510
+MAX_DATAGRAM_BYTES = 2048
+QUATERNION_NORM_TOL = 1e-3
+
+
+class EgmDecodeError(ValueError):
+    """A datagram is not a usable EgmRobot message; the text says why."""
+
+
+class TmUnwrapper:
+    """Unwrap the 32-bit millisecond header time into seconds that keep increasing.
+
+    A backwards step of more than half the range is taken as a wrap; smaller backward steps
+    (reordered datagrams) map to the same epoch.
+    """
+
+    def __init__(self):
+        self._epoch = 0
+        self._last: int | None = None
+
+    def __call__(self, tm_ms: int) -> float:
+        tm = int(tm_ms) % TM_MODULO
+        if self._last is None:
+            self._last = tm
+        elif (tm - self._last) % TM_MODULO < TM_MODULO // 2:  # at or after the newest
+            if tm < self._last:
+                self._epoch += 1
+            self._last = tm
+        elif tm > self._last:  # a late datagram from before the newest wrap
+            return ((self._epoch - 1) * TM_MODULO + tm) / 1000.0
+        return (self._epoch * TM_MODULO + tm) / 1000.0
+
+
+def encode_egm_robot(seqno: int, tm_ms: int, joints_rad, T_B_F, stamp_s: float | None = None,
+                     layer: int | None = None) -> bytes:
+    """Serialise one EgmRobot feedback message as an ABB controller sends it.
+
+    Parameters
+    ----------
+    seqno : int, header sequence number (taken modulo 2**32)
+    tm_ms : int, header time [ms] (taken modulo 2**32)
+    joints_rad : (6,) float64 [rad], sent in degrees
+    T_B_F : (4, 4) float64, flange pose [mm]
+    stamp_s : float [s] or None, sent as ``feedBack.time`` (sec, usec) when given
+    layer : int or None, sent as ``RAPIDfromRobot.digVal[0]``
+    """
+    msg = egm_pb2.EgmRobot()
+    msg.header.seqno = int(seqno) % TM_MODULO
+    msg.header.tm = int(tm_ms) % TM_MODULO
+    msg.header.mtype = egm_pb2.EgmHeader.MSGTYPE_DATA
+    fb = msg.feedBack
+    fb.joints.joints.extend(np.degrees(np.asarray(joints_rad, dtype=np.float64)).tolist())
+    pos, q = to_quat_abb(np.asarray(T_B_F, dtype=np.float64))
+    fb.cartesian.pos.x, fb.cartesian.pos.y, fb.cartesian.pos.z = (float(v) for v in pos)
+    o = fb.cartesian.orient
+    o.u0, o.u1, o.u2, o.u3 = (float(v) for v in q)
+    if stamp_s is not None:
+        usec_total = round(float(stamp_s) * 1e6)
+        fb.time.sec, fb.time.usec = divmod(usec_total, 1_000_000)
+    if layer is not None:
+        msg.RAPIDfromRobot.digVal.append(float(layer))
+    return msg.SerializeToString()
+
+
+def parse_egm_robot(data: bytes) -> egm_pb2.EgmRobot:
+    """Parse bytes into an EgmRobot; raises EgmDecodeError naming the problem."""
+    msg = egm_pb2.EgmRobot()
+    try:
+        msg.ParseFromString(bytes(data))
+    except (DecodeError, RuntimeError, ValueError) as exc:
+        raise EgmDecodeError(f"not an EgmRobot protobuf: {exc}") from None
+    if not msg.HasField("header") or not msg.header.HasField("tm"):
+        raise EgmDecodeError("EgmRobot.header.tm missing")
+    fb = msg.feedBack
+    if not msg.HasField("feedBack") or len(fb.joints.joints) < 6:
+        raise EgmDecodeError("EgmRobot.feedBack.joints: fewer than 6 joints")
+    if not (fb.HasField("cartesian") and fb.cartesian.HasField("pos")
+            and fb.cartesian.HasField("orient")):
+        raise EgmDecodeError("EgmRobot.feedBack.cartesian: position or orientation missing")
+    return msg
+
+
+class EgmDecoder:
+    """Turn EgmRobot datagrams into pipeline messages (stateful: tm unwrap, layer changes)."""
+
+    def __init__(self):
+        self._unwrap = TmUnwrapper()
+        self._layer: int | None = None
+
+    def decode(self, data: bytes) -> list:
+        """``[LayerMark?, RobotState]`` of one datagram; raises EgmDecodeError if unusable."""
+        msg = parse_egm_robot(data)
+        fb = msg.feedBack
+        if fb.HasField("time"):
+            stamp_s = fb.time.sec + fb.time.usec * 1e-6
+        else:
+            stamp_s = self._unwrap(msg.header.tm)
+        joints = np.radians(np.array(fb.joints.joints[:6], dtype=np.float64))
+        p, o = fb.cartesian.pos, fb.cartesian.orient
+        q = np.array([o.u0, o.u1, o.u2, o.u3])
+        pos = np.array([p.x, p.y, p.z])
+        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(pos)) and math.isfinite(stamp_s)):
+            raise EgmDecodeError("EgmRobot.feedBack: non-finite pose or time")
+        if abs(float(np.linalg.norm(q)) - 1.0) > QUATERNION_NORM_TOL:
+            raise EgmDecodeError(f"EgmRobot.feedBack.cartesian.orient: |q| = "
+                                 f"{np.linalg.norm(q):.4g}, not a unit quaternion")
+        try:
+            T_B_F = from_quat_abb(pos, q / np.linalg.norm(q))
+            state = RobotState(stamp_s, msg.header.seqno, joints, T_B_F)
+        except (MessageError, ValueError) as exc:
+            raise EgmDecodeError(str(exc)) from None
+        out: list = []
+        digits = msg.RAPIDfromRobot.digVal
+        if len(digits) and math.isfinite(digits[0]) and digits[0] >= 0:
+            layer = int(round(digits[0]))
+            if layer != self._layer:
+                out.append(LayerMark(stamp_s, layer))
+                self._layer = layer
+        out.append(state)
+        return out
+
+
+class EgmSource:
+    """UDP listener for an ABB controller's EGM stream, feeding an :class:`Inbox`.
+
+    Parameters
+    ----------
+    inbox : where decoded messages go (source name ``"egm"``)
+    host, port : address to bind (loopback by default)
+    controllers : sender IP addresses accepted; datagrams from others count ``foreign_sender``
+    max_datagram_bytes : larger datagrams count ``oversized_datagram``
+    """
+
+    name = "egm"
+
+    def __init__(self, inbox: Inbox, host: str = "127.0.0.1", port: int = DEFAULT_EGM_PORT,
+                 controllers=("127.0.0.1",), max_datagram_bytes: int = MAX_DATAGRAM_BYTES):
+        self.inbox = inbox
+        self.controllers = frozenset(controllers)
+        self.max_bytes = int(max_datagram_bytes)
+        self.decoder = EgmDecoder()
+        self.received = 0
+        self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
+        self._sock.bind((host, int(port)))
+        self._sock.settimeout(0.1)
+        self.address = self._sock.getsockname()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def handle_datagram(self, data: bytes, sender_ip: str) -> None:
+        """Check, decode and queue one datagram (also used directly by tests)."""
+        self.received += 1
+        if len(data) > self.max_bytes:
+            self.inbox.drop("oversized_datagram")
+            return
+        if sender_ip not in self.controllers:
+            self.inbox.drop("foreign_sender")
+            return
+        try:
+            msgs = self.decoder.decode(data)
+        except EgmDecodeError as exc:
+            self.inbox.drop("malformed_egm")
+            log.debug("EGM datagram from %s dropped: %s", sender_ip, exc)
+            return
+        arrival = time.monotonic()
+        for m in msgs:
+            self.inbox.put(m, self.name, arrival)
+
+    def _run(self) -> None:
+        buf = bytearray(self.max_bytes + 1)
+        while not self._stop.is_set():
+            try:
+                n, addr = self._sock.recvfrom_into(buf)
+            except TimeoutError:
+                continue
+            except OSError:
+                if self._stop.is_set():
+                    break
+                raise
+            self.handle_datagram(bytes(buf[:n]), addr[0])
+
+    def start(self) -> EgmSource:
+        self._thread = threading.Thread(target=self._run, name="egm-source", daemon=True)
+        self._thread.start()
+        log.info("EGM source listening on udp %s:%d", *self.address)
+        return self
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+        self._sock.close()
+
+    def __enter__(self) -> EgmSource:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.close()

@@ -1,0 +1,205 @@
+"""The live run: sources -> inbox -> clock alignment -> recording + analysis -> reports.
+
+:class:`LiveRunner` owns the sockets (EGM over UDP, profile bridges over TCP, optional
+scanCONTROL sensors), one bounded :class:`~dm2.live.inbox.Inbox` they all feed, the
+:class:`~dm2.live.clock.ClockAligner`, the crash-safe :class:`~dm2.live.recorder.LiveRecorder`
+(``<out>/live.mcap``, the stream as the pipeline receives it, stamps on the robot's clock) and
+a :class:`~dm2.live.analysis.LayerAnalysis` that rewrites ``<out>/report`` (report.json and the
+rest, replaced atomically) after every layer. ``report.json``'s ``dropped`` merges the
+transport's drop counts with the pipeline's. Nothing here imports the twin: the same code
+runs against a real cell.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from pathlib import Path
+
+from dm2.live.analysis import LayerAnalysis
+from dm2.live.clock import ClockAligner
+from dm2.live.config import CellFile, parse_host_port
+from dm2.live.inbox import Inbox
+from dm2.messages import LayerMark, MessageError, Profile, RobotState
+
+log = logging.getLogger(__name__)
+
+RECORDING_NAME = "live.mcap"
+REPORT_DIR = "report"
+
+
+class LiveRunner:
+    """A continuous monitoring run on live sources.
+
+    Parameters
+    ----------
+    cell : the cell file (calibration and toolpath paths already resolved)
+    out_dir : run folder (report, recording)
+    cell_toml : the cell file's text, stored beside the report and in the recording
+    record : write ``<out_dir>/live.mcap``
+    """
+
+    def __init__(self, cell: CellFile, out_dir: str | Path, *, cell_toml: str | None = None,
+                 record: bool = True):
+        from dm2.calibration_io import calibration_to_toml, read_calibration_toml
+
+        self.cell = cell
+        self.out_dir = Path(out_dir)
+        self.calibration = read_calibration_toml(cell.calibration)
+        self.toolpath = None
+        attachments = {"calibration.toml": calibration_to_toml(self.calibration).encode()}
+        if cell.toolpath is not None:
+            from dm2.toolpath.formats import format_csv, read_csv
+
+            self.toolpath = read_csv(cell.toolpath)
+            attachments["toolpath.csv"] = format_csv(self.toolpath).encode()
+        if cell_toml is not None:
+            attachments["cell.toml"] = cell_toml.encode()
+        live = cell.live
+        self.inbox = Inbox(live.queue_size)
+        self.aligner = ClockAligner(live.clock_tolerance_s)
+        self.analysis = LayerAnalysis(self.calibration, cell.monitor, cell.process,
+                                      cell.plate_size_mm, toolpath=self.toolpath,
+                                      out_dir=self.report_dir, config_toml=cell_toml,
+                                      max_sensor_gap_s=live.max_sensor_gap_s,
+                                      meta={"mode": "live", "cell": cell.name})
+        self.analysis.drop_sources += [lambda: self.inbox.dropped, lambda: self.aligner.dropped]
+        self.recorder = None
+        if record:
+            from dm2.live.recorder import LiveRecorder
+
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+            self.recorder = LiveRecorder(self.recording_path, attachments=attachments,
+                                         chunk_s=live.chunk_s)
+            self.recorder.write_static_tf(self.calibration)
+        self.sources: list = []
+        self.latencies_s: list[float] = []  # socket arrival -> fused, per fused profile
+        self._pending_arrivals: deque = deque(maxlen=4096)  # (stamp_s, arrival_s)
+        self.messages_in = 0
+        self._last_data = None
+        self._finished = False
+
+    @property
+    def report_dir(self) -> Path:
+        return self.out_dir / REPORT_DIR
+
+    @property
+    def recording_path(self) -> Path:
+        return self.out_dir / RECORDING_NAME
+
+    # --------------------------------------------------------------------------- sources
+    def open_sources(self) -> dict[str, tuple]:
+        """Bind the configured sources and start their threads; returns their addresses."""
+        from dm2.live.egm_source import EgmSource
+        from dm2.live.tcp_profiles import ProfileServer
+
+        live = self.cell.live
+        host, port = parse_host_port(live.egm, "live.egm")
+        egm = EgmSource(self.inbox, host, port, controllers=live.controllers,
+                        max_datagram_bytes=live.max_datagram_bytes).start()
+        self.sources.append(egm)
+        host, port = parse_host_port(live.profiles, "live.profiles")
+        prof = ProfileServer(self.inbox, host, port, bridges=live.bridges,
+                             max_frame_bytes=live.max_frame_bytes).start()
+        self.sources.append(prof)
+        addresses = {"egm": egm.address, "profiles": prof.address}
+        if live.scancontrol:
+            from dm2.live.scancontrol import ScanControlSource
+
+            self.sources.append(ScanControlSource(self.inbox, live.scancontrol).start())
+        return addresses
+
+    # --------------------------------------------------------------------------- the loop
+    def process(self, msg, source: str, arrival_s: float) -> None:
+        """Handle one inbox item: align clocks, record, analyse."""
+        self.messages_in += 1
+        if isinstance(msg, RobotState):
+            self.aligner.pose(msg.stamp_s, arrival_s)
+            self._deliver(msg)
+        elif isinstance(msg, Profile):
+            for p in self.aligner.profile(msg, arrival_s):
+                self._pending_arrivals.append((p.stamp_s, arrival_s))
+                self._deliver(p)
+        elif isinstance(msg, LayerMark):
+            self._deliver(msg)
+        else:
+            self.analysis.extra_dropped["bad_message"] += 1
+
+    def _deliver(self, msg) -> None:
+        if self.recorder is not None:
+            try:
+                self.recorder.write(msg)
+            except MessageError:
+                self.analysis.extra_dropped["unrecordable_stamp"] += 1
+                return
+        fused_before = self.analysis.monitor.profiles_fused
+        self.analysis.feed(msg)
+        if self.analysis.monitor.profiles_fused != fused_before:
+            self._note_fused()
+
+    def _note_fused(self) -> None:
+        last = getattr(self.analysis.monitor, "_last_stamp_s", float("inf"))
+        now = time.monotonic()
+        pend = self._pending_arrivals
+        while pend and pend[0][0] <= last:
+            self.latencies_s.append(now - pend.popleft()[1])
+
+    def run(self, stop: threading.Event | None = None, max_duration_s: float | None = None,
+            idle_stop_s: float | None = None) -> dict | None:
+        """Process the inbox until ``stop`` is set, ``max_duration_s`` passed, or no data came
+        for ``idle_stop_s`` after data started (0 or None: never); then :meth:`finish`."""
+        live = self.cell.live
+        max_duration_s = live.max_duration_s if max_duration_s is None else max_duration_s
+        idle_stop_s = live.idle_stop_s if idle_stop_s is None else idle_stop_s
+        t0 = time.monotonic()
+        try:
+            while not (stop is not None and stop.is_set()):
+                now = time.monotonic()
+                if max_duration_s is not None and now - t0 >= max_duration_s:
+                    break
+                idle = self._last_data is not None and now - self._last_data > idle_stop_s
+                if idle_stop_s and idle:
+                    log.info("no data for %.1f s: ending the run", idle_stop_s)
+                    break
+                item = self.inbox.get(timeout_s=0.05)
+                if item is None:
+                    continue
+                self._last_data = time.monotonic()
+                self.process(*item)
+        finally:
+            report = self.finish()
+        return report
+
+    def drain(self) -> None:
+        """Process everything already queued (no waiting)."""
+        while (item := self.inbox.get(timeout_s=0)) is not None:
+            self.process(*item)
+
+    def finish(self) -> dict | None:
+        """Close the sources, process what is queued, write the final report and recording."""
+        if self._finished:
+            return None
+        self._finished = True
+        for s in self.sources:
+            s.close()
+        self.drain()
+        for p in self.aligner.flush():
+            self._deliver(p)
+        try:
+            report = self.analysis.finish()
+        finally:
+            if self.recorder is not None:
+                self.recorder.close()
+        log.info("live run finished: %d messages, dropped %s", self.messages_in,
+                 self.analysis.dropped)
+        return report
+
+    def close(self) -> None:
+        """Release sockets and files without a final report (error paths)."""
+        for s in self.sources:
+            s.close()
+        if self.recorder is not None and not self._finished:
+            self.recorder.close(keep_part=True)
+        self._finished = True
