@@ -1,0 +1,104 @@
+"""dm2 calibrate: rehearsal outputs, recorded runs, and clear exit-2 errors."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+from typer.testing import CliRunner
+
+from calib.artifact import load_artifact
+from dm2.calibration_io import read_calibration_toml
+from dm2.cli.main import app
+from dm2.config import load_scenario
+from dm2.frames import apply, from_rotvec, pose_error
+from dm2.messages import Calibration, Profile, RobotState
+from dm2.recording import RecordingWriter
+from scenarios import resolve_scenario, scenario_dir
+from twin.rehearsal import RehearsalConfig, rehearse_calibration
+
+runner = CliRunner()
+
+
+def test_rehearsal_writes_errors_and_a_calibration_file(tmp_path):
+    out = tmp_path / "cal"
+    r = runner.invoke(app, ["calibrate", "--rehearse", "--scenario", "pad", "--poses", "12",
+                            "--noise-mm", "0", "--robot-noise-mm", "0", "--seed", "2",
+                            "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    summary = json.loads((out / "rehearsal.json").read_text())
+    assert set(summary["sensors"]) == {"S1", "S2", "S3"}
+    for row in summary["sensors"].values():
+        assert row["translation_error_mm"] < 1e-6 and row["rotation_error_deg"] < 1e-6
+        assert row["residual_rms_mm"] < 1e-6
+    cal = read_calibration_toml(out / "calibration.toml")
+    sim = rehearse_calibration(load_scenario(resolve_scenario("pad")),
+                               load_artifact(scenario_dir() / "artifacts" / "four_spheres.toml"),
+                               RehearsalConfig(n_poses=12, seed=2))
+    for sid in ("S1", "S2", "S3"):
+        dt, dr = pose_error(cal.T_B_S[sid], sim.truth.T_B_S[sid])
+        assert dt < 1e-6 and dr < 1e-8
+    assert np.allclose(cal.T_F_O, sim.truth.T_F_O) and np.allclose(cal.T_B_N, sim.truth.T_B_N)
+
+
+def test_recorded_calibration_run_is_solved(tmp_path):
+    sc = load_scenario(resolve_scenario("pad"))
+    art = load_artifact(scenario_dir() / "artifacts" / "four_spheres.toml")
+    sim = rehearse_calibration(sc, art, RehearsalConfig(n_poses=10, profile_noise_mm=0.0,
+                                                        robot_repeatability_mm=0.0, seed=4))
+    prior = Calibration(sim.prior_T_B_S, sim.truth.T_F_O, sim.truth.T_B_N)
+    path = tmp_path / "calib_run.mcap"
+    writer = RecordingWriter(path, attachments={})
+    writer.write_static_tf(prior)
+    for m in sim.messages:
+        writer.write(m)
+    writer.close()
+    out = tmp_path / "out"
+    r = runner.invoke(app, ["calibrate", str(path), "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    cal = read_calibration_toml(out / "calibration.toml")
+    for sid in ("S1", "S2", "S3"):
+        dt, dr = pose_error(cal.T_B_S[sid], sim.truth.T_B_S[sid])
+        assert dt < 1e-5 and np.degrees(dr) < 1e-5, sid
+    assert json.loads((out / "calibration.json").read_text())["n_observations"] == 30
+
+
+def test_degenerate_recorded_pose_set_exits_2(tmp_path):
+    art_path = tmp_path / "one_sphere.toml"
+    art_path.write_text('schema = 1\nname = "one"\n[mount]\ntranslation_mm = [0, 0, 0]\n'
+                        '[[spheres]]\ncenter_mm = [60, 60, 20]\nradius_mm = 8\n')
+    T_B_S = from_rotvec([2.2, 0.3, 0.1], [10.0, -40.0, 90.0])
+    cal = Calibration({"S1": T_B_S}, np.eye(4), np.eye(4))
+    path = tmp_path / "line.mcap"
+    writer = RecordingWriter(path, attachments={})
+    writer.write_static_tf(cal)
+    for i in range(6):  # the sphere centre moves along one line: rotation about it is free
+        c_S = np.array([-10.0 + 4 * i, 4.0, 85.0 + 2 * i])
+        T_B_F = np.eye(4)
+        T_B_F[:3, 3] = apply(T_B_S, c_S[None])[0] - [60.0, 60.0, 20.0]
+        writer.write(RobotState(i, 2 * i, np.zeros(6), T_B_F))
+        writer.write(RobotState(i + 0.5, 2 * i + 1, np.zeros(6), T_B_F))
+        ang = np.linspace(-2.2, -0.9, 60)
+        rho = np.sqrt(64.0 - 16.0)
+        xz = np.column_stack([c_S[0] + rho * np.cos(ang), c_S[2] + rho * np.sin(ang)])
+        writer.write(Profile("S1", i + 0.25, i, xz, np.ones(60, bool), np.ones(60)))
+    writer.close()
+    r = runner.invoke(app, ["calibrate", str(path), "--artifact", str(art_path),
+                            "--out", str(tmp_path / "o")])
+    assert r.exit_code == 2, r.output
+    assert "S1: the poses do not constrain" in r.output
+    assert not (tmp_path / "o" / "calibration.toml").exists()
+
+
+def test_artifact_the_sensors_never_see_exits_2(tmp_path):
+    r = runner.invoke(app, ["calibrate", "--rehearse", "--scenario", "pad", "--poses", "4",
+                            "--mount-error-mm", "200", "--out", str(tmp_path / "o")])
+    assert r.exit_code == 2, r.output
+    assert "the artifact was seen in 0 of 4 profiles" in r.output
+    assert not (tmp_path / "o").exists()
+
+
+def test_rehearse_and_recording_together_is_refused(tmp_path):
+    r = runner.invoke(app, ["calibrate", "--rehearse", str(tmp_path / "x.mcap")])
+    assert r.exit_code == 2
+    assert "either --rehearse or a RECORDING" in r.output
