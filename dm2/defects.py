@@ -71,10 +71,15 @@ class DefectMonitor:
     ----------
     monitor_cfg : MonitorConfig (delta_global_mm, delta_local, min_weight, min_region_area_mm2)
     tracker : RegionTracker or None (default settings)
+    same_grid : bool, compare against the reference as the measurement represents it: point
+        sampled at the TSDF voxel columns (see ReferenceMap.resampled), as the paper runs
+        reference and measurement through the same volumetric representation
     """
 
-    def __init__(self, monitor_cfg, tracker: RegionTracker | None = None):
+    def __init__(self, monitor_cfg, tracker: RegionTracker | None = None,
+                 same_grid: bool = True):
         self.cfg = monitor_cfg
+        self.same_grid = bool(same_grid)
         self.tracker = tracker or RegionTracker()
         self.results: list[LayerResult] = []
 
@@ -83,7 +88,10 @@ class DefectMonitor:
         """Deviation, segmentation and tracking of one layer's surface; returns its result."""
         layer = reference.layer if layer is None else int(layer)
         t0 = time.perf_counter()
-        dev = layer_deviation(surface, reference, self.cfg, layer, stamp_s)
+        compared = reference
+        if self.same_grid and reference.cell_mm < self.cfg.voxel_mm:
+            compared = reference.resampled(self.cfg.voxel_mm)
+        dev = layer_deviation(surface, compared, self.cfg, layer, stamp_s)
         t1 = time.perf_counter()
         regions = segment_regions(dev, self.cfg.min_region_area_mm2)
         t2 = time.perf_counter()

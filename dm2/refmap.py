@@ -89,6 +89,20 @@ class ReferenceMap:
         nz = self.normals_at(p[:, :2])[:, 2]
         return (p[:, 2] - self.height_at(p[:, :2])) * nz
 
+    def resampled(self, cell_mm: float) -> ReferenceMap:
+        """The surface point-sampled on a grid of ``cell_mm`` (centres at ``(i + 0.5) * cell``).
+
+        With ``cell_mm`` the TSDF voxel this is the reference as the measurement sees it: a
+        marching-cubes surface of the SDF ``z - h`` sampled at voxel centres crosses every
+        vertical voxel edge exactly at ``h`` of that column and is linear in between, i.e. it
+        is this grid triangulated.
+        """
+        nx = max(int(round(self.size_mm[0] / cell_mm)), 2)
+        ny = max(int(round(self.size_mm[1] / cell_mm)), 2)
+        xx, yy = np.meshgrid((np.arange(nx) + 0.5) * cell_mm, (np.arange(ny) + 0.5) * cell_mm)
+        h = self.height_at(np.column_stack([xx.ravel(), yy.ravel()])).reshape(ny, nx)
+        return ReferenceMap(h, cell_mm, self.layer, self.stamp_s)
+
     def crop_indices(self, lo_xy, hi_xy, margin_mm: float = 0.0):
         """Row and column index slices covering ``[lo, hi]`` (+ margin) in ``O`` [mm]."""
         ny, nx = self.heights_mm.shape

@@ -186,3 +186,15 @@ def test_mean_curvature_of_a_sphere_and_open_boundary():
     border = boundary_vertices(cap.vertices, cap.faces)
     assert border.sum() > 0 and np.abs(cap.vertices[border, 2]).max() < 0.25
     assert np.all(mean_curvature(cap.vertices, cap.faces, smooth_iterations=0)[border] == 0)
+
+
+def test_reference_resampled_on_voxel_columns():
+    n = int(120 / CELL)
+    x = (np.arange(n) + 0.5) * CELL
+    ramp = np.tile(0.1 * x + 2.0, (n, 1))  # h = 2 + 0.1 x
+    ref = ReferenceMap(ramp, CELL, layer=5, stamp_s=3.0)
+    vox = ref.resampled(0.5)
+    assert vox.heights_mm.shape == (240, 240) and (vox.layer, vox.stamp_s) == (5, 3.0)
+    xc = (np.arange(240) + 0.5) * 0.5
+    assert np.allclose(vox.heights_mm[7, 10:230], 2.0 + 0.1 * xc[10:230])
+    assert np.allclose(vox.height_at([[33.3, 50.0]]), ref.height_at([[33.3, 50.0]]))
