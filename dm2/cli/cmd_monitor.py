@@ -37,7 +37,7 @@ def _load_inputs(run: Path, calibration: Path | None, toolpath: Path | None):
 
 @app.command()
 def monitor(
-    run: Path = typer.Argument(..., help="MCAP recording (from `dm2 simulate` or the cell)."),
+    run: Path = typer.Argument(None, help="MCAP recording (from `dm2 simulate` or the cell)."),
     out: Path = typer.Option(..., "--out", "-o", help="Folder for the per-layer surfaces."),
     calibration: Path = typer.Option(None, "--calibration", help="Calibration TOML (default: "
                                      "the recording's attachment, else its /tf_static)."),
@@ -45,12 +45,23 @@ def monitor(
                                   "recording's attachment); splits layers without layer marks."),
     voxel_mm: float = typer.Option(None, "--voxel-mm", min=0.05, max=2.0,
                                    help="Override the TSDF voxel size [mm]."),
+    live: Path = typer.Option(None, "--live", help="Cell file: monitor the live cell (EGM + "
+                              "profile sources) instead of a recording; see dm2.live.config."),
 ) -> None:
     """Reconstruct the part from a recording: sync, register, fuse (TSDF), mesh per layer.
 
     Writes `layer_NNNN.ply` (frame O, mm, per-vertex `scalar_weight`) for every finished layer,
     `monitor.toml` (the configuration used) and `monitor.json` (counts, drops, layers).
     """
+    if live is not None:
+        from dm2.cli.cmd_live import run_live_monitor
+
+        if run is not None:
+            fail("give either a recording or --live CELL.toml, not both")
+        run_live_monitor(live, out)
+        return
+    if run is None:
+        fail("give a recording to replay, or --live CELL.toml")
     from rich.table import Table
 
     from dm2.config import dump_toml

@@ -9,6 +9,7 @@ COMMAND_MODULES = [
     "cmd_monitor",
     "cmd_calibrate",
     "cmd_run",
+    "cmd_live",
 ]
 
 for _name in COMMAND_MODULES:

@@ -1,0 +1,122 @@
+"""``dm2 serve-twin`` and ``dm2 recover``; the live side of ``dm2 monitor --live CELL.toml``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from dm2.cli.common import app, bad_input_exits, console, fail
+
+
+def run_live_monitor(cell_path: Path, out: Path, max_duration_s: float | None = None) -> None:
+    """``dm2 monitor --live CELL.toml --out DIR``: monitor the cell until it goes quiet or
+    Ctrl-C / SIGTERM; ``DIR/live.mcap`` records the stream, ``DIR/report`` the results."""
+    import signal
+    import threading
+
+    from dm2.live.config import load_cell_file
+    from dm2.live.runner import LiveRunner
+    from dm2.report import check_output_dir
+
+    with bad_input_exits():
+        cell = load_cell_file(cell_path)
+        check_output_dir(out)
+        if (out / "live.mcap").exists():
+            raise ValueError(f"--out {out}: already holds a live recording (live.mcap); "
+                             "choose a new folder")
+        runner = LiveRunner(cell, out, cell_toml=cell_path.read_text(encoding="utf-8"))
+    try:
+        addresses = runner.open_sources()
+    except OSError as exc:
+        runner.close()
+        fail(f"{cell_path}: cannot open the live sources: {exc}")
+    stop = threading.Event()
+    previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    console.print(f"listening: EGM udp {addresses['egm'][0]}:{addresses['egm'][1]}, profiles "
+                  f"tcp {addresses['profiles'][0]}:{addresses['profiles'][1]}; Ctrl-C ends")
+    try:
+        runner.run(stop=stop, max_duration_s=max_duration_s)
+    except KeyboardInterrupt:
+        runner.finish()
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    a = runner.analysis
+    console.print(f"{runner.messages_in} messages, {len(a.results)} layers, "
+                  f"{len(a.tracks)} tracks; dropped {a.dropped or 'nothing'}")
+    console.print(f"recording: {runner.recording_path}  report: {runner.report_dir}")
+
+
+@app.command("serve-twin")
+def serve_twin(
+    scenario: str = typer.Argument(None, help="Scenario name or TOML path."),
+    egm: str = typer.Option("127.0.0.1:6510", "--egm", help="HOST:PORT the monitor receives "
+                            "EGM datagrams on (UDP)."),
+    profiles: str = typer.Option("127.0.0.1:6511", "--profiles", help="HOST:PORT of the "
+                                 "monitor's profile server (TCP)."),
+    speed: float = typer.Option(1.0, "--speed", help="Process seconds per wall second "
+                                "(1 = real time; 0 = as fast as possible)."),
+    duration_s: float = typer.Option(None, "--duration-s", min=0.001,
+                                     help="Stop after this many process seconds."),
+    write_cell: Path = typer.Option(None, "--write-cell", help="Write cell.toml (with the "
+                                    "calibration and toolpath) for `dm2 monitor --live` into "
+                                    "this folder, then serve."),
+) -> None:
+    """Play the twin as the cell over loopback sockets: EGM robot states (UDP) and profile
+    frames (TCP), at their stamps, real time or accelerated.
+
+    Example: `dm2 serve-twin pad --write-cell cell/ --speed 5` with
+    `dm2 monitor --live cell/cell.toml --out runs/live` in another shell.
+    """
+    from dm2.config import load_scenario
+    from dm2.live.config import parse_host_port
+    from scenarios import resolve_scenario
+
+    with bad_input_exits():
+        egm_addr = parse_host_port(egm, "--egm")
+        prof_addr = parse_host_port(profiles, "--profiles")
+        sc = load_scenario(resolve_scenario(scenario))
+        if duration_s is not None:
+            sc = sc.model_copy(update={"duration_s": duration_s})
+    from twin.kinematics import ReachError
+    from twin.serve import serve_twin as serve
+    from twin.serve import write_cell_files
+    from twin.simulate import Simulation
+
+    try:
+        sim = Simulation(sc)
+    except ReachError as exc:
+        fail(f"{sc.name}: the robot cannot follow the toolpath: {exc}")
+    if write_cell is not None:
+        path = write_cell_files(sim, write_cell, egm=egm, profiles=profiles)
+        console.print(f"cell file: {path}")
+    console.print(f"serving {sc.name} ({sim.end_s:.1f} s of process) to EGM udp {egm}, "
+                  f"profiles tcp {profiles} at {speed:g}x")
+    try:
+        result = serve(sc, egm_addr, prof_addr, speed, simulation=sim)
+    except ConnectionError as exc:
+        fail(f"{exc} (start `dm2 monitor --live` first)", code=1)
+    except KeyboardInterrupt:
+        fail("interrupted", code=130)
+    c = result.counts
+    console.print(f"sent {c['RobotState']} robot states, {c['Profile']} profiles, "
+                  f"{c['LayerMark']} layer changes")
+
+
+@app.command()
+def recover(
+    file: Path = typer.Argument(..., help="Truncated recording (e.g. live.mcap.part)."),
+    out: Path = typer.Option(None, "--out", "-o", help="Output file (default: FILE without "
+                             ".part, or FILE.recovered.mcap)."),
+) -> None:
+    """Make a recording cut short by a crash readable again (complete chunks are kept)."""
+    from dm2.live.recover import default_output, recover_recording
+
+    with bad_input_exits():
+        target = out if out is not None else default_output(file)
+        if target.exists():
+            raise ValueError(f"{target}: already exists; choose another --out")
+        result = recover_recording(file, target)
+    state = "complete" if result.complete else "cut off; kept every complete chunk"
+    console.print(f"recovered {result.messages} messages and {result.attachments} attachments "
+                  f"up to {result.last_stamp_s:.3f} s ({state}) -> {result.out_path}")
