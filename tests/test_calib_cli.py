@@ -22,7 +22,7 @@ runner = CliRunner()
 
 def test_rehearsal_writes_errors_and_a_calibration_file(tmp_path):
     out = tmp_path / "cal"
-    r = runner.invoke(app, ["calibrate", "--rehearse", "--scenario", "pad", "--poses", "12",
+    r = runner.invoke(app, ["calibrate", "--rehearse", "pad", "--poses", "12",
                             "--noise-mm", "0", "--robot-noise-mm", "0", "--seed", "2",
                             "--out", str(out)])
     assert r.exit_code == 0, r.output
@@ -91,14 +91,17 @@ def test_degenerate_recorded_pose_set_exits_2(tmp_path):
 
 
 def test_artifact_the_sensors_never_see_exits_2(tmp_path):
-    r = runner.invoke(app, ["calibrate", "--rehearse", "--scenario", "pad", "--poses", "4",
+    r = runner.invoke(app, ["calibrate", "--rehearse", "pad", "--poses", "4",
                             "--mount-error-mm", "200", "--out", str(tmp_path / "o")])
     assert r.exit_code == 2, r.output
     assert "the artifact was seen in 0 of 4 profiles" in r.output
     assert not (tmp_path / "o").exists()
 
 
-def test_rehearse_and_recording_together_is_refused(tmp_path):
-    r = runner.invoke(app, ["calibrate", "--rehearse", str(tmp_path / "x.mcap")])
+def test_missing_recording_is_refused(tmp_path):
+    r = runner.invoke(app, ["calibrate"])
     assert r.exit_code == 2
-    assert "either --rehearse or a RECORDING" in r.output
+    assert "give a RECORDING.mcap" in r.output
+    r = runner.invoke(app, ["calibrate", str(tmp_path / "absent.mcap")])
+    assert r.exit_code == 2
+    assert "no such recording" in " ".join(r.output.split())

@@ -89,11 +89,10 @@ def _write_outputs(out: Path, result, prior, artifact, summary: dict) -> Path:
 
 @app.command()
 def calibrate(
-    recording: Path = typer.Argument(None, help="MCAP recording of a calibration run "
-                                     "(omit with --rehearse)."),
+    source: str = typer.Argument(None, help="MCAP recording of a calibration run; with "
+                                 "--rehearse the cell scenario (name or TOML, default: the "
+                                 "default scenario)."),
     rehearse: bool = typer.Option(False, "--rehearse", help="Rehearse in the twin instead."),
-    scenario: str = typer.Option(None, "--scenario", help="Cell scenario for --rehearse "
-                                 "(name or TOML; default: the default scenario)."),
     artifact: str = typer.Option(None, "--artifact", help="Artifact TOML (or shipped name); "
                                  "default four_spheres."),
     poses: int = typer.Option(24, "--poses", min=1, help="Poses to plan (--rehearse)."),
@@ -116,30 +115,31 @@ def calibrate(
 ) -> None:
     """Calibrate the three profilers (T_B_S) from profiles of a sphere artifact.
 
-    With `--rehearse`, prints per-sensor translation and rotation errors against the twin's
-    truth and writes rehearsal.json; otherwise solves RECORDING and writes calibration.json.
+    With `--rehearse [SCENARIO]`, prints per-sensor translation and rotation errors against
+    the twin's truth and writes rehearsal.json; otherwise solves the recorded SOURCE and
+    writes calibration.json.
     Both write calibration.toml.
     """
     from calib.artifact import load_artifact
     from calib.observations import observations_from_messages
     from calib.solver import ISO9283_RP_PER_SIGMA, SolverOptions, solve_calibration
 
-    if rehearse == (recording is not None):
+    if not rehearse and source is None:
         from dm2.cli.common import fail
 
-        fail("give either --rehearse or a RECORDING.mcap (with --artifact), not both/neither")
+        fail("give a RECORDING.mcap of a calibration run (with --artifact), or --rehearse")
     with bad_input_exits():
         art = load_artifact(_artifact_path(artifact))
         options = SolverOptions(estimate_mount=estimate_mount,
                                 robot_sigma_mm=robot_noise_mm / ISO9283_RP_PER_SIGMA)
         if rehearse:
-            sim, prior_cal, truth = _rehearse(scenario, art, poses, noise_mm, robot_noise_mm,
+            sim, prior_cal, truth = _rehearse(source, art, poses, noise_mm, robot_noise_mm,
                                               seed, max_tilt_deg, offset_mm, mount_error_mm)
             messages = sim.messages
             art = art.with_mount(prior_cal.T_F_O)
             prior_T_B_S = sim.prior_T_B_S
         else:
-            messages, prior_cal = _recorded(recording, prior)
+            messages, prior_cal = _recorded(Path(source), prior)
             prior_T_B_S, truth = prior_cal.T_B_S, None
             art = art.with_mount(prior_cal.T_F_O)
         obs, dropped = observations_from_messages(messages)
