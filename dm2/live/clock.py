@@ -4,8 +4,10 @@ Live sources stamp messages with their own clocks (controller time for EGM, sens
 profiles); the pipeline needs profile stamps on the pose clock. For every profile, the pose
 clock's reading at the profile's arrival (interpolated between the pose messages that arrived
 just before and after it, in host time) gives one sample of the skew ``profile stamp - pose
-stamp``. The estimate is the median of the last ``window`` samples, so it follows drift and
-is immune to any scaling of host time (accelerated rehearsals). While the estimate stays within
+stamp``. The estimate is a Theil-Sen line through the last ``window`` samples (median of
+pairwise slopes, then the median intercept) evaluated at the profile's stamp, so it follows a
+drifting clock without lag, shrugs off arrival jitter and is immune to any scaling of host time
+(accelerated rehearsals). While the estimate stays within
 ``tolerance_s`` the stamps are trusted as they are (a cell with synchronised clocks is passed
 through bit for bit); once it leaves that band the sensor's stamps are corrected from then on.
 
@@ -75,7 +77,7 @@ class ClockAligner:
         ref = self._pose_clock_at(arrival_s)
         samples = self._samples.setdefault(sid, deque(maxlen=self.window))
         if ref is not None:
-            samples.append(p.stamp_s - ref)
+            samples.append((p.stamp_s, p.stamp_s - ref))
         waiting = self._waiting.setdefault(sid, [])
         if len(samples) < self.min_samples:
             if len(waiting) >= self.max_waiting:
@@ -83,7 +85,7 @@ class ClockAligner:
             else:
                 waiting.append(p)
             return []
-        skew = float(np.median(samples))
+        skew = self._estimate(samples, p.stamp_s)
         if sid not in self.engaged and abs(skew) > self.tolerance_s:
             self.engaged.add(sid)
             log.warning("clock of %s differs from the robot's by %.3f s: correcting its stamps",
@@ -93,6 +95,17 @@ class ClockAligner:
         out = [self._shift(q, corr) for q in waiting] + [self._shift(p, corr)]
         waiting.clear()
         return out
+
+    @staticmethod
+    def _estimate(samples, stamp_s: float) -> float:
+        """Theil-Sen skew line through ``(stamp, skew)`` samples, evaluated at ``stamp_s``."""
+        s = np.array(samples, dtype=np.float64)
+        t, k = s[:, 0], s[:, 1]
+        i, j = np.triu_indices(len(t), 1)
+        dt = t[j] - t[i]
+        ok = dt > 1e-9
+        slope = float(np.median((k[j] - k[i])[ok] / dt[ok])) if np.any(ok) else 0.0
+        return float(np.median(k + slope * (stamp_s - t)))
 
     @staticmethod
     def _shift(p: Profile, corr: float) -> Profile:
