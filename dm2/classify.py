@@ -10,18 +10,20 @@ the reference's own mean curvature at the closest reference point when it is giv
 edge the reference has too is not a local defect). Curvature and deviation must agree in sign,
 as the paper's product of the two does: a local overbuild is a bump (convex, above), a local
 underbuild a dent (concave, below); a measured edge that is merely sharper or rounder than the
-reference is neither. A flat
-offset (``H ~ 0``) is not a local defect however thick; a curved feature (radius of curvature up
-to ``LOCAL_CURVATURE_RADIUS_MM``) counts with its full normalised deviation. ``lambda > delta_L``
+reference is neither. A flat offset (``H ~ 0``) is not a local defect however thick; a curved
+feature (radius of curvature up to ``LOCAL_CURVATURE_RADIUS_MM``) counts with its full
+normalised deviation. ``lambda > delta_L``
 is local overbuild, ``lambda < -delta_L`` local underbuild. Vertices whose fusion weight is below
 ``min_weight`` are unobserved and never called under- or overbuilt.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 NORMAL, OVERBUILD, UNDERBUILD, LOCAL_OVERBUILD, LOCAL_UNDERBUILD, UNOBSERVED = range(6)
 CLASS_NAMES = ("normal", "overbuild", "underbuild", "local_overbuild", "local_underbuild",
@@ -40,18 +42,83 @@ class VertexClasses:
     class_code : (n,) int8, index into ``CLASS_NAMES``
     local_metric : (n,) float64, normalised curvature-weighted deviation (dimensionless)
     mean_curvature : (n,) float64 [1/mm], positive where convex (a bump seen from above)
+    vertex_area_mm2 : (n,) float64 [mm^2], barycentric area per vertex
     """
 
     class_code: np.ndarray
     local_metric: np.ndarray
     mean_curvature: np.ndarray
+    vertex_area_mm2: np.ndarray
 
 
-def _accumulate(n: int, faces: np.ndarray, per_corner: list) -> np.ndarray:
-    """Sum (m, 3) vectors given per face corner into (n, 3) per-vertex sums."""
-    idx = faces.T.ravel()
-    vals = np.concatenate(per_corner)
-    return np.column_stack([np.bincount(idx, vals[:, c], minlength=n) for c in range(3)])
+@njit(cache=True)
+def _face_terms(v, faces):
+    """One pass over the faces: cotangent Laplacian ``sum_j w_ij (v_j - v_i)``, barycentric
+    vertex areas, area-weighted normals and the sum of the edges opposite each vertex (zero
+    around an interior vertex of a consistently oriented mesh)."""
+    n = v.shape[0]
+    lap = np.zeros((n, 3))
+    area = np.zeros(n)
+    nrm = np.zeros((n, 3))
+    loop = np.zeros((n, 3))
+    for f in range(faces.shape[0]):
+        ia, ib, ic = faces[f, 0], faces[f, 1], faces[f, 2]
+        e0x, e0y, e0z = v[ib, 0] - v[ia, 0], v[ib, 1] - v[ia, 1], v[ib, 2] - v[ia, 2]  # a->b
+        e1x, e1y, e1z = v[ic, 0] - v[ib, 0], v[ic, 1] - v[ib, 1], v[ic, 2] - v[ib, 2]  # b->c
+        e2x, e2y, e2z = v[ia, 0] - v[ic, 0], v[ia, 1] - v[ic, 1], v[ia, 2] - v[ic, 2]  # c->a
+        cx = e0y * (-e2z) - e0z * (-e2y)
+        cy = e0z * (-e2x) - e0x * (-e2z)
+        cz = e0x * (-e2y) - e0y * (-e2x)
+        dbl = math.sqrt(cx * cx + cy * cy + cz * cz)
+        if dbl < 1e-12:
+            continue
+        # corner a weights edge b->c, corner b edge c->a, corner c edge a->b (cot / 2)
+        wa = -0.5 * (e0x * e2x + e0y * e2y + e0z * e2z) / dbl
+        wb = -0.5 * (e1x * e0x + e1y * e0y + e1z * e0z) / dbl
+        wc = -0.5 * (e2x * e1x + e2y * e1y + e2z * e1z) / dbl
+        for c, (x0, x1, x2) in enumerate(((e0x, e1x, e2x), (e0y, e1y, e2y), (e0z, e1z, e2z))):
+            lap[ib, c] += wa * x1
+            lap[ic, c] -= wa * x1
+            lap[ic, c] += wb * x2
+            lap[ia, c] -= wb * x2
+            lap[ia, c] += wc * x0
+            lap[ib, c] -= wc * x0
+            loop[ia, c] += x1
+            loop[ib, c] += x2
+            loop[ic, c] += x0
+        for i in (ia, ib, ic):
+            nrm[i, 0] += cx
+            nrm[i, 1] += cy
+            nrm[i, 2] += cz
+            area[i] += dbl / 6.0
+    return lap, area, nrm, loop
+
+
+@njit(cache=True)
+def _smooth(values, faces, iterations):
+    n = values.shape[0]
+    count = np.zeros(n)
+    for f in range(faces.shape[0]):
+        for k in range(3):
+            count[faces[f, k]] += 1.0
+    out = values.copy()
+    for _ in range(iterations):
+        acc = np.zeros(n)
+        for f in range(faces.shape[0]):
+            m = (out[faces[f, 0]] + out[faces[f, 1]] + out[faces[f, 2]]) / 3.0
+            for k in range(3):
+                acc[faces[f, k]] += m
+        for i in range(n):
+            if count[i] > 0:
+                out[i] = acc[i] / count[i]
+    return out
+
+
+def vertex_areas(vertices_O: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Barycentric vertex areas [mm^2] (n,): a third of each incident triangle."""
+    v = np.ascontiguousarray(vertices_O, dtype=np.float64)
+    f = np.ascontiguousarray(faces, dtype=np.int64).reshape(-1, 3)
+    return _face_terms(v, f)[1] if len(f) else np.zeros(len(v))
 
 
 def boundary_vertices(vertices_O: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -60,60 +127,49 @@ def boundary_vertices(vertices_O: np.ndarray, faces: np.ndarray) -> np.ndarray:
     Around an interior vertex the edges opposite to it close a loop, so their vectors sum to
     zero; at a border vertex the loop is open.
     """
-    v = vertices_O
-    n = len(v)
-    opp = [v[faces[:, (k + 2) % 3]] - v[faces[:, (k + 1) % 3]] for k in range(3)]
-    loop = _accumulate(n, faces, opp)
-    scale = np.linalg.norm(v[faces[:, 1]] - v[faces[:, 0]], axis=1).mean()
+    v = np.ascontiguousarray(vertices_O, dtype=np.float64)
+    f = np.ascontiguousarray(faces, dtype=np.int64).reshape(-1, 3)
+    return _border(v, f, _face_terms(v, f)[3])
+
+
+def _border(v, f, loop) -> np.ndarray:
+    scale = np.linalg.norm(v[f[:, 1]] - v[f[:, 0]], axis=1).mean() if len(f) else 1.0
     return np.linalg.norm(loop, axis=1) > 1e-6 * scale
 
 
 def smooth_over_faces(values: np.ndarray, faces: np.ndarray, iterations: int) -> np.ndarray:
     """Average per-vertex ``values`` through the incident faces ``iterations`` times."""
-    n = len(values)
-    count = np.maximum(np.bincount(faces.ravel(), minlength=n), 1)
-    out = values
-    for _ in range(iterations):
-        face_mean = out[faces].mean(axis=1)
-        acc = np.bincount(faces.ravel(), np.repeat(face_mean, 3), minlength=n)
-        out = np.where(count > 0, acc / count, out)
-    return out
+    return _smooth(np.ascontiguousarray(values, dtype=np.float64),
+                   np.ascontiguousarray(faces, dtype=np.int64).reshape(-1, 3), int(iterations))
+
+
+def curvature_and_areas(vertices_O: np.ndarray, faces: np.ndarray, normals_O=None,
+                        smooth_iterations: int = CURVATURE_SMOOTHING_ITERATIONS):
+    """``(mean curvature [1/mm] (n,), vertex areas [mm^2] (n,))`` of a triangle mesh.
+
+    Mean curvature by the cotangent Laplacian, + where convex, 0 on the border of an open
+    mesh, then smoothed through the faces. The sign is taken against ``normals_O`` when given,
+    else against the area-weighted face normals.
+    """
+    v = np.ascontiguousarray(vertices_O, dtype=np.float64)
+    f = np.ascontiguousarray(faces, dtype=np.int64).reshape(-1, 3)
+    n = len(v)
+    if len(f) == 0:
+        return np.zeros(n), np.zeros(n)
+    lap, area, nrm, loop = _face_terms(v, f)
+    hn = lap / np.maximum(area, 1e-12)[:, None]  # = 2 H n (points into a convex surface)
+    normals = nrm if normals_O is None else np.asarray(normals_O, dtype=np.float64)
+    normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    h = -0.5 * np.einsum("ij,ij->i", hn, normals)
+    h[_border(v, f, loop)] = 0.0
+    h[area <= 1e-12] = 0.0
+    return _smooth(h, f, int(smooth_iterations)), area
 
 
 def mean_curvature(vertices_O: np.ndarray, faces: np.ndarray, normals_O=None,
                    smooth_iterations: int = CURVATURE_SMOOTHING_ITERATIONS) -> np.ndarray:
-    """Discrete mean curvature [1/mm] (n,) by the cotangent Laplacian, + where convex.
-
-    Boundary vertices of an open mesh get 0. The sign is taken against ``normals_O`` when given,
-    else against the area-weighted face normals.
-    """
-    v = np.asarray(vertices_O, dtype=np.float64)
-    faces = np.asarray(faces, dtype=np.int64)
-    n = len(v)
-    if len(faces) == 0:
-        return np.zeros(n)
-    e = [v[faces[:, (k + 1) % 3]] - v[faces[:, k]] for k in range(3)]  # edge k -> k+1
-    cross = np.cross(e[0], -e[2])
-    dbl_area = np.maximum(np.linalg.norm(cross, axis=1), 1e-12)
-    contrib = [np.zeros((len(faces), 3)) for _ in range(3)]
-    for k in range(3):  # corner k: its cotangent weights the opposite edge (i, j)
-        i, j = (k + 1) % 3, (k + 2) % 3
-        cot = -np.einsum("ij,ij->i", e[k], e[(k + 2) % 3]) / dbl_area  # a.b / |a x b|
-        half = 0.5 * cot[:, None] * e[i]  # e[i] = v_j - v_i
-        contrib[i] += half
-        contrib[j] -= half
-    lap = _accumulate(n, faces, contrib)  # sum_j w_ij (v_j - v_i)
-    area = np.bincount(faces.ravel(), np.repeat(dbl_area / 6.0, 3), minlength=n)
-    hn = lap / np.maximum(area, 1e-12)[:, None]  # = 2 H n (points into a convex surface)
-    if normals_O is None:
-        normals = _accumulate(n, faces, [cross, cross, cross])
-    else:
-        normals = np.asarray(normals_O, dtype=np.float64)
-    normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
-    h = -0.5 * np.einsum("ij,ij->i", hn, normals)
-    h[boundary_vertices(v, faces)] = 0.0
-    h[area <= 1e-12] = 0.0
-    return smooth_over_faces(h, faces, smooth_iterations)
+    """Discrete mean curvature [1/mm] (n,) (see :func:`curvature_and_areas`)."""
+    return curvature_and_areas(vertices_O, faces, normals_O, smooth_iterations)[0]
 
 
 def classify_vertices(vertices_O, faces, weight, signed_distance_mm, monitor_cfg,
@@ -135,7 +191,7 @@ def classify_vertices(vertices_O, faces, weight, signed_distance_mm, monitor_cfg
     w = np.asarray(weight, dtype=np.float64)
     dg = float(monitor_cfg.delta_global_mm)
     dl = float(monitor_cfg.delta_local)
-    h = mean_curvature(vertices_O, np.asarray(faces, dtype=np.int64), normals_O)
+    h, area = curvature_and_areas(vertices_O, faces, normals_O)
     excess = h if reference_curvature is None else h - np.asarray(reference_curvature, float)
     agree = np.maximum(np.sign(d) * excess, 0.0)  # convex where above, concave where below
     metric = (d / dg) * np.minimum(1.0, agree * LOCAL_CURVATURE_RADIUS_MM)
@@ -145,4 +201,4 @@ def classify_vertices(vertices_O, faces, weight, signed_distance_mm, monitor_cfg
     code[d > dg] = OVERBUILD
     code[d < -dg] = UNDERBUILD
     code[w < float(monitor_cfg.min_weight)] = UNOBSERVED
-    return VertexClasses(code, metric, h)
+    return VertexClasses(code, metric, h, area)

@@ -179,6 +179,7 @@ class LayerDeviation:
     class_code : (n,) int8, codes of dm2.classify.CLASS_NAMES
     local_metric : (n,) float64, normalised curvature-weighted deviation (dimensionless)
     mean_curvature : (n,) float64 [1/mm], + convex
+    vertex_area_mm2 : (n,) float64 [mm^2], barycentric area per vertex
     stamp_s : float [s]
     """
 
@@ -191,6 +192,7 @@ class LayerDeviation:
     class_code: np.ndarray
     local_metric: np.ndarray
     mean_curvature: np.ndarray
+    vertex_area_mm2: np.ndarray
     stamp_s: float = 0.0
 
     @property
@@ -199,16 +201,7 @@ class LayerDeviation:
 
     def vertex_areas(self) -> np.ndarray:
         """One third of the area of every incident triangle, per vertex [mm^2] (n,)."""
-        return vertex_areas(self.vertices_O, self.faces)
-
-
-def vertex_areas(vertices_O: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Barycentric vertex areas [mm^2] (n,): a third of each incident triangle."""
-    if len(faces) == 0:
-        return np.zeros(len(vertices_O))
-    tri = vertices_O[faces]
-    fa = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    return np.bincount(faces.ravel(), np.repeat(fa / 3.0, 3), minlength=len(vertices_O))
+        return self.vertex_area_mm2
 
 
 def layer_deviation(surface, reference: ReferenceMap, monitor_cfg, layer: int | None = None,
@@ -226,5 +219,5 @@ def layer_deviation(surface, reference: ReferenceMap, monitor_cfg, layer: int | 
     log.debug("layer %d: %d vertices, deviation %.3f..%.3f mm", layer, len(v),
               float(d.min()) if len(d) else 0.0, float(d.max()) if len(d) else 0.0)
     return LayerDeviation(layer, v, f, w, d, foot, classes.class_code, classes.local_metric,
-                          classes.mean_curvature,
+                          classes.mean_curvature, classes.vertex_area_mm2,
                           float(reference.stamp_s if stamp_s is None else stamp_s))
