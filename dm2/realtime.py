@@ -135,10 +135,10 @@ class RealtimeDeviation:
         z_hi = float(h.max()) + self.z_margin_mm
         k0, k1 = int(np.floor(z_lo / v)), int(np.ceil(z_hi / v))
         d, w = tsdf.dense(np.array([i0, j0, k0]), (i1 - i0, j1 - j0, k1 - k0 + 1))
-        return self.update(stamp_s, d, w, (i0, j0, k0), reference)
+        return self.update(stamp_s, d, w, (i0, j0, k0), reference, window_heights=h)
 
     def update(self, stamp_s: float, tsdf_mm: np.ndarray, weight: np.ndarray, origin_voxel,
-               reference) -> FrameDeviation:
+               reference, window_heights: np.ndarray | None = None) -> FrameDeviation:
         """Compare a dense TSDF box with the reference; update maps; raise alarms.
 
         Parameters
@@ -149,6 +149,8 @@ class RealtimeDeviation:
         origin_voxel : (3,) int, voxel index of ``tsdf_mm[0, 0, 0]`` (centres at (i + 0.5) * v)
         reference : ReferenceMap or anything with ``heights_mm`` and ``cell_mm`` (e.g. the
             live NearNetReference)
+        window_heights : (ny, nx) float64 [mm] or None, the reference at the box's voxel
+            columns when the caller has it already
         """
         v = self.voxel_mm
         i0, j0, k0 = (int(x) for x in origin_voxel)
@@ -161,7 +163,9 @@ class RealtimeDeviation:
         ii, jj, gi, gj = ii[inside], jj[inside], gi[inside], gj[inside]
         z = (k0 + cross[ii, jj] + 0.5) * v
         xy = np.column_stack([(gi + 0.5) * v, (gj + 0.5) * v])
-        dev = _reference_distance(reference, xy, z)
+        box = (i0, j0, i0 + cross.shape[0], j0 + cross.shape[1])
+        hw = _window_heights(reference, box, v) if window_heights is None else window_heights
+        dev = _reference_distance(hw, v, ii, jj, z)
         dg = float(self.cfg.delta_global_mm)
         flag = np.where(dev > dg, OVER, np.where(dev < -dg, UNDER, 0)).astype(np.int8)
         self.deviation_map_mm[gj, gi] = dev
@@ -211,19 +215,21 @@ class RealtimeDeviation:
 
 
 def _window_heights(reference, box, v) -> np.ndarray:
+    """Reference heights [mm] (ny, nx) at the voxel columns of ``box = (i0, j0, i1, j1)``."""
     i0, j0, i1, j1 = box
     x = (np.arange(i0, i1) + 0.5) * v
     y = (np.arange(j0, j1) + 0.5) * v
     xx, yy = np.meshgrid(x, y)
     return bilinear_height(reference.heights_mm, reference.cell_mm,
-                           np.column_stack([xx.ravel(), yy.ravel()]))
+                           np.column_stack([xx.ravel(), yy.ravel()])).reshape(len(y), len(x))
 
 
-def _reference_distance(reference, xy, z) -> np.ndarray:
-    """``(z - h) * n_z``: height above the reference projected on its normal [mm]."""
-    h = reference.heights_mm
-    c = reference.cell_mm
-    hc = bilinear_height(h, c, xy)
-    gx = (bilinear_height(h, c, xy + [c, 0.0]) - bilinear_height(h, c, xy - [c, 0.0])) / (2 * c)
-    gy = (bilinear_height(h, c, xy + [0.0, c]) - bilinear_height(h, c, xy - [0.0, c])) / (2 * c)
-    return (z - hc) / np.sqrt(1.0 + gx * gx + gy * gy)
+def _reference_distance(hw, v, ii, jj, z) -> np.ndarray:
+    """``(z - h) * n_z`` at window columns ``(ii, jj)``: height above the reference projected
+    on its normal [mm]; ``hw`` (ny, nx) the reference at the window's voxel columns."""
+    if hw.shape[0] > 1 and hw.shape[1] > 1:
+        gy, gx = np.gradient(hw, v)
+        g2 = gx[jj, ii] ** 2 + gy[jj, ii] ** 2
+    else:
+        g2 = 0.0
+    return (z - hw[jj, ii]) / np.sqrt(1.0 + g2)
