@@ -62,6 +62,9 @@ def write_report(out_dir: str | Path, results, tracks, *, config_toml: str | Non
     t0 = time.perf_counter()
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
     try:
+        umask = os.umask(0o022)
+        os.umask(umask)
+        tmp.chmod(0o777 & ~umask)  # mkdtemp makes it private; the report folder is not
         files = _write_contents(tmp, results, tracks, config_toml, map_layers, limit_mm)
         report = build_report(results, tracks, dropped=dropped,
                               timing={**(timing or {}),

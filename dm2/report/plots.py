@@ -66,12 +66,15 @@ def plot_deviation_map(path: str | Path, dev: LayerDeviation, regions: list[Regi
 def plot_track(path: str | Path, track: Track) -> None:
     """Area [mm^2] and height [mm] of one track against layer (as the paper's figures)."""
     plt = _pyplot()
+    from matplotlib.ticker import MaxNLocator
+
     layers, area = track.series("area_mm2")
     _, height = track.series("height_mm")
     fig, ax1 = plt.subplots(figsize=(6, 3.6), dpi=110)
     try:
         ax1.plot(layers, area, "o-", color="tab:red", label="surface area")
         ax1.set_xlabel("layer")
+        ax1.xaxis.set_major_locator(MaxNLocator(integer=True))
         ax1.set_ylabel("area [mm$^2$]", color="tab:red")
         ax2 = ax1.twinx()
         ax2.plot(layers, height, "s--", color="tab:blue", label="height")
