@@ -98,9 +98,11 @@ class FrameParser:
         self.max_frame_bytes = int(max_frame_bytes)
         self.dropped: dict[str, int] = {}
         self._buf = bytearray()
+        self._resyncing = False  # bytes at the head are leftovers of a frame already counted
 
     def _drop(self, reason: str) -> None:
         self.dropped[reason] = self.dropped.get(reason, 0) + 1
+        self._resyncing = True
 
     def _resync(self, start: int) -> None:
         """Discard bytes up to the next magic found at or after ``start + 1`` (minus length)."""
@@ -117,7 +119,8 @@ class FrameParser:
         while len(buf) >= _LEN.size + len(MAGIC):
             (length,) = _LEN.unpack_from(buf)
             if buf[_LEN.size: _LEN.size + len(MAGIC)] != MAGIC:
-                self._drop("corrupt_frame")
+                if not self._resyncing:
+                    self._drop("corrupt_frame")
                 self._resync(_LEN.size)
                 continue
             if length > self.max_frame_bytes:
@@ -149,6 +152,7 @@ class FrameParser:
                     self._resync(_LEN.size)
                 continue
             del buf[:end]
+            self._resyncing = False
             try:
                 out.append(decode_body(body))
             except (MessageError, ValueError, struct.error) as exc:
@@ -165,7 +169,7 @@ class FrameParser:
 
     def close(self) -> None:
         """End of the connection: a partial frame left in the buffer counts truncated."""
-        if self._buf:
+        if self._buf and not self._resyncing:
             self._drop("truncated_frame")
             self._buf.clear()
 

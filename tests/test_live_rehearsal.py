@@ -1,0 +1,142 @@
+"""Hardware-in-the-loop rehearsal over loopback: the twin served as the cell (EGM over UDP,
+profiles over TCP) gives the same layers, defect tracks and classes as the in-process run;
+transport faults on the sockets end up, counted exactly, in report.json."""
+
+import json
+import socket
+import threading
+
+import pytest
+
+from dm2.config import FaultConfig, load_scenario
+from dm2.live.config import load_cell_file
+from dm2.live.egm_source import encode_egm_robot
+from dm2.live.runner import LiveRunner
+from dm2.live.tcp_profiles import ProfileClient, encode_frame
+from dm2.messages import LayerMark, Profile, RobotState
+from dm2.session import MonitoringSession
+from scenarios import resolve_scenario
+
+
+def pad_with_bump(duration_s: float):
+    sc = load_scenario(resolve_scenario("pad"))
+    bump = FaultConfig(kind="bump", center_O_mm=(55.0, 60.0), height_mm=1.5, width_mm=5.0,
+                       layers=(0, 1))
+    return sc.model_copy(update={"duration_s": duration_s, "faults": (bump,)})
+
+
+def live_runner(sim, tmp_path, clock_tolerance_s: float):
+    """A live runner on ephemeral loopback ports. The served twin shares one clock for poses
+    and profiles; the tolerance band only has to exceed arrival jitter times the speed-up."""
+    from twin.serve import write_cell_files
+
+    cell_path = write_cell_files(sim, tmp_path / "cell", egm="127.0.0.1:0",
+                                 profiles="127.0.0.1:0",
+                                 live={"clock_tolerance_s": clock_tolerance_s})
+    runner = LiveRunner(load_cell_file(cell_path), tmp_path / "out",
+                        cell_toml=cell_path.read_text())
+    return runner, runner.open_sources()
+
+
+def test_loopback_rehearsal_matches_in_process_run(tmp_path):
+    from twin.serve import serve_twin
+    from twin.simulate import Simulation
+
+    sc = pad_with_bump(12.0)
+    sim = Simulation(sc)
+    runner, addr = live_runner(sim, tmp_path, clock_tolerance_s=0.25)
+    done = threading.Event()
+    served = {}
+
+    def serve():
+        try:
+            served["result"] = serve_twin(sc, addr["egm"], addr["profiles"], speed=10.0,
+                                          simulation=sim)
+        finally:
+            done.set()
+
+    thread = threading.Thread(target=serve)
+    thread.start()
+    try:
+        done.wait(120)
+        runner.run(idle_stop_s=0.5, max_duration_s=120)
+    finally:
+        runner.close()
+        thread.join(30)
+    assert served["result"].counts["Profile"] > 300
+
+    ref_sim = Simulation(sc)
+    session = MonitoringSession(ref_sim.calibration, sc.monitor, sc.process,
+                                plate_size_mm=sc.cell.plate_size_mm, toolpath=ref_sim.toolpath)
+    session.feed_all(ref_sim.messages())
+    session.finish()
+
+    live = runner.analysis
+    assert [(t.id, t.kind) for t in live.tracks] == [(t.id, t.kind) for t in session.tracks]
+    assert [(t.id, t.kind) for t in session.tracks] == [(1, "overbuild")]
+    assert [r.layer for r in live.results] == [r.layer for r in session.results]
+    for a, b in zip(live.results, session.results, strict=True):
+        assert [g.kind for g in a.regions] == [g.kind for g in b.regions]
+        assert a.track_ids == b.track_ids
+        for ga, gb in zip(a.regions, b.regions, strict=True):
+            assert ga.area_mm2 == pytest.approx(gb.area_mm2, rel=0.02)
+    assert live.monitor.profiles_fused == session.monitor.profiles_fused
+    assert live.dropped == session.dropped
+    report = json.loads((runner.report_dir / "report.json").read_text())
+    assert [(t["id"], t["kind"]) for t in report["tracks"]] == [(1, "overbuild")]
+    assert report["meta"]["complete"] is True
+    assert runner.recording_path.is_file()
+
+
+def test_socket_faults_are_counted_in_report_json(tmp_path):
+    from twin.simulate import Simulation
+
+    sim = Simulation(pad_with_bump(3.0))
+    msgs = list(sim.messages())
+    clean = LiveRunner(*_cell_and_out(sim, tmp_path / "clean"), record=False)
+    for m in msgs:
+        clean.process(m, "test", m.stamp_s)
+    clean.finish()
+
+    runner, addr = live_runner(sim, tmp_path, clock_tolerance_s=30.0)  # sent unpaced
+    udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    bridge = ProfileClient(*addr["profiles"])
+    layer = None
+    n_prof = 0
+    try:
+        for m in msgs:
+            if isinstance(m, LayerMark):
+                layer = m.layer
+            elif isinstance(m, RobotState):
+                udp.sendto(encode_egm_robot(m.seq, round(m.stamp_s * 1000), m.joints_rad,
+                                            m.T_B_F, stamp_s=m.stamp_s, layer=layer),
+                           addr["egm"])
+                if m.seq in (100, 200):
+                    udp.sendto(b"\x0a\x03\x08\x01", addr["egm"])  # header only: malformed
+                if m.seq == 300:
+                    udp.sendto(b"\x00" * 4000, addr["egm"])  # oversized
+            elif isinstance(m, Profile):
+                bridge.send(m)
+                n_prof += 1
+                if n_prof == 20:  # half a frame, then the link drops; the bridge reconnects
+                    bridge.send_bytes(encode_frame(m)[:100])
+                    bridge.drop_connection()
+                if n_prof == 40:  # a frame declaring 1 MB
+                    bridge.send_bytes(b"\x00\x00\x10\x00DM2P" + b"\x00" * 64)
+            runner.drain()
+    finally:
+        udp.close()
+        bridge.close()
+    runner.run(idle_stop_s=0.5, max_duration_s=30)
+    report = json.loads((runner.report_dir / "report.json").read_text())
+    expected = dict(clean.analysis.dropped)
+    expected.update({"malformed_egm": 2, "oversized_datagram": 1, "truncated_frame": 1,
+                     "oversized_frame": 1})
+    assert report["dropped"] == expected
+    assert runner.analysis.monitor.profiles_fused == clean.analysis.monitor.profiles_fused
+
+
+def _cell_and_out(sim, folder):
+    from twin.serve import write_cell_files
+
+    return load_cell_file(write_cell_files(sim, folder / "cell")), folder / "out"
