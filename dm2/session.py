@@ -6,6 +6,11 @@ near-net :class:`~dm2.reference.NearNetReference` along the executed motion; whe
 closes a layer, that layer's surface is compared with the reference of the same layer
 (:class:`~dm2.defects.DefectMonitor`: deviation, classification, segmentation, tracking).
 
+The reference follows the executed path at the programmed process (:mod:`dm2.progress`): with
+a toolpath, each robot state advances the nominal clock by the programmed time of the path it
+covered, so a robot that stops and keeps spraying (a corner dwell) grows the part but not the
+reference. Without a toolpath the reference integrates the controller's own clock.
+
 The same object serves the twin in process, recordings and live sources: it only sees
 messages. The reference of layer ``L`` is taken when the stream reports the start of layer
 ``L + 1`` (a ``LayerMark``), so it holds exactly the deposition of layers ``0..L``; streams
@@ -25,6 +30,7 @@ from dm2.config import MonitorConfig, ProcessConfig
 from dm2.defects import DefectMonitor, LayerResult
 from dm2.messages import Calibration, LayerMark, RobotState, Toolpath
 from dm2.pipeline import LayerSurface, Monitor
+from dm2.progress import ToolpathProgress
 from dm2.reference import NearNetReference
 
 log = logging.getLogger(__name__)
@@ -75,6 +81,8 @@ class MonitoringSession:
         self._states_t: list[float] = []
         self._states_T: list[np.ndarray] = []
         self._last_state_s = -np.inf
+        self.progress = ToolpathProgress(toolpath) if toolpath is not None else None
+        self._nominal_s = 0.0
         self._finished = False
 
     @property
@@ -137,8 +145,13 @@ class MonitoringSession:
         # late or duplicated states cannot rewind the reference
         keep = np.concatenate([[True], np.diff(stamps) > 0]) & (stamps > self._last_state_s)
         if np.any(keep):
-            self.reference.add_states(stamps[keep], poses[keep])
-            self._last_state_s = float(stamps[keep][-1])
+            stamps, poses = stamps[keep], poses[keep]
+            self._last_state_s = float(stamps[-1])
+            if self.progress is not None:  # programmed timing along the executed path
+                spots, _ = self.reference.spot_O(poses)
+                stamps = self._nominal_s + np.cumsum(self.progress.advance(spots))
+                self._nominal_s = float(stamps[-1])
+            self.reference.add_states(stamps, poses)
         self.timing.reference_s += time.perf_counter() - t0
 
     def _layer_done(self, done: LayerSurface) -> None:
