@@ -35,7 +35,8 @@ import numpy as np
 from numba import njit
 
 from dm2.frames import invert
-from dm2.messages import Calibration, LayerMark, RobotState
+from dm2.layers import LayerTracker
+from dm2.messages import Calibration, LayerMark, RobotState, Toolpath
 from dm2.refmap import ReferenceMap
 
 log = logging.getLogger(__name__)
@@ -143,11 +144,12 @@ class NearNetReference:
     cell_mm : float [mm], height-map cell (default ``min(0.5, voxel_mm / 2)``)
     angle_from_surface : bool, spray angle against the reference's own local normal
         or (default) against the build direction ``+z_O``
+    toolpath : dm2.messages.Toolpath or None, splits layers when the stream has no layer marks
     """
 
     def __init__(self, process, monitor_cfg, calibration: Calibration, *,
                  size_mm=(120.0, 120.0), cell_mm: float | None = None,
-                 angle_from_surface: bool = False):
+                 angle_from_surface: bool = False, toolpath: Toolpath | None = None):
         self.process = process
         self.cell_mm = float(cell_mm if cell_mm is not None else min(0.5, monitor_cfg.voxel_mm / 2))
         if self.cell_mm <= 0:
@@ -164,12 +166,13 @@ class NearNetReference:
         self._spot_B = T_B_N[:3, :3] @ np.array([0.0, 0.0, process.standoff_mm]) + T_B_N[:3, 3]
         self._axis_B = T_B_N[:3, 2].copy()
         self._last: tuple[float, np.ndarray, np.ndarray] | None = None
-        self.layer = 0
         self.stamp_s = 0.0
         self.layers: dict[int, ReferenceMap] = {}
         self.deposited_mm3 = 0.0
         self.gaps_skipped = 0
         self.angle_from_surface = bool(angle_from_surface)
+        self._layer_tracker = LayerTracker(toolpath)
+        self.layer = self._layer_tracker.layer
         self.slope_probe_mm = max(SLOPE_PROBE_MM, self.cell_mm)
 
     def spot_O(self, T_B_F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -180,13 +183,24 @@ class NearNetReference:
         return spot, axis
 
     def feed(self, msg) -> ReferenceMap | None:
-        """Take a pipeline message; returns the finished layer's map on a ``LayerMark``."""
+        """Take a pipeline message; returns the finished layer's map when a layer ends.
+
+        Layers end on a ``LayerMark``, or, without marks and with a toolpath, when the spot
+        reaches the next layer's toolpath (as dm2.layers decides for the measurement).
+        """
+        finished: list[int] = []
         if isinstance(msg, RobotState):
+            if self._layer_tracker.source == "toolpath":
+                finished = self._layer_tracker.on_spots(self.spot_O(msg.T_B_F[None])[0])
+            done = [self.end_layer(f) for f in finished]
+            self.layer = self._layer_tracker.layer
             self.add_states([msg.stamp_s], msg.T_B_F[None])
-        elif isinstance(msg, LayerMark):
-            if msg.layer > self.layer:
-                done = self.end_layer(msg.layer - 1)
-                self.layer = msg.layer
+            return done[-1] if done else None
+        if isinstance(msg, LayerMark):
+            f = self._layer_tracker.on_mark(msg.layer)
+            if f is not None:
+                done = self.end_layer(f)
+                self.layer = self._layer_tracker.layer
                 return done
         return None
 

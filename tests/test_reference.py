@@ -126,3 +126,28 @@ def test_angle_from_surface_uses_the_local_slope():
     expected = volume_rate_mm3_s(proc) * deposition_efficiency(slope, proc) * ts[-1]
     assert ref.deposited_mm3 == pytest.approx(expected, rel=0.01)
     assert (ref.heights_mm.sum() - before) * ref.cell_mm ** 2 == pytest.approx(expected, rel=0.01)
+
+
+def test_layers_split_by_toolpath_without_marks():
+    from dm2.messages import Toolpath
+
+    proc = ProcessConfig()
+    pts = np.array([[10.0, 40.0, 0.0], [110.0, 40.0, 0.0], [110.0, 80.0, 0.8],
+                    [10.0, 80.0, 0.8]])
+    tp = Toolpath(pts, np.tile([0.0, 0.0, -1.0], (4, 1)), np.full(4, 30.0), np.zeros(4),
+                  [0, 0, 1, 1], np.ones(4, bool), np.zeros(4))
+    ref = NearNetReference(proc, MonitorConfig(), CAL, toolpath=tp)
+    ts = np.arange(0.0, 4.0, 1 / 250)
+    first = np.column_stack([10 + 30 * ts, np.full_like(ts, 40.0), np.zeros_like(ts)])
+    second = np.column_stack([110 - 30 * ts, np.full_like(ts, 80.0), np.full_like(ts, 0.8)])
+    poses = flange_poses(np.vstack([first[ts <= 10 / 3], second[ts <= 10 / 3]]))
+    stamps = np.concatenate([ts[ts <= 10 / 3], 10.0 + ts[ts <= 10 / 3]])
+    done = [ref.feed(RobotState(t, k, np.zeros(6), T))
+            for k, (t, T) in enumerate(zip(stamps, poses, strict=True))]
+    maps = [m for m in done if m is not None]
+    assert [m.layer for m in maps] == [0] and ref.layer == 1
+    layer0 = maps[0]
+    peak = volume_rate_mm3_s(proc) * 0.5 / (math.sqrt(2 * math.pi) * plume_sigma_mm(proc) * 30)
+    assert layer0.height_at([[60.0, 40.0]])[0] == pytest.approx(peak, rel=0.02)
+    assert layer0.height_at([[60.0, 80.0]])[0] < 1e-6
+    assert ref.snapshot().height_at([[60.0, 80.0]])[0] == pytest.approx(peak, rel=0.02)
