@@ -117,6 +117,11 @@ class Monitor:
     def current_layer(self) -> int:
         return self.layers.layer
 
+    @property
+    def last_fused_stamp_s(self) -> float:
+        """Stamp [s] of the newest profile fused so far (NaN before the first)."""
+        return self._last_stamp_s
+
     def feed(self, msg) -> None:
         """Take one message of any kind; bad ones are counted in :attr:`dropped`, never raised."""
         if self._finished:
