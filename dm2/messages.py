@@ -118,6 +118,28 @@ class RobotState:
         object.__setattr__(self, "joints_rad", j)
         object.__setattr__(self, "T_B_F", T)
 
+    @classmethod
+    def trusted(cls, stamp_s: float, seq: int, joints_rad: np.ndarray,
+                T_B_F: np.ndarray) -> RobotState:
+        """A state from a producer that already holds valid arrays, without re-validating.
+
+        Only for producers that build the arrays themselves (the twin's executed motion): the
+        caller guarantees a finite ``stamp_s``, ``joints_rad`` a finite C-contiguous (6,)
+        float64 and ``T_B_F`` a finite C-contiguous (4, 4) float64 rigid transform. The result
+        equals ``RobotState(stamp_s, seq, joints_rad, T_B_F)`` (read-only views of the arrays,
+        ``float`` stamp, ``int`` seq). Anything read from outside goes through the constructor.
+        """
+        self = object.__new__(cls)
+        j = joints_rad.view()
+        j.setflags(write=False)
+        T = T_B_F.view()
+        T.setflags(write=False)
+        object.__setattr__(self, "stamp_s", float(stamp_s))
+        object.__setattr__(self, "seq", int(seq))
+        object.__setattr__(self, "joints_rad", j)
+        object.__setattr__(self, "T_B_F", T)
+        return self
+
 
 @dataclass(frozen=True)
 class LayerMark:

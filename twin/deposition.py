@@ -152,7 +152,8 @@ class SprayModel:
         sd = np.broadcast_to(0.0 if standoff_delta_mm is None else standoff_delta_mm, (m,))
         if np.any(ff < 0) or np.any(ef < 0) or dt_s < 0:
             raise ValueError("SprayModel.deposit_samples: dt_s and factors must be non-negative")
-        lam = np.where(on, p.packets_per_s * dt_s * ff, 0.0).astype(np.float64)
+        # same operation order as :meth:`deposit`, so batching changes no bit of the result
+        lam = np.where(on, p.packets_per_s * ff * dt_s, 0.0).astype(np.float64)
         sigma = np.array([self.sigma_mm(float(d)) for d in sd]) if np.any(sd != 0) else \
             np.full(m, self.sigma_mm(0.0))
         out = np.zeros(m)

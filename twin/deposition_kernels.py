@@ -98,13 +98,14 @@ SPLAT_SIGMA_CELLS = 1.0  # Gaussian spread of one packet's splat, in cells
 
 
 @njit(cache=True)
-def _splat(H, bmax, zmax, cell, x, y, vol):
+def _splat(H, bmax, zmax, cell, x, y, vol, w):
     """Add ``vol`` [mm^3] at ``(x, y)`` as a small Gaussian splat (sigma one cell, 5 x 5 cells).
 
     A packet stands for many particles that flatten on impact; spreading it over a few cells
     keeps single packets from building cell-sized spikes that then shadow their neighbours
     (ballistic columnar growth, far rougher than a cold-spray deposit). Weights are normalised
-    over the cells that exist, so volume is conserved exactly.
+    over the cells that exist, so volume is conserved exactly. ``w`` is a scratch array of
+    ``(2 * SPLAT_RADIUS_CELLS + 1) ** 2`` weights (each exponential is evaluated once).
     """
     ny, nx = H.shape
     u = x / cell - 0.5
@@ -121,7 +122,9 @@ def _splat(H, bmax, zmax, cell, x, y, vol):
         for di in range(-r, r + 1):
             i = ic + di
             if 0 <= i < nx:
-                wsum += math.exp(-((i - u) ** 2 + (j - v) ** 2) * inv2s2)
+                wk = math.exp(-((i - u) ** 2 + (j - v) ** 2) * inv2s2)
+                w[(dj + r) * (2 * r + 1) + di + r] = wk
+                wsum += wk
     if wsum <= 0.0:
         return
     dh = vol / (cell * cell * wsum)
@@ -133,7 +136,7 @@ def _splat(H, bmax, zmax, cell, x, y, vol):
             i = ic + di
             if i < 0 or i >= nx:
                 continue
-            H[j, i] += dh * math.exp(-((i - u) ** 2 + (j - v) ** 2) * inv2s2)
+            H[j, i] += dh * w[(dj + r) * (2 * r + 1) + di + r]
             h = H[j, i]
             raise_block_max(bmax, j, i, h)
             if h > zmax[0]:
@@ -170,6 +173,7 @@ def spray_step(H, bmax, zmax, cell, thickness, state, lam, spot, axis, sigma, ba
     e2z = ax * e1y - ay * e1x
     vertical = abs(ax) < 1e-12 and abs(ay) < 1e-12 and az < 0.0
     n_packets = poisson(state, lam)
+    w = np.empty((2 * SPLAT_RADIUS_CELLS + 1) ** 2)
     deposited = 0.0
     missed = 0
     for _ in range(n_packets):
@@ -198,7 +202,7 @@ def spray_step(H, bmax, zmax, cell, thickness, state, lam, spot, axis, sigma, ba
         theta = math.acos(min(cos_t, 1.0))
         vol = v_packet * min(zeta0 * efficiency_curve(theta, theta_c), 1.0)
         if vol > 0.0:
-            _splat(H, bmax, zmax, cell, hx, hy, vol)
+            _splat(H, bmax, zmax, cell, hx, hy, vol, w)
             deposited += vol
     return deposited, n_packets, missed
 

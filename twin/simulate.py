@@ -133,31 +133,40 @@ class Simulation:
         feed = faults.feed_factor(t[:n], layers)
         efficiency = faults.efficiency_factor(layers)
         standoff = faults.standoff_delta_mm(t[:n], layers)
+        stamps = t[:n].tolist()
+        trig_stamps, trig_sensor, trig_counter = (trig_s.tolist(), trig_j.tolist(),
+                                                  trig_c.tolist())
         k = 0  # next trigger
         layer_prev = -1
-        for i in range(n):
-            t_i, layer = float(t[i]), int(motion.layer[i])
+        for a, b in _chunks(t[:n], layers, trig_s):
+            layer = int(layers[a])
             if layer != layer_prev:
                 if layer_prev >= 0:
                     self._finish_layer(hf, layer_prev, truth)
-                yield LayerMark(t_i, layer)
+                yield LayerMark(stamps[a], layer)
                 layer_prev = layer
-            T_B_F = motion.T_B_F[i]
+            # the executed motion holds finite float64 joints and rigid flange poses, so the
+            # states skip re-validation; the noise draws match one (3,) draw per sample
+            T_B_F = np.ascontiguousarray(motion.T_B_F[a:b], dtype=np.float64)
             if robot_sigma > 0:
                 T_B_F = T_B_F.copy()
-                T_B_F[:3, 3] += robot_rng.normal(0.0, robot_sigma, 3)
-            yield RobotState(t_i, i, motion.joints_rad[i], T_B_F)
-            if motion.spray_on[i]:
-                spray.deposit(hf, motion.position_O[i], motion.axis_O[i], dt,
-                              feed_factor=float(feed[i]), efficiency_factor=float(efficiency[i]),
-                              standoff_delta_mm=float(standoff[i]))
-            t_next = float(t[i + 1]) if i + 1 < n else np.inf
-            while k < trig_s.size and trig_s[k] < t_next:
-                prof = profilers[int(trig_j[k])]
-                yield prof.scan(hf, trig_T_B_O[k], float(trig_s[k]), int(trig_c[k]), occluders)
+                T_B_F[:, :3, 3] += robot_rng.normal(0.0, robot_sigma, (b - a, 3))
+            joints = np.ascontiguousarray(motion.joints_rad[a:b], dtype=np.float64)
+            for i in range(a, b):
+                yield RobotState.trusted(stamps[i], i, joints[i - a], T_B_F[i - a])
+                if progress is not None and (i % 250 == 0 or i == n - 1):
+                    progress(stamps[i], self.end_s)
+            on = motion.spray_on[a:b]
+            if on.any():
+                spray.deposit_samples(hf, motion.position_O[a:b], motion.axis_O[a:b], dt,
+                                      spray_on=on, feed_factor=feed[a:b],
+                                      efficiency_factor=efficiency[a:b],
+                                      standoff_delta_mm=standoff[a:b])
+            t_next = stamps[b] if b < n else np.inf
+            while k < len(trig_stamps) and trig_stamps[k] < t_next:
+                prof = profilers[trig_sensor[k]]
+                yield prof.scan(hf, trig_T_B_O[k], trig_stamps[k], trig_counter[k], occluders)
                 k += 1
-            if progress is not None and (i % 250 == 0 or i == n - 1):
-                progress(t_i, self.end_s)
         if layer_prev >= 0 and n == len(t):
             self._finish_layer(hf, layer_prev, truth)
         elif layer_prev >= 0 and truth is not None:  # stopped early: truth as it stands
@@ -222,6 +231,24 @@ class _TruthWriter:
                    if sc.faults else self.faulty)
         write_fault_truth(self.dir / "faults.json", sc.faults, self.faulty, nominal,
                           toolpath=self.sim.toolpath, cell_mm=HEIGHTFIELD_CELL_MM)
+
+
+def _chunks(t_s: np.ndarray, layer: np.ndarray, trig_s: np.ndarray):
+    """Runs ``[a, b)`` of motion samples that share a layer and hold no profile trigger inside.
+
+    A trigger at ``trig_s`` is answered right after the last sample at or before it (the first
+    sample when it precedes them all), and a layer change starts a new run, so each run's
+    robot states, then its deposition, then the triggers it ends with, keep the stream's order
+    and every profile sees the surface exactly as it stands at its stamp.
+    """
+    n = t_s.size
+    after = np.maximum(np.searchsorted(t_s, trig_s, side="right") - 1, 0)
+    cuts = np.concatenate([after + 1, np.flatnonzero(np.diff(layer)) + 1, [n]])
+    cuts = np.unique(cuts[(cuts > 0) & (cuts <= n)])
+    a = 0
+    for b in cuts.tolist():
+        yield a, b
+        a = b
 
 
 def iter_messages(scenario: Scenario, truth_dir: str | Path | None = None,

@@ -1,0 +1,120 @@
+"""The batched simulation loop gives, bit for bit, the stream of the plain per-sample loop:
+one deposition call per motion sample, validated robot states, the reference (numpy) profiler
+trace, robot noise drawn three values at a time; and the trusted state constructor equals the
+validating one."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from dm2.config import parse_scenario
+from dm2.frames import PoseInterpolator
+from dm2.messages import SENSOR_IDS, LayerMark, Profile, RobotState
+from twin.simulate import HEIGHTFIELD_CELL_MM, ROBOT_NOISE_SEED_OFFSET, Simulation, _chunks
+
+
+def _scenario():
+    # a 6 x 4 mm pad: layer 1 starts at 0.53 s, so the run crosses a layer change
+    return parse_scenario({
+        "name": "batching", "seed": 3, "duration_s": 1.5,
+        "part": {"generator": "pad", "params": {"width_mm": 6.0, "depth_mm": 4.0,
+                                                "height_mm": 1.6}},
+        "toolpath": {"max_layers": 2, "layer_mm": 0.8},
+        "noise": {"robot_repeatability_mm": 0.05},
+        "faults": [{"kind": "feed_step", "factor": 1.7, "time_s": [0.3, 0.9]},
+                   {"kind": "standoff_change", "delta_mm": 2.0, "time_s": [0.2, 1.1]}],
+    }, "test")
+
+
+def _per_sample_stream(sim: Simulation):
+    """The orchestrator's loop, one motion sample at a time (the reference)."""
+    from twin.deposition import SprayModel
+    from twin.heightfield import HeightField
+    from twin.occluders import nozzle_occluder
+    from twin.profiler import VirtualProfiler, trigger_schedule
+
+    sc, cell, motion, faults = sim.scenario, sim.cell, sim.motion, sim.faults
+    plate = sc.cell.plate_size_mm
+    hf = HeightField((plate[0], plate[1]), HEIGHTFIELD_CELL_MM, plate[2])
+    spray = SprayModel(sc.process, seed=sc.seed)
+    profs = [VirtualProfiler(s, cell.T_B_S[s], sc.sensors, sc.noise, seed=sc.seed)
+             for s in SENSOR_IDS]
+    occ = [nozzle_occluder(cell.T_B_N, sc.cell)]
+    rng = np.random.default_rng([sc.seed, ROBOT_NOISE_SEED_OFFSET])
+    t = motion.t_s
+    n = int(np.searchsorted(t, sim.end_s, side="right"))
+    trig_s, trig_j, trig_c = trigger_schedule(float(t[n - 1]), sc.sensors)
+    poses = PoseInterpolator(t[:n], motion.T_B_O[:n])(trig_s)
+    feed = faults.feed_factor(t[:n], motion.layer[:n])
+    eff = faults.efficiency_factor(motion.layer[:n])
+    stand = faults.standoff_delta_mm(t[:n], motion.layer[:n])
+    out, k, prev = [], 0, -1
+    for i in range(n):
+        layer = int(motion.layer[i])
+        if layer != prev:
+            if prev >= 0:
+                sim.faults.apply_blobs(hf, prev)
+            out.append(LayerMark(float(t[i]), layer))
+            prev = layer
+        T_B_F = motion.T_B_F[i].copy()
+        T_B_F[:3, 3] += rng.normal(0.0, sc.noise.robot_repeatability_mm, 3)
+        out.append(RobotState(float(t[i]), i, motion.joints_rad[i], T_B_F))
+        if motion.spray_on[i]:
+            spray.deposit(hf, motion.position_O[i], motion.axis_O[i], 1.0 / cell.robot_state_hz,
+                          float(feed[i]), float(eff[i]), float(stand[i]))
+        t_next = float(t[i + 1]) if i + 1 < n else np.inf
+        while k < trig_s.size and trig_s[k] < t_next:
+            p = profs[int(trig_j[k])]
+            out.append(p.measure(p.trace(hf, poses[k], occ), float(trig_s[k]), int(trig_c[k])))
+            k += 1
+    return out, hf
+
+
+def _assert_same_message(a, b):
+    assert type(a) is type(b)
+    for name, va in vars(a).items():
+        vb = getattr(b, name)
+        if isinstance(va, np.ndarray):
+            assert va.dtype == vb.dtype and va.shape == vb.shape, name
+            np.testing.assert_array_equal(va, vb, err_msg=name)
+            assert not va.flags.writeable and not vb.flags.writeable
+        else:
+            assert type(va) is type(vb) and va == vb, name
+
+
+@pytest.fixture(scope="module")
+def sim():
+    return Simulation(_scenario())
+
+
+def test_batched_stream_equals_per_sample_loop_bit_for_bit(sim):
+    batched = list(sim.messages())
+    reference, hf_ref = _per_sample_stream(sim)
+    assert [type(m).__name__ for m in batched] == [type(m).__name__ for m in reference]
+    kinds = {type(m) for m in batched}
+    assert kinds == {LayerMark, RobotState, Profile}
+    assert [m.layer for m in batched if isinstance(m, LayerMark)] == [0, 1]
+    for a, b in zip(batched, reference, strict=True):
+        _assert_same_message(a, b)
+    np.testing.assert_array_equal(sim.final_heightfield.heights_mm, hf_ref.heights_mm)
+    assert float(hf_ref.heights_mm.max()) > 0.3  # something was deposited and scanned
+    assert sum(int(m.valid.sum()) for m in batched if isinstance(m, Profile)) > 1000
+
+
+def test_trusted_robot_state_equals_validated(sim):
+    m = sim.motion
+    for i in (0, 17, len(m) - 1):
+        a = RobotState(float(m.t_s[i]), i, m.joints_rad[i], m.T_B_F[i])
+        b = RobotState.trusted(np.float64(m.t_s[i]), np.int64(i), m.joints_rad[i], m.T_B_F[i])
+        _assert_same_message(a, b)
+
+
+def test_chunks_cut_at_triggers_and_layer_changes():
+    t = np.arange(10) * 0.1
+    layer = np.array([0, 0, 0, 0, 1, 1, 1, 1, 1, 1])
+    trig = np.array([-0.05, 0.0, 0.25, 0.25, 0.65, 0.9])
+    runs = list(_chunks(t, layer, trig))
+    # triggers answered after samples 0, 0, 2, 2, 6, 9; layer 1 starts at sample 4
+    assert runs == [(0, 1), (1, 3), (3, 4), (4, 7), (7, 10)]
+    assert list(_chunks(t[:1], layer[:1], np.array([0.0]))) == [(0, 1)]
