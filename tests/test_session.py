@@ -1,0 +1,51 @@
+"""The whole pipeline on the twin: real-time alarms and layer tracks for a known fault."""
+
+import numpy as np
+import pytest
+
+from dm2.config import parse_scenario
+from dm2.session import MonitoringSession
+
+FAULT_START_S = 20.0
+
+
+@pytest.fixture(scope="module")
+def feed_step_session():
+    from twin.simulate import Simulation
+
+    sc = parse_scenario({
+        "name": "pad_feed_step", "seed": 3, "part": {"generator": "pad"},
+        "toolpath": {"contour_angle_deg": 0.0}, "process": {"feed_g_min": 26.0},
+        "faults": [{"kind": "feed_step", "time_s": [FAULT_START_S, 1000.0], "factor": 2.0}],
+        "duration_s": 30.0})
+    sim = Simulation(sc)
+    session = MonitoringSession(sim.calibration, sc.monitor, sc.process, sc.cell.plate_size_mm,
+                                toolpath=sim.toolpath)
+    layer_of_fault = int(sim.motion.layer[np.searchsorted(sim.motion.t_s, FAULT_START_S)])
+    for msg in sim.messages():
+        session.feed(msg)
+    session.finish()
+    return session, layer_of_fault
+
+
+def test_doubled_feed_raises_an_overbuild_alarm_within_seconds(feed_step_session):
+    session, _ = feed_step_session
+    alarms = session.realtime_summary()["alarms"]
+    over = [a for a in alarms if a["kind"] == "overbuild"]
+    assert over, "no real-time overbuild alarm"
+    assert all(a["stamp_s"] > FAULT_START_S for a in alarms)  # nothing before the fault
+    # the excess must first build up past delta_G (about two raster lines); then it is flagged
+    assert over[0]["stamp_s"] - FAULT_START_S < 3.0
+    assert over[0]["delay_s"] <= 1.0  # flagged columns to alarm: within 1 s of process time
+    assert session.realtime_summary()["frame_sets"] > 250
+
+
+def test_layer_analysis_tracks_the_global_overbuild_from_the_fault_layer(feed_step_session):
+    session, layer_of_fault = feed_step_session
+    big = [t for t in session.tracks
+           if t.kind == "overbuild" and t.series("area_mm2")[1].max() > 100]
+    assert len(big) == 1
+    assert big[0].first_layer in (layer_of_fault, layer_of_fault + 1)
+    for r in session.results:
+        if r.layer < layer_of_fault:  # before the fault: no global overbuild region
+            assert not [g for g in r.regions if g.kind == "overbuild" and g.area_mm2 > 20]
