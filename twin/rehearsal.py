@@ -15,8 +15,8 @@ Noise model
   (a coarse hand-measured setup), the artifact's true mount off its description by
   ``mount_error_mm`` / ``mount_error_deg``.
 
-The nozzle body always keeps the artifact out (collision); it hides laser and camera rays
-only with ``nozzle_occlusion``.
+The nozzle body always keeps the artifact out (collision), and by default it also hides laser
+and camera rays as in the cell (``nozzle_occlusion``).
 """
 
 from __future__ import annotations
@@ -50,7 +50,7 @@ class RehearsalConfig:
     prior_error_deg: float = 1.0
     mount_error_mm: float = 0.0
     mount_error_deg: float = 0.0
-    nozzle_occlusion: bool = False
+    nozzle_occlusion: bool = True
     hold_s: float = 0.2  # the arm stands still this long at each pose
     plan: PlanOptions = PlanOptions()
 
