@@ -2,9 +2,6 @@
 
 from __future__ import annotations
 
-import json
-import shutil
-import tempfile
 import time
 from datetime import datetime
 from pathlib import Path
@@ -61,9 +58,8 @@ def run(
 
     Example: `dm2 run` or `dm2 run pad --out runs/pad`
     """
-    from dm2.config import dump_toml, load_scenario
-    from dm2.report import check_output_dir, write_report
-    from dm2.session import MonitoringSession
+    from dm2.config import load_scenario
+    from dm2.report import check_output_dir
     from scenarios import resolve_scenario
 
     t_start = time.perf_counter()
@@ -77,31 +73,22 @@ def run(
     run_dir.parent.mkdir(parents=True, exist_ok=True)
     console.print(f"[bold]dm2 run[/] scenario [cyan]{sc.name}[/] ({path})")
 
+    from dm2.cli.bench_runner import run_scenario
     from twin.kinematics import ReachError
-    from twin.simulate import Simulation
 
-    try:
-        sim = Simulation(sc)
-    except ReachError as exc:
-        fail(f"{path}: {exc}")
-    session = MonitoringSession(sim.calibration, sc.monitor, sc.process,
-                                plate_size_mm=sc.cell.plate_size_mm, toolpath=sim.toolpath)
-    scratch = Path(tempfile.mkdtemp(prefix=".dm2-run-", dir=run_dir.parent))
-    try:
-        report = _run(sim, session, scratch, record)
-        report = write_report(
-            run_dir, session.results, session.tracks,
-            config_toml=dump_toml(sc.to_toml_dict()), dropped=session.dropped,
-            timing={**session.timing.to_dict(), "simulated_process_s": sim.end_s,
-                    "wall_s": time.perf_counter() - t_start},
-            fault_truth=_read_json(scratch / "truth" / "faults.json"), expect=sc.expect,
-            meta={"scenario": sc.name, "scenario_file": str(path), "seed": sc.seed,
-                  "layers_simulated": len(session.results)})
-        for name in ("truth", "run.mcap"):
-            if (scratch / name).exists():
-                shutil.move(str(scratch / name), str(run_dir / name))
-    finally:
-        shutil.rmtree(scratch, ignore_errors=True)
+    with Progress(TextColumn("[progress.description]{task.description}"), BarColumn(),
+                  TextColumn("{task.completed:.0f}/{task.total:.0f} s process"),
+                  TimeElapsedColumn(), console=console, transient=True) as bar:
+        task = bar.add_task("simulating + monitoring", total=1.0)
+        try:
+            done = run_scenario(sc, run_dir, scenario_file=path, record=record,
+                                progress=lambda t, total: bar.update(task, completed=t,
+                                                                     total=total),
+                                on_stream_end=lambda: bar.update(task,
+                                                                 description="writing the report"))
+        except ReachError as exc:
+            fail(f"{path}: {exc}")
+    report = done.report
     link_latest(run_dir)
     console.print(tracks_table(report))
     for e in report.get("expectations", []):
@@ -109,30 +96,5 @@ def run(
         console.print(f"expectation {e.get('expect')}: {mark}")
     wall = time.perf_counter() - t_start
     console.print(f"report: [bold]{run_dir / 'index.html'}[/]  ({wall:.1f} s wall, "
-                  f"{sim.end_s:.1f} s of process time)")
+                  f"{done.process_s:.1f} s of process time)")
 
-
-def _run(sim, session, scratch: Path, record: bool) -> None:
-    writer = None
-    if record:
-        from dm2.recording import RecordingWriter
-
-        writer = RecordingWriter(scratch / "run.mcap", attachments=sim.attachments())
-        writer.write_static_tf(sim.calibration)
-    with Progress(TextColumn("[progress.description]{task.description}"), BarColumn(),
-                  TextColumn("{task.completed:.0f}/{task.total:.0f} s process"),
-                  TimeElapsedColumn(), console=console, transient=True) as bar:
-        task = bar.add_task("simulating + monitoring", total=sim.end_s)
-        for msg in sim.messages(truth_dir=scratch / "truth",
-                                progress=lambda done, total: bar.update(task, completed=done)):
-            if writer is not None:
-                writer.write(msg)
-            session.feed(msg)
-        bar.update(task, description="closing the last layer")
-        session.finish()
-    if writer is not None:
-        writer.close()
-
-
-def _read_json(path: Path):
-    return json.loads(path.read_text(encoding="utf-8")) if path.exists() else None

@@ -10,6 +10,7 @@ COMMAND_MODULES = [
     "cmd_calibrate",
     "cmd_run",
     "cmd_live",
+    "cmd_bench",
 ]
 
 for _name in COMMAND_MODULES:

@@ -1,0 +1,1 @@
+"""Bench: score monitoring runs against the twin's injected-fault truth, suites, sweeps."""

@@ -1,0 +1,237 @@
+"""Run one scenario in process: the twin, the monitoring session and the report, in one call.
+
+:func:`run_scenario` is the body of ``dm2 run`` and of every bench and sweep case: it builds
+the twin's :class:`twin.simulate.Simulation`, streams its messages into a
+:class:`dm2.session.MonitoringSession` (optionally recording them to MCAP), writes the report
+with the twin's fault truth and the scenario's ``[expect]`` section, and measures how far each
+layer's reconstructed surface lies from the twin's true surface of the same layer.
+
+This module wires the twin and the pipeline together, so it lives beside the CLI and imports
+the twin lazily.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from dm2.config import Scenario
+
+log = logging.getLogger(__name__)
+
+Progress = Callable[[float, float], None]  # (process seconds done, total process seconds)
+
+
+@dataclass
+class ScenarioRun:
+    """What :func:`run_scenario` produced.
+
+    Attributes
+    ----------
+    scenario : the scenario as run (``duration_s`` applied)
+    run_dir : the run folder (report.json, truth/, optionally run.mcap and the full report)
+    report : the report.json content
+    fault_truth : the twin's faults.json content (``{"faults": [...]}``)
+    reconstruction : per layer ``{"rms_mm", "p95_mm", "n_vertices"}``: unsigned distance [mm]
+        from the observed reconstructed vertices to the twin's true surface of that layer
+    process_s : float [s], simulated process time
+    wall_s : float [s], wall time of the whole run (twin included)
+    monitor_s : float [s], wall time spent in the pipeline (fusion, reference, analysis)
+    """
+
+    scenario: Scenario
+    run_dir: Path
+    report: dict
+    fault_truth: dict
+    reconstruction: dict[int, dict] = field(default_factory=dict)
+    process_s: float = 0.0
+    wall_s: float = 0.0
+    monitor_s: float = 0.0
+
+
+def stream_session(sim, session, scratch: Path, record: bool,
+                   progress: Progress | None = None) -> None:
+    """Feed the simulation's message stream (truth into ``scratch/truth``) to ``session``.
+
+    With ``record`` the stream is also written to ``scratch/run.mcap`` with the scenario,
+    toolpath and calibration attached.
+    """
+    writer = None
+    if record:
+        from dm2.recording import RecordingWriter
+
+        writer = RecordingWriter(scratch / "run.mcap", attachments=sim.attachments())
+        writer.write_static_tf(sim.calibration)
+    try:
+        for msg in sim.messages(truth_dir=scratch / "truth", progress=progress):
+            if writer is not None:
+                writer.write(msg)
+            session.feed(msg)
+        session.finish()
+    finally:
+        if writer is not None:
+            writer.close()
+
+
+def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path | None = None,
+                 record: bool = False, full_report: bool = True,
+                 progress: Progress | None = None,
+                 on_stream_end: Callable[[], None] | None = None) -> ScenarioRun:
+    """Simulate ``sc`` on the twin, monitor it and write the run folder ``run_dir``.
+
+    Parameters
+    ----------
+    sc : the scenario (apply ``duration_s`` before calling)
+    run_dir : the run folder; replaced if it exists, written only once the run has finished
+    scenario_file : where the scenario came from (recorded in report.json)
+    record : also keep the raw stream as ``run.mcap``
+    full_report : the whole report folder (meshes, maps, plots, HTML); otherwise report.json
+        and tracks.csv only (the bench's default: the pictures cost more than the monitor)
+    progress : called with (process seconds done, total) while the twin runs
+    on_stream_end : called once the stream is consumed, before the report is written
+
+    Raises
+    ------
+    twin.kinematics.ReachError : the toolpath leaves the robot's reach (nothing written)
+    ValueError : ``run_dir`` cannot be written (nothing written)
+    """
+    from dm2.config import dump_toml
+    from dm2.report import check_output_dir, write_report
+    from dm2.report.report_json import build_report, write_tracks_csv
+    from dm2.session import MonitoringSession
+    from twin.simulate import Simulation
+
+    t_start = time.perf_counter()
+    run_dir = check_output_dir(run_dir)
+    sim = Simulation(sc)
+    session = MonitoringSession(sim.calibration, sc.monitor, sc.process,
+                                plate_size_mm=sc.cell.plate_size_mm, toolpath=sim.toolpath)
+    run_dir.parent.mkdir(parents=True, exist_ok=True)
+    scratch = Path(tempfile.mkdtemp(prefix=".dm2-run-", dir=run_dir.parent))
+    try:
+        stream_session(sim, session, scratch, record, progress)
+        if on_stream_end is not None:
+            on_stream_end()
+        truth = _read_json(scratch / "truth" / "faults.json") or {"faults": []}
+        recon = reconstruction_errors(session.results, scratch / "truth")
+        timing = session.timing.to_dict()
+        monitor_s = timing["fusion_s"] + timing["reference_s"] + timing["analysis_s"]
+        timing.update(simulated_process_s=sim.end_s, monitor_s=monitor_s,
+                      wall_s=time.perf_counter() - t_start)
+        meta = {"scenario": sc.name, "scenario_file": str(scenario_file or ""), "seed": sc.seed,
+                "layers_simulated": len(session.results)}
+        config_toml = dump_toml(sc.to_toml_dict())
+        if full_report:
+            report = write_report(run_dir, session.results, session.tracks,
+                                  config_toml=config_toml, dropped=session.dropped,
+                                  timing=timing, fault_truth=truth, expect=sc.expect, meta=meta)
+        else:
+            report = build_report(session.results, session.tracks, dropped=session.dropped,
+                                  timing=timing, fault_truth=truth, expect=sc.expect, meta=meta)
+            _write_lite_report(run_dir, report, session.tracks, config_toml, write_tracks_csv)
+        for name in ("truth", "run.mcap"):
+            if (scratch / name).exists():
+                target = run_dir / name
+                if target.exists():
+                    shutil.rmtree(target) if target.is_dir() else target.unlink()
+                shutil.move(str(scratch / name), str(target))
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+    return ScenarioRun(scenario=sc, run_dir=run_dir, report=report, fault_truth=truth,
+                       reconstruction=recon, process_s=float(sim.end_s),
+                       wall_s=time.perf_counter() - t_start, monitor_s=float(monitor_s))
+
+
+def reconstruction_errors(results, truth_dir: Path) -> dict[int, dict]:
+    """Per layer: distance [mm] of the observed reconstructed vertices to the true surface.
+
+    The truth is the twin's ``layer_NNN.ply`` (the true top surface when the layer closed);
+    only vertices inside its xy extent (less 1 mm) are compared, as the truth mesh is cropped
+    to the built region.
+    """
+    import open3d as o3d
+    import trimesh
+
+    from dm2.classify import CLASS_NAMES
+
+    unobserved = CLASS_NAMES.index("unobserved")
+    out: dict[int, dict] = {}
+    for r in results:
+        path = Path(truth_dir) / f"layer_{r.layer:03d}.ply"
+        if not path.exists():
+            continue
+        mesh = trimesh.load(path, force="mesh")
+        dev = r.deviation
+        v = dev.vertices_O[dev.class_code != unobserved]
+        lo, hi = mesh.vertices[:, :2].min(axis=0) + 1.0, mesh.vertices[:, :2].max(axis=0) - 1.0
+        v = v[np.all((v[:, :2] >= lo) & (v[:, :2] <= hi), axis=1)]
+        if v.shape[0] == 0:
+            continue
+        scene = o3d.t.geometry.RaycastingScene()
+        scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)),
+                            o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)))
+        d = scene.compute_distance(o3d.core.Tensor(v.astype(np.float32))).numpy()
+        out[int(r.layer)] = {"rms_mm": float(np.sqrt(np.mean(d.astype(np.float64) ** 2))),
+                             "p95_mm": float(np.percentile(d, 95)),
+                             "n_vertices": int(v.shape[0])}
+    return out
+
+
+def _write_lite_report(run_dir: Path, report: dict, tracks, config_toml: str,
+                       write_tracks_csv) -> None:
+    tmp = Path(tempfile.mkdtemp(prefix=f".{run_dir.name}.", dir=run_dir.parent))
+    try:
+        (tmp / "config.toml").write_text(config_toml, encoding="utf-8")
+        (tmp / "report.json").write_text(json.dumps(report, indent=1), encoding="utf-8")
+        write_tracks_csv(tmp / "tracks.csv", tracks)
+        if run_dir.exists():
+            shutil.rmtree(run_dir)
+        tmp.rename(run_dir)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def _read_json(path: Path):
+    return json.loads(path.read_text(encoding="utf-8")) if path.exists() else None
+
+
+def score_scenario_run(run: ScenarioRun) -> dict:
+    """:func:`dm2.bench.scoring.score_run` of a finished run, with its scenario's settings."""
+    from dm2.bench.scoring import score_run
+    from dm2.reference import plume_sigma_mm
+
+    sc = run.scenario
+    return score_run(run.report, run.fault_truth,
+                     fault_configs=[f.model_dump(mode="json") for f in sc.faults],
+                     plume_sigma_mm=plume_sigma_mm(sc.process),
+                     delta_mm=sc.monitor.delta_global_mm, reconstruction=run.reconstruction,
+                     process_s=run.process_s, monitor_s=run.monitor_s, wall_s=run.wall_s)
+
+
+def sweep_case(scenario_dict: dict, source: str) -> dict:
+    """One Monte Carlo case (run in a sweep worker): the scored run without timings.
+
+    ``scenario_dict`` is a complete scenario (seed and fault size already set); the run folder
+    is temporary. The result depends only on the scenario, so equal seeds give equal results.
+    """
+    from dm2.config import parse_scenario
+
+    sc = parse_scenario(scenario_dict, source)
+    with tempfile.TemporaryDirectory(prefix="dm2-sweep-") as tmp:
+        run = run_scenario(sc, Path(tmp) / "run", full_report=False)
+        score = score_scenario_run(run)
+    fault = score["faults"][0] if score["faults"] else {}
+    keep = ("detected", "sign_ok", "qualifies", "peak_height_mm", "onset_layer",
+            "first_layer_detected", "onset_delay_layers", "iou", "height_error_mm")
+    return {**{k: fault.get(k) for k in keep},
+            "false_positive_tracks": len(score["false_positive_tracks"]),
+            "layers": score["layers"], "reconstruction_rms_mm": score["reconstruction_rms_mm"]}

@@ -1,0 +1,238 @@
+"""``dm2 bench`` (a suite of scenarios scored against the twin's fault truth) and ``dm2 sweep``
+(Monte Carlo over seeds and fault sizes on Dask)."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from datetime import datetime
+from pathlib import Path
+
+import typer
+from rich.table import Table
+
+from dm2.cli.common import app, bad_input_exits, console, err_console, fail
+
+EXIT_FAILED = 1
+
+
+def _fmt(v, spec: str = "{:.2f}") -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "-"
+    if isinstance(v, bool):
+        return "yes" if v else "NO"
+    return spec.format(v)
+
+
+def bench_table(runs: dict[str, dict]) -> Table:
+    table = Table(title="Bench: detection against the twin's fault truth")
+    cols = ("scenario", "fault", "h mm", "detected", "sign", "onset L", "delay L", "delay s",
+            "IoU", "area err mm²", "height err mm", "FP", "RMS mm", "RTF", "expect")
+    for c in cols:
+        table.add_column(c, justify="left" if c in ("scenario", "fault") else "right")
+    for name, r in runs.items():
+        if "error" in r:
+            table.add_row(name, "[red]error[/]", *[""] * (len(cols) - 3), "[red]NO[/]")
+            continue
+        faults = r["faults"] or [None]
+        for i, f in enumerate(faults):
+            common = [_fmt(len(r["false_positive_tracks"]), "{}"),
+                      _fmt(r["reconstruction_rms_mm"], "{:.3f}"),
+                      _fmt(r["realtime_factor"], "{:.1f}"),
+                      "[green]met[/]" if r["expect_passed"] else "[red]missed[/]"]
+            if i:
+                common = [""] * 4
+            if f is None:
+                table.add_row(name, "(none)", *[""] * 9, *common)
+                continue
+            table.add_row(name if i == 0 else "", f["kind"] + ("" if f["qualifies"] else " *"),
+                          _fmt(f["peak_height_mm"]), _fmt(f["detected"]), _fmt(f["sign_ok"]),
+                          _fmt(f["onset_layer"], "{}"), _fmt(f["onset_delay_layers"], "{:+d}"),
+                          _fmt(f["onset_delay_s"], "{:+.1f}"), _fmt(f["iou"]),
+                          _fmt(f["area_error_mm2"], "{:+.1f}"),
+                          _fmt(f["height_error_mm"], "{:+.2f}"), *common)
+    return table
+
+
+@app.command()
+def bench(
+    suite: str = typer.Option("regression", "--suite", "-s",
+                              help="Suite name (regression, smoke, paper) or a folder of "
+                              "scenario files."),
+    out: Path = typer.Option(None, "--out", "-o", help="Bench folder (default runs/bench-<time>)."),
+    overrides: list[str] = typer.Option([], "--set", help="SECTION.KEY=VALUE applied to every "
+                                        "scenario, e.g. --set toolpath.max_layers=12."),
+    only: list[str] = typer.Option([], "--only", help="Run only these scenario files (stems)."),
+    reports: bool = typer.Option(None, "--reports/--no-reports",
+                                 help="Full report folders per scenario (default: the suite's)."),
+) -> None:
+    """Run a suite of scenarios with injected faults and score each against the fault truth.
+
+    Prints a table, writes bench.json; exits 1 when a scenario misses its [expect] section or
+    the suite misses its targets (F1, onset delay, false-positive tracks).
+
+    Example: `dm2 bench --suite regression`
+    """
+    from dm2.bench.scoring import summarize
+    from dm2.bench.suites import load_suite_scenario, resolve_suite
+    from scenarios import scenario_dir
+
+    with bad_input_exits():
+        spec, files = resolve_suite(suite, scenario_dir() / "suites")
+        if only:
+            files = [f for f in files if f.stem in set(only)]
+            if not files:
+                raise ValueError(f"--only {only}: no such scenario in suite '{spec.name}'")
+        scenarios = [(f, load_suite_scenario(f, overrides)) for f in files]
+        out_dir = (out or Path("runs") / f"bench-{datetime.now():%Y%m%d-%H%M%S}-{spec.name}")
+        out_dir = out_dir.absolute()
+        out_dir.mkdir(parents=True, exist_ok=True)
+    full = spec.full_report if reports is None else reports
+    console.print(f"[bold]dm2 bench[/] suite [cyan]{spec.name}[/]: {len(scenarios)} scenarios "
+                  f"-> {out_dir}")
+    from dm2.cli.bench_runner import run_scenario, score_scenario_run
+
+    runs: dict[str, dict] = {}
+    done_runs = {}
+    t0 = time.perf_counter()
+    for path, sc in scenarios:
+        t1 = time.perf_counter()
+        try:
+            run = run_scenario(sc, out_dir / path.stem, scenario_file=path, full_report=full)
+        except Exception as exc:  # one broken scenario must not hide the others' scores
+            err_console.print(f"[red]{path.name}: {type(exc).__name__}: {exc}[/]")
+            runs[path.stem] = {"error": f"{type(exc).__name__}: {exc}", "expect_passed": False}
+            continue
+        runs[path.stem] = score_scenario_run(run)
+        done_runs[path.stem] = run
+        console.print(f"  {path.stem}: {time.perf_counter() - t1:.1f} s wall, "
+                      f"{run.process_s:.1f} s process, {len(run.report['layers'])} layers")
+    ok_runs = {k: v for k, v in runs.items() if "error" not in v}
+    summary = summarize(ok_runs, spec.targets)
+    if len(ok_runs) < len(runs):
+        summary["passed"] = False
+        summary["errors"] = sorted(set(runs) - set(ok_runs))
+    summary["wall_s"] = time.perf_counter() - t0
+    doc = {"schema": "dm2.bench/1", "suite": spec.name, "description": spec.description,
+           "overrides": list(overrides), "runs": runs, "summary": summary}
+    if spec.paper:
+        doc["paper"] = _paper_outputs(out_dir, done_runs)
+    (out_dir / "bench.json").write_text(json.dumps(doc, indent=1, default=_json_default),
+                                        encoding="utf-8")
+    console.print(bench_table(runs), width=max(console.width, 160))
+    checks = " ".join(f"{k}: {'[green]ok[/]' if v else '[red]missed[/]'}"
+                      for k, v in summary["target_checks"].items())
+    console.print(f"F1 {summary['f1']:.3f} over {summary['qualifying_defects']} defects "
+                  f"({summary['definition']}); TP {summary['true_positives']}, FN "
+                  f"{summary['false_negatives']}, FP tracks {summary['false_positive_tracks']}; "
+                  f"worst onset delay {summary['max_onset_delay_layers']} layer(s). {checks}")
+    console.print(f"bench.json: [bold]{out_dir / 'bench.json'}[/] ({summary['wall_s']:.0f} s)")
+    if not summary["passed"]:
+        console.print("[red]bench failed[/]: "
+                      + ", ".join([n for n, r in runs.items() if not r.get("expect_passed")]
+                                  + [k for k, v in summary["target_checks"].items() if not v]))
+        raise typer.Exit(EXIT_FAILED)
+
+
+def _paper_outputs(out_dir: Path, runs: dict) -> dict:
+    from dm2.bench.paper import format_table_markdown, paper_table_row, plot_track_evolution
+
+    fig_dir = out_dir / "figures"
+    fig_dir.mkdir(exist_ok=True)
+    rows, figures = [], {}
+    for name, run in runs.items():
+        rows.append(paper_table_row(run.run_dir, run.report,
+                                    run.scenario.process.powder_density_g_cm3))
+        figures[name] = str(plot_track_evolution(fig_dir / f"{name}_tracks.png", run.report,
+                                                 f"{name}: defect area and height per layer"))
+    table = format_table_markdown(rows)
+    (out_dir / "paper_table.md").write_text(table, encoding="utf-8")
+    console.print(table)
+    return {"table": rows, "table_file": str(out_dir / "paper_table.md"), "figures": figures}
+
+
+def _json_default(obj):
+    import numpy as np
+
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+def _floats(text: str) -> list[float]:
+    try:
+        return [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise ValueError(f"--sizes '{text}': expected comma-separated numbers") from None
+
+
+@app.command()
+def sweep(
+    scenario: str = typer.Argument(..., help="Base scenario (name, file) with the fault to vary."),
+    param: str = typer.Option("height_mm", "--param", help="Fault field that sets the size."),
+    sizes: str = typer.Option("0.2,0.4,0.6,0.8,1.0", "--sizes", help="Comma-separated sizes."),
+    seeds: int = typer.Option(5, "--seeds", min=1, help="Seeds per size."),
+    seed0: int = typer.Option(1000, "--seed0", help="First seed (seeds are seed0, seed0+1, ...)."),
+    fault: int = typer.Option(0, "--fault", min=0, help="Index of the fault to vary."),
+    overrides: list[str] = typer.Option([], "--set", help="SECTION.KEY=VALUE on the base."),
+    workers: int = typer.Option(2, "--workers", min=1, help="Local worker processes."),
+    scheduler: str = typer.Option(None, "--scheduler", help="Dask scheduler ADDRESS (a real "
+                                  "cluster) instead of a local cluster."),
+    out: Path = typer.Option(None, "--out", "-o",
+                             help="Output folder (default runs/sweep-<time>)."),
+) -> None:
+    """Monte Carlo over seeds and fault sizes on Dask: detection probability against size.
+
+    Writes sweep.json (every case and the probability per size, with the smallest size
+    detected in at least 90 % of the seeds from there up) and sweep.png.
+
+    Example: `dm2 sweep scenarios/suites/regression/bump.toml --sizes 0.2,0.4,0.8 --seeds 4`
+    """
+    from dm2.bench.suites import apply_overrides
+    from dm2.bench.sweep import plot_sweep, run_sweep, summarize_sweep, sweep_cases
+    from dm2.config import load_scenario, parse_scenario
+    from scenarios import resolve_scenario
+
+    with bad_input_exits():
+        path = resolve_scenario(scenario)
+        base = load_scenario(path).to_toml_dict()
+        base = apply_overrides(base, list(overrides))
+        parse_scenario(base, str(path))
+        size_list = _floats(sizes)
+        cases = sweep_cases(base, size_list, list(range(seed0, seed0 + seeds)), param, fault)
+        parse_scenario(cases[0]["scenario"], f"{path} (faults[{fault}].{param})")
+        out_dir = (out or Path("runs") / f"sweep-{datetime.now():%Y%m%d-%H%M%S}").absolute()
+        out_dir.mkdir(parents=True, exist_ok=True)
+    from dm2.cli.bench_runner import sweep_case
+
+    where = scheduler or f"a local cluster of {workers} worker processes"
+    console.print(f"[bold]dm2 sweep[/] {len(cases)} cases ({len(size_list)} sizes x {seeds} "
+                  f"seeds) on {where}")
+    t0 = time.perf_counter()
+    results = run_sweep(cases, sweep_case, scheduler_address=scheduler, n_workers=workers,
+                        progress=lambda d, n: console.print(f"  {d}/{n} cases done"))
+    summary = summarize_sweep(results)
+    doc = {"schema": "dm2.sweep/1", "scenario": str(path), "fault": fault, "param": param,
+           "sizes": size_list, "seeds": list(range(seed0, seed0 + seeds)),
+           "overrides": list(overrides), "cases": results, "summary": summary}
+    (out_dir / "sweep.json").write_text(json.dumps(doc, indent=1, sort_keys=True),
+                                        encoding="utf-8")
+    plot_sweep(out_dir / "sweep.png", summary, param, f"{Path(path).stem}: detection vs {param}")
+    table = Table(title=f"Detection probability against {param}")
+    for c in ("size", "n", "detected", "probability", "mean peak mm", "FP tracks"):
+        table.add_column(c, justify="right")
+    for r in summary["by_size"]:
+        table.add_row(f"{r['size']:g}", str(r["n"]), str(r["detected"]),
+                      f"{r['probability']:.2f}", _fmt(r["mean_peak_height_mm"]),
+                      str(r["false_positive_tracks"]))
+    console.print(table)
+    smallest = summary["smallest_reliable_size"]
+    console.print(f"smallest reliably detected {param} (>= "
+                  f"{summary['reliable_probability']:.0%}): "
+                  f"{'none' if smallest is None else f'{smallest:g}'}; "
+                  f"{out_dir / 'sweep.json'} ({time.perf_counter() - t0:.0f} s)")
+    if not results:
+        fail("sweep produced no results")
