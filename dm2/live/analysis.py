@@ -5,12 +5,17 @@ out-of-range points and sensor dropouts.
 ``dm2 run`` drives in process, so a live run and an in-process run of the same stream give the
 same layers and tracks), gives the fusion monitor the plate's box so points far outside count
 ``out_of_range``, notes sensors silent for longer than allowed (``sensor_dropout`` events) and,
-with an output folder, rewrites the report after every analysed layer.
+with an output folder, rewrites the report after every analysed layer. Reports are written by
+a background thread from a snapshot of the results and tracks, so a slow report (plots) never
+holds up the fusion of the profiles arriving meanwhile; the final report is written in the
+caller's thread after the last one finished.
 """
 
 from __future__ import annotations
 
+import copy
 import logging
+import threading
 import time
 from collections import Counter
 from pathlib import Path
@@ -63,6 +68,9 @@ class LayerAnalysis:
         self.report_s = 0.0
         self._last_profile_s: dict[str, float] = {}
         self._finished = False
+        self._snapshot = None
+        self._wake = threading.Condition()
+        self._writer: threading.Thread | None = None
 
     @property
     def monitor(self):
@@ -92,8 +100,38 @@ class LayerAnalysis:
             self._last_profile_s[p.sensor_id] = p.stamp_s
 
     def _on_layer(self, result) -> None:
-        if self.out_dir is not None:
-            self.write_report()
+        if self.out_dir is None:
+            return
+        snap = self._take_snapshot()
+        with self._wake:
+            self._snapshot = snap  # a newer snapshot replaces one not yet written
+            self._wake.notify()
+        if self._writer is None:
+            self._writer = threading.Thread(target=self._write_loop, name="report-writer",
+                                            daemon=True)
+            self._writer.start()
+
+    def _write_loop(self) -> None:
+        while True:
+            with self._wake:
+                while self._snapshot is None:
+                    self._wake.wait()
+                snap, self._snapshot = self._snapshot, None
+            if snap == "stop":
+                return
+            try:
+                self._write(*snap)
+            except Exception:  # noqa: BLE001 - a failed interim report must not end the run
+                log.exception("writing the interim report failed")
+
+    def _take_snapshot(self):
+        results = list(self.results)
+        mon = self.monitor
+        meta = {**self.meta, "events": dict(self.events), "profiles_fused": mon.profiles_fused,
+                "points_fused": mon.points_fused, "complete": self._finished}
+        timing = {**self.session.timing.to_dict(), "report_s": self.report_s}
+        maps = None if self._finished else ([results[-1].layer] if results else [])
+        return results, copy.deepcopy(self.tracks), self.dropped, timing, meta, maps
 
     @property
     def dropped(self) -> dict[str, int]:
@@ -105,24 +143,30 @@ class LayerAnalysis:
         return {k: int(v) for k, v in sorted(out.items()) if v}
 
     def write_report(self) -> dict:
-        """Rewrite the report folder with every layer analysed so far."""
+        """Rewrite the report folder with every layer analysed so far (in this thread)."""
+        return self._write(*self._take_snapshot())
+
+    def _write(self, results, tracks, dropped, timing, meta, maps) -> dict:
         from dm2.report import write_report
 
         t0 = time.perf_counter()
-        results = self.results
-        last = [results[-1].layer] if results else []
-        mon = self.monitor
-        report = write_report(self.out_dir, results, self.tracks, config_toml=self.config_toml,
-                              dropped=self.dropped,
-                              timing={**self.session.timing.to_dict(),
-                                      "report_s": self.report_s},
-                              map_layers=None if self._finished else last,
-                              meta={**self.meta, "events": dict(self.events),
-                                    "profiles_fused": mon.profiles_fused,
-                                    "points_fused": mon.points_fused,
-                                    "complete": self._finished})
+        report = write_report(self.out_dir, results, tracks, config_toml=self.config_toml,
+                              dropped=dropped, timing=timing, map_layers=maps, meta=meta)
         self.report_s += time.perf_counter() - t0
         return report
+
+    def _stop_writer(self) -> None:
+        if self._writer is not None:
+            with self._wake:
+                self._snapshot = "stop" if self._snapshot is None else self._snapshot
+                self._wake.notify()
+            while self._writer.is_alive():
+                with self._wake:
+                    if self._snapshot is None:
+                        self._snapshot = "stop"
+                        self._wake.notify()
+                self._writer.join(timeout=0.1)
+            self._writer = None
 
     def finish(self) -> dict | None:
         """End of stream: analyse the last layer, end the tracks, write the final report."""
@@ -130,6 +174,7 @@ class LayerAnalysis:
             return None
         self.session.finish()
         self._finished = True
+        self._stop_writer()
         if self.out_dir is not None:
             return self.write_report()
         return None

@@ -17,6 +17,7 @@ A profile arriving before its sensor has ``min_samples`` skew samples waits (at 
 
 from __future__ import annotations
 
+import bisect
 import logging
 from collections import deque
 
@@ -44,7 +45,8 @@ class ClockAligner:
         self.window = int(window)
         self.min_samples = int(min_samples)
         self.max_waiting = int(max_waiting)
-        self._pose_arrivals: deque = deque(maxlen=1024)  # (arrival_s, stamp_s)
+        self._arr: list[float] = []  # pose arrivals [s, host clock], non-decreasing
+        self._stamp: list[float] = []  # their stamps [s, robot clock]
         self._samples: dict[str, deque] = {}
         self._waiting: dict[str, list] = {}
         self.correction_s: dict[str, float] = {}  # applied correction per sensor (0 = none)
@@ -53,20 +55,23 @@ class ClockAligner:
 
     def pose(self, stamp_s: float, arrival_s: float) -> None:
         """Note a pose message's stamp and arrival (host clock)."""
-        if self._pose_arrivals and arrival_s < self._pose_arrivals[-1][0]:
-            arrival_s = self._pose_arrivals[-1][0]
-        self._pose_arrivals.append((arrival_s, stamp_s))
+        arr, st = self._arr, self._stamp
+        if arr and arrival_s < arr[-1]:
+            arrival_s = arr[-1]
+        arr.append(arrival_s)
+        st.append(stamp_s)
+        if len(arr) > 2048:
+            del arr[:1024], st[:1024]
 
     def _pose_clock_at(self, arrival_s: float) -> float | None:
-        pa = self._pose_arrivals
-        if len(pa) < 2 or arrival_s > pa[-1][0] + 1.0 or arrival_s < pa[0][0]:
+        arr, st = self._arr, self._stamp
+        if len(arr) < 2 or arrival_s > arr[-1] + 1.0 or arrival_s < arr[0]:
             return None
-        arr = np.fromiter((a for a, _ in pa), float, len(pa))
-        i = int(np.searchsorted(arr, arrival_s, side="right"))
-        if i >= len(pa):  # after the newest pose: the newest stamp is the best reading
-            return float(max(s for _, s in list(pa)[-8:]))
-        a0, s0 = pa[i - 1]
-        a1, s1 = pa[i]
+        i = bisect.bisect_right(arr, arrival_s)
+        if i >= len(arr):  # after the newest pose: the newest stamp is the best reading
+            return float(max(st[-8:]))
+        a0, s0 = arr[i - 1], st[i - 1]
+        a1, s1 = arr[i], st[i]
         if a1 <= a0:
             return float(s1)
         return float(s0 + (s1 - s0) * (arrival_s - a0) / (a1 - a0))

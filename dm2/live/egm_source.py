@@ -136,9 +136,8 @@ class EgmDecoder:
         pos = np.array([p.x, p.y, p.z])
         if not (np.all(np.isfinite(q)) and np.all(np.isfinite(pos)) and math.isfinite(stamp_s)):
             raise EgmDecodeError("EgmRobot.feedBack: non-finite pose or time")
-        if abs(float(np.linalg.norm(q)) - 1.0) > QUATERNION_NORM_TOL:
-            raise EgmDecodeError(f"EgmRobot.feedBack.cartesian.orient: |q| = "
-                                 f"{np.linalg.norm(q):.4g}, not a unit quaternion")
+        if np.any(np.abs(q) > 2.0) or abs(float(np.linalg.norm(q)) - 1.0) > QUATERNION_NORM_TOL:
+            raise EgmDecodeError("EgmRobot.feedBack.cartesian.orient: not a unit quaternion")
         try:
             T_B_F = from_quat_abb(pos, q / np.linalg.norm(q))
             state = RobotState(stamp_s, msg.header.seqno, joints, T_B_F)
