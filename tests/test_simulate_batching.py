@@ -1,7 +1,7 @@
 """The batched simulation loop gives, bit for bit, the stream of the plain per-sample loop:
-one deposition call per motion sample, validated robot states, the reference (numpy) profiler
-trace, robot noise drawn three values at a time; and the trusted state constructor equals the
-validating one."""
+one deposition call per motion sample, validated robot states, the numpy reference profiler
+(trace and noise), robot noise drawn three values at a time; and the trusted state constructor
+equals the validating one."""
 
 from __future__ import annotations
 
@@ -21,7 +21,8 @@ def _scenario():
         "part": {"generator": "pad", "params": {"width_mm": 6.0, "depth_mm": 4.0,
                                                 "height_mm": 1.6}},
         "toolpath": {"max_layers": 2, "layer_mm": 0.8},
-        "noise": {"robot_repeatability_mm": 0.05},
+        "noise": {"robot_repeatability_mm": 0.05, "speckle_sigma_mm": 0.02,
+                  "dropout_prob": 0.03, "outlier_prob": 0.02},
         "faults": [{"kind": "feed_step", "factor": 1.7, "time_s": [0.3, 0.9]},
                    {"kind": "standoff_change", "delta_mm": 2.0, "time_s": [0.2, 1.1]}],
     }, "test")
@@ -66,7 +67,8 @@ def _per_sample_stream(sim: Simulation):
         t_next = float(t[i + 1]) if i + 1 < n else np.inf
         while k < trig_s.size and trig_s[k] < t_next:
             p = profs[int(trig_j[k])]
-            out.append(p.measure(p.trace(hf, poses[k], occ), float(trig_s[k]), int(trig_c[k])))
+            trace = p.trace_reference(hf, poses[k], occ)
+            out.append(p.measure_reference(trace, float(trig_s[k]), int(trig_c[k])))
             k += 1
     return out, hf
 

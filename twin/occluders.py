@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from dm2.config import CellConfig
 from dm2.frames import invert
@@ -47,36 +48,47 @@ class CylinderOccluder:
     def hit_t(self, origins_B: np.ndarray, dirs_B: np.ndarray) -> np.ndarray:
         """Distance [mm] along each unit ray ``(n, 3)`` in B to the cylinder; inf on a miss."""
         T_C_B = self._T_C_B
-        o = origins_B @ T_C_B[:3, :3].T + T_C_B[:3, 3]
-        d = dirs_B @ T_C_B[:3, :3].T
-        r2 = self.radius_mm**2
-        n = o.shape[0]
-        t_enter = np.zeros(n)
-        t_exit = np.full(n, np.inf)
-        # Slab along the axis.
-        dz = d[:, 2]
-        axial = np.abs(dz) > _EPS
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t0 = np.where(axial, (0.0 - o[:, 2]) / dz, -np.inf)
-            t1 = np.where(axial, (self.length_mm - o[:, 2]) / dz, np.inf)
-        t_enter = np.maximum(t_enter, np.minimum(t0, t1))
-        t_exit = np.minimum(t_exit, np.maximum(t0, t1))
-        outside_slab = ~axial & ((o[:, 2] < 0.0) | (o[:, 2] > self.length_mm))
-        # Infinite circular cylinder x^2 + y^2 = r^2.
-        a = d[:, 0] ** 2 + d[:, 1] ** 2
-        b = 2.0 * (o[:, 0] * d[:, 0] + o[:, 1] * d[:, 1])
-        c = o[:, 0] ** 2 + o[:, 1] ** 2 - r2
-        radial = a > _EPS
-        disc = b * b - 4.0 * a * c
-        with np.errstate(divide="ignore", invalid="ignore"):
-            sq = np.sqrt(np.maximum(disc, 0.0))
-            r0 = np.where(radial, (-b - sq) / (2.0 * a), -np.inf)
-            r1 = np.where(radial, (-b + sq) / (2.0 * a), np.inf)
-        miss_radial = (radial & (disc < 0.0)) | (~radial & (c > 0.0))
-        t_enter = np.maximum(t_enter, r0)
-        t_exit = np.minimum(t_exit, r1)
-        hit = (t_enter <= t_exit) & ~miss_radial & ~outside_slab
-        return np.where(hit, t_enter, np.inf)
+        o = np.ascontiguousarray(origins_B @ T_C_B[:3, :3].T + T_C_B[:3, 3], dtype=np.float64)
+        d = np.ascontiguousarray(dirs_B @ T_C_B[:3, :3].T, dtype=np.float64)
+        out = np.empty(o.shape[0], dtype=np.float64)
+        _cylinder_hit_t(o, d, float(self.radius_mm**2), float(self.length_mm), out)
+        return out
+
+
+@njit(cache=True)
+def _cylinder_hit_t(o, d, r2, length, out):
+    """Entry distance of rays ``o + t d`` (in the cylinder frame) into the solid cylinder
+    ``x^2 + y^2 <= r2, 0 <= z <= length``; inf on a miss, 0 for rays starting inside."""
+    for k in range(o.shape[0]):
+        ox, oy, oz = o[k, 0], o[k, 1], o[k, 2]
+        dx, dy, dz = d[k, 0], d[k, 1], d[k, 2]
+        t_enter = 0.0
+        t_exit = np.inf
+        # slab along the axis
+        if abs(dz) > _EPS:
+            t0 = (0.0 - oz) / dz
+            t1 = (length - oz) / dz
+            t_enter = max(t_enter, min(t0, t1))
+            t_exit = min(t_exit, max(t0, t1))
+        elif oz < 0.0 or oz > length:
+            out[k] = np.inf
+            continue
+        # infinite circular cylinder x^2 + y^2 = r^2
+        a = dx * dx + dy * dy
+        b = 2.0 * (ox * dx + oy * dy)
+        c = ox * ox + oy * oy - r2
+        if a > _EPS:
+            disc = b * b - 4.0 * a * c
+            if disc < 0.0:
+                out[k] = np.inf
+                continue
+            sq = np.sqrt(disc)
+            t_enter = max(t_enter, (-b - sq) / (2.0 * a))
+            t_exit = min(t_exit, (-b + sq) / (2.0 * a))
+        elif c > 0.0:
+            out[k] = np.inf
+            continue
+        out[k] = t_enter if t_enter <= t_exit else np.inf
 
 
 def nozzle_occluder(T_B_N: np.ndarray, cell: CellConfig) -> CylinderOccluder:

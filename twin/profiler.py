@@ -25,6 +25,7 @@ import numpy as np
 from dm2.config import NoiseConfig, SensorConfig
 from dm2.frames import invert
 from dm2.messages import COUNTER_MODULO, SENSOR_IDS, Profile
+from twin import profiler_kernels as PK
 
 log = logging.getLogger(__name__)
 
@@ -98,10 +99,65 @@ class VirtualProfiler:
         self.camera_S = np.array([0.0, sensors.camera_baseline_mm, 0.0])
         self._t_min = sensors.z_start_mm / self.dirs_S[:, 2]
         self._t_max = sensors.z_end_mm / self.dirs_S[:, 2]
+        self._max_range_mm = float(self._t_max.max())
+        self._occluder_cache = None
+        half = int(np.ceil(3.0 * noise.speckle_length_points))
+        kernel = np.exp(-0.5 * (np.arange(-half, half + 1) / noise.speckle_length_points) ** 2)
+        self._speckle_kernel = kernel / np.sqrt(np.sum(kernel * kernel))
 
     # ------------------------------------------------------------------ geometry
     def trace(self, hf, T_B_O: np.ndarray, occluders: Sequence | None = None) -> ProfileTrace:
-        """Cast the fan on the height field ``hf`` (in O, posed by ``T_B_O``); no noise."""
+        """Cast the fan on the height field ``hf`` (in O, posed by ``T_B_O``); no noise.
+
+        A :class:`~twin.heightfield.HeightField` is cast by the numba kernels of
+        :mod:`twin.profiler_kernels`; any other surface object goes through
+        :meth:`trace_reference`. Both give the same bits.
+        """
+        from twin.heightfield import HeightField
+
+        if not isinstance(hf, HeightField):
+            return self.trace_reference(hf, T_B_O, occluders)
+        occluders = tuple(occluders or ())
+        n = self.dirs_S.shape[0]
+        T_O_S = invert(T_B_O) @ self.T_B_S
+        R_O_S, o_O = T_O_S[:3, :3], T_O_S[:3, 3]
+        dirs_O = np.ascontiguousarray(self.dirs_S @ R_O_S.T)
+        t_occ = self._laser_occluder_t(occluders) if occluders else self._t_max
+        t_hit = np.empty(n)
+        reason = np.empty(n, dtype=np.int8)
+        points_O = np.empty((n, 3))
+        normals_O = np.empty((n, 3))
+        n_cand = PK.laser_pass(hf._h, hf._bmax, hf.cell_mm, hf.thickness_mm, hf._zmax[0],
+                               hf.size_mm[0], hf.size_mm[1], _FACE_TOL_MM,
+                               np.ascontiguousarray(o_O), dirs_O, self._t_min, self._t_max,
+                               self._max_range_mm, t_occ, bool(occluders), t_hit, reason,
+                               points_O, normals_O)
+        cos_inc = np.clip(-np.einsum("ij,ij->i", normals_O, dirs_O), 0.0, 1.0)
+        if n_cand:
+            cand = np.flatnonzero(reason == VALID)
+            hits, normals = points_O[cand], normals_O[cand]
+            camera_O = T_O_S[:3, :3] @ self.camera_S + T_O_S[:3, 3]
+            u_cam, starts = np.empty((n_cand, 3)), np.empty((n_cand, 3))
+            u, remaining, t_cam = np.empty((n_cand, 3)), np.empty(n_cand), np.empty(n_cand)
+            PK.camera_pass(hf._h, hf._bmax, hf.cell_mm, hf.thickness_mm, hf._zmax[0],
+                           camera_O, _LIFT_MM, hits, normals, u_cam, starts, u, remaining, t_cam)
+            out = np.full(n_cand, VALID, dtype=np.int8)
+            facing = np.einsum("ij,ij->i", normals, u_cam) > 1e-9
+            out[~facing] = BACK_FACING
+            out[facing & (t_cam < remaining)] = CAMERA_SHADOW
+            if occluders:
+                starts_B = starts @ T_B_O[:3, :3].T + T_B_O[:3, 3]
+                u_B = u @ T_B_O[:3, :3].T
+                blocked = _first_occluder_hit(occluders, starts_B, u_B) < remaining
+                out[(out == VALID) & blocked] = CAMERA_BLOCKED
+            reason[cand] = out
+        reason[(reason == VALID) & (cos_inc < self.noise.min_intensity)] = TOO_DARK
+        return ProfileTrace(t_hit, reason, cos_inc, points_O)
+
+    def trace_reference(self, hf, T_B_O: np.ndarray,
+                        occluders: Sequence | None = None) -> ProfileTrace:
+        """:meth:`trace` in whole-array numpy operations on any surface object with
+        ``raycast``, ``normals_at``, ``height_at``, ``size_mm`` and ``thickness_mm``."""
         occluders = tuple(occluders or ())
         n = self.dirs_S.shape[0]
         T_O_S = invert(T_B_O) @ self.T_B_S
@@ -121,10 +177,8 @@ class VirtualProfiler:
         cos_inc = np.clip(-np.einsum("ij,ij->i", normals_O, dirs_O), 0.0, 1.0)
 
         if occluders:
-            origins_B = np.broadcast_to(self.T_B_S[:3, 3], (n, 3))
-            dirs_B = self.dirs_S @ self.T_B_S[:3, :3].T
-            t_occ = _first_occluder_hit(occluders, origins_B, dirs_B)
-            reason[(reason == VALID) & (t_occ < t_hit)] = LASER_BLOCKED
+            reason[(reason == VALID) & (self._laser_occluder_t(occluders) < t_hit)] = \
+                LASER_BLOCKED
 
         cand = np.flatnonzero(reason == VALID)
         if cand.size:
@@ -133,6 +187,23 @@ class VirtualProfiler:
         dark = (reason == VALID) & (cos_inc < self.noise.min_intensity)
         reason[dark] = TOO_DARK
         return ProfileTrace(t_hit, reason, cos_inc, points_O)
+
+    def _laser_occluder_t(self, occluders: tuple) -> np.ndarray:
+        """Distance (n,) [mm] along each laser ray to the first occluder (inf: none).
+
+        Occluders and the profiler are both fixed in B, so this is cast once per occluder set.
+        """
+        key = tuple(id(o) for o in occluders)
+        cached = self._occluder_cache
+        if cached is None or cached[0] != key:
+            n = self.dirs_S.shape[0]
+            origins_B = np.broadcast_to(self.T_B_S[:3, 3], (n, 3))
+            dirs_B = self.dirs_S @ self.T_B_S[:3, :3].T
+            t_occ = _first_occluder_hit(occluders, origins_B, dirs_B)
+            t_occ.setflags(write=False)
+            # the occluders are held so that their ids stay theirs while cached
+            cached = self._occluder_cache = (key, occluders, t_occ)
+        return cached[2]
 
     def _camera_visibility(self, hf, T_B_O, T_O_S, hits_O, normals_O,
                            occluders) -> np.ndarray:
@@ -179,6 +250,38 @@ class VirtualProfiler:
         counter = int(counter)
         if not 0 <= counter < COUNTER_MODULO:
             raise ValueError(f"{self.sensor_id}: counter {counter} outside the 24-bit range")
+        nz, sn = self.noise, self.sensors
+        n = trace.range_mm.size
+        gauss, speckle, u_drop, u_ghost, ghost_mm = self._draws(counter, n)
+        xz = np.empty((n, 2))
+        valid = np.empty(n, dtype=bool)
+        intensity = np.empty(n, dtype=np.float32)
+        PK.apply_noise(np.ascontiguousarray(trace.range_mm, dtype=np.float64),
+                       np.ascontiguousarray(trace.reason, dtype=np.int8),
+                       np.ascontiguousarray(trace.cos_incidence, dtype=np.float64),
+                       gauss, speckle, u_drop, u_ghost, ghost_mm, nz.range_sigma_mm,
+                       nz.speckle_sigma_mm, nz.outlier_prob, nz.dropout_prob,
+                       self.dirs_S[:, 0].copy(), self.dirs_S[:, 2].copy(), sn.z_start_mm,
+                       sn.z_end_mm, xz, valid, intensity)
+        return Profile(self.sensor_id, stamp_s, counter, xz, valid, intensity)
+
+    def _draws(self, counter: int, n: int):
+        """The profile's random draws from its ``(seed, sensor, counter)`` stream, in order:
+        range noise, speckle, dropout and ghost uniforms, ghost offsets."""
+        nz = self.noise
+        rng = np.random.default_rng([self.seed, self.sensor_index, counter])
+        gauss = rng.standard_normal(n)
+        half = (self._speckle_kernel.size - 1) // 2
+        speckle = np.convolve(rng.standard_normal(n + 2 * half), self._speckle_kernel,
+                              mode="valid")
+        u_drop = rng.random(n)
+        u_ghost = rng.random(n)
+        ghost_mm = rng.uniform(nz.outlier_offset_mm[0], nz.outlier_offset_mm[1], n)
+        return gauss, speckle, u_drop, u_ghost, ghost_mm
+
+    def measure_reference(self, trace: ProfileTrace, stamp_s: float, counter: int) -> Profile:
+        """:meth:`measure` in whole-array numpy operations (the reference)."""
+        counter = int(counter)
         noisy_range, reason, intensity = self._noise(trace, counter)
         z = noisy_range * self.dirs_S[:, 2]
         reason[(reason == VALID) & ((z < self.sensors.z_start_mm)

@@ -1,0 +1,165 @@
+"""Numba kernels for :class:`twin.profiler.VirtualProfiler`: one pass per scan stage.
+
+They do, ray by ray and in the same floating-point operations, what the profiler's numpy
+reference path (:meth:`twin.profiler.VirtualProfiler.trace_reference`) does with whole-array
+operations, so both give the same bits. Reductions whose summation order numpy chooses at run
+time (``einsum``, ``convolve``) and the small matrix products (BLAS) stay in numpy.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from twin.heightfield_kernels import bilinear_height, normal_at, ray_one
+
+# Reason codes, as in twin.profiler.
+VALID = 0
+NO_SURFACE = 1
+LASER_BLOCKED = 2
+DROPOUT = 7
+
+
+@njit(cache=True)
+def laser_pass(H, bmax, cell, thickness, zmax, lx, ly, face_tol, origin, dirs, t_min, t_max,
+               max_range, t_occ, has_occ, out_t, out_reason, out_points, out_normals):
+    """Cast the laser fan from ``origin (3,)`` along ``dirs (n, 3)`` (all in O).
+
+    Fills the hit distance (inf: none), the reason (VALID, NO_SURFACE or LASER_BLOCKED where
+    ``has_occ`` and ``t_occ`` is nearer), the lit point (NaN: none) and the solid's outward
+    normal there (top surface: bilinear patch normal; below it: the plate face nearest to the
+    point; zeros where nothing is hit). Returns the number of VALID rays.
+    """
+    n = dirs.shape[0]
+    n_valid = 0
+    for k in range(n):
+        dx, dy, dz = dirs[k, 0], dirs[k, 1], dirs[k, 2]
+        t = ray_one(H, bmax, cell, thickness, zmax, origin[0], origin[1], origin[2],
+                    dx, dy, dz, max_range)
+        out_t[k] = t
+        reason = NO_SURFACE
+        if t < np.inf and t >= t_min[k] and t <= t_max[k]:
+            reason = VALID
+        if t < np.inf:
+            px = origin[0] + t * dx
+            py = origin[1] + t * dy
+            pz = origin[2] + t * dz
+            out_points[k, 0] = px
+            out_points[k, 1] = py
+            out_points[k, 2] = pz
+            top = bilinear_height(H, cell, px, py)
+            if pz >= top - face_tol:
+                nx_, ny_, nz_ = normal_at(H, cell, px, py)
+                out_normals[k, 0] = nx_
+                out_normals[k, 1] = ny_
+                out_normals[k, 2] = nz_
+            else:  # on a side face or the bottom of the plate (NaN height: just off it)
+                best = abs(px)
+                face = 0
+                g = abs(lx - px)
+                if g < best:
+                    best, face = g, 1
+                g = abs(py)
+                if g < best:
+                    best, face = g, 2
+                g = abs(ly - py)
+                if g < best:
+                    best, face = g, 3
+                g = abs(pz + thickness)
+                if g < best:
+                    best, face = g, 4
+                out_normals[k, 0] = 0.0
+                out_normals[k, 1] = 0.0
+                out_normals[k, 2] = 0.0
+                if face == 0:
+                    out_normals[k, 0] = -1.0
+                elif face == 1:
+                    out_normals[k, 0] = 1.0
+                elif face == 2:
+                    out_normals[k, 1] = -1.0
+                elif face == 3:
+                    out_normals[k, 1] = 1.0
+                else:
+                    out_normals[k, 2] = -1.0
+        else:
+            for c in range(3):
+                out_points[k, c] = np.nan
+                out_normals[k, c] = 0.0
+        if reason == VALID and has_occ and t_occ[k] < t:
+            reason = LASER_BLOCKED
+        out_reason[k] = reason
+        if reason == VALID:
+            n_valid += 1
+    return n_valid
+
+
+@njit(cache=True)
+def camera_pass(H, bmax, cell, thickness, zmax, camera, lift, hits, normals, out_u_cam,
+                out_starts, out_u, out_remaining, out_t):
+    """Rays from the lit points ``hits (m, 3)`` (lifted by ``lift`` along ``normals``) to the
+    camera at ``camera (3,)``, cast on the height field: fills the unit direction to the camera
+    from the unlifted point, the lifted starts, their unit directions and distances to the
+    camera, and the distance to the first surface hit (inf: clear)."""
+    m = hits.shape[0]
+    max_range = -np.inf
+    for k in range(m):
+        a0 = camera[0] - hits[k, 0]
+        a1 = camera[1] - hits[k, 1]
+        a2 = camera[2] - hits[k, 2]
+        dist = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+        out_u_cam[k, 0] = a0 / dist
+        out_u_cam[k, 1] = a1 / dist
+        out_u_cam[k, 2] = a2 / dist
+        s0 = hits[k, 0] + lift * normals[k, 0]
+        s1 = hits[k, 1] + lift * normals[k, 1]
+        s2 = hits[k, 2] + lift * normals[k, 2]
+        out_starts[k, 0] = s0
+        out_starts[k, 1] = s1
+        out_starts[k, 2] = s2
+        b0 = camera[0] - s0
+        b1 = camera[1] - s1
+        b2 = camera[2] - s2
+        rem = math.sqrt(b0 * b0 + b1 * b1 + b2 * b2)
+        out_remaining[k] = rem
+        out_u[k, 0] = b0 / rem
+        out_u[k, 1] = b1 / rem
+        out_u[k, 2] = b2 / rem
+        if rem > max_range:
+            max_range = rem
+    for k in range(m):
+        out_t[k] = ray_one(H, bmax, cell, thickness, zmax, out_starts[k, 0], out_starts[k, 1],
+                           out_starts[k, 2], out_u[k, 0], out_u[k, 1], out_u[k, 2], max_range)
+
+
+@njit(cache=True)
+def apply_noise(range_mm, reason, cos_inc, gauss, speckle, u_drop, u_ghost, ghost_mm,
+                range_sigma, speckle_sigma, outlier_prob, dropout_prob, dir_x, dir_z,
+                z_start, z_end, out_xz, out_valid, out_intensity):
+    """The sensor's noise and output format, from the profile's random draws: range noise and
+    speckle along each ray, ghosts beyond the surface at half intensity, dropouts, the
+    measuring range; invalid points get NaN coordinates and zero intensity."""
+    for k in range(range_mm.shape[0]):
+        r = range_mm[k] + range_sigma * gauss[k] + speckle_sigma * speckle[k]
+        why = reason[k]
+        cos = cos_inc[k]
+        inten = cos
+        if why == VALID and u_ghost[k] < outlier_prob:
+            r = r + ghost_mm[k]
+            inten = 0.5 * cos
+        if why == VALID and u_drop[k] < dropout_prob:
+            why = DROPOUT
+        z = r * dir_z[k]
+        if why == VALID and (z < z_start or z > z_end):
+            why = NO_SURFACE
+        if why == VALID:
+            out_valid[k] = True
+            out_xz[k, 0] = r * dir_x[k]
+            out_xz[k, 1] = z
+            out_intensity[k] = np.float32(inten)
+        else:
+            out_valid[k] = False
+            out_xz[k, 0] = np.nan
+            out_xz[k, 1] = np.nan
+            out_intensity[k] = np.float32(0.0)
