@@ -50,14 +50,17 @@ def sweep_cases(base: dict, sizes: Sequence[float], seeds: Sequence[int],
 
 def run_sweep(cases: list[dict], case_fn: Callable[[dict, str], dict], *,
               scheduler_address: str | None = None, n_workers: int = 2,
-              threads_per_worker: int = 1, progress: Callable[[int, int], None] | None = None
-              ) -> list[dict]:
+              threads_per_worker: int = 1, progress: Callable[[int, int], None] | None = None,
+              client=None) -> list[dict]:
     """Run ``case_fn(scenario_dict, source)`` for every case on Dask; results in case order.
 
-    ``case_fn`` must be importable by the workers (a module-level function).
+    ``case_fn`` must be importable by the workers (a module-level function). An open
+    ``client`` is used as it is (and left open); otherwise one is made for the call.
     """
-    from distributed import Client, LocalCluster, as_completed
+    from distributed import Client, LocalCluster
 
+    if client is not None:
+        return _collect(client, cases, case_fn, progress)
     cluster = None
     if scheduler_address is None:
         cluster = LocalCluster(n_workers=n_workers, threads_per_worker=threads_per_worker,
@@ -66,18 +69,24 @@ def run_sweep(cases: list[dict], case_fn: Callable[[dict, str], dict], *,
     else:
         client = Client(scheduler_address)
     try:
-        futures = [client.submit(case_fn, c["scenario"], c["scenario"]["name"], pure=False)
-                   for c in cases]
-        index = {f.key: i for i, f in enumerate(futures)}
-        results: list[dict | None] = [None] * len(cases)
-        for done, fut in enumerate(as_completed(futures), start=1):
-            results[index[fut.key]] = fut.result()
-            if progress is not None:
-                progress(done, len(cases))
+        return _collect(client, cases, case_fn, progress)
     finally:
         client.close()
         if cluster is not None:
             cluster.close()
+
+
+def _collect(client, cases, case_fn, progress) -> list[dict]:
+    from distributed import as_completed
+
+    futures = [client.submit(case_fn, c["scenario"], c["scenario"]["name"], pure=False)
+               for c in cases]
+    index = {f.key: i for i, f in enumerate(futures)}
+    results: list[dict | None] = [None] * len(cases)
+    for done, fut in enumerate(as_completed(futures), start=1):
+        results[index[fut.key]] = fut.result()
+        if progress is not None:
+            progress(done, len(cases))
     return [{"size": c["size"], "seed": c["seed"], **r} for c, r in zip(cases, results,
                                                                          strict=True)]
 

@@ -120,7 +120,8 @@ def bench(
         doc["paper"] = _paper_outputs(out_dir, done_runs)
     (out_dir / "bench.json").write_text(json.dumps(doc, indent=1, default=_json_default),
                                         encoding="utf-8")
-    console.print(bench_table(runs), width=max(console.width, 160))
+    console.width = max(console.width, 170)
+    console.print(bench_table(runs))
     checks = " ".join(f"{k}: {'[green]ok[/]' if v else '[red]missed[/]'}"
                       for k, v in summary["target_checks"].items())
     console.print(f"F1 {summary['f1']:.3f} over {summary['qualifying_defects']} defects "
