@@ -106,9 +106,11 @@ class LiveRunner:
         self.sources.append(prof)
         addresses = {"egm": egm.address, "profiles": prof.address}
         if live.scancontrol:
-            from dm2.live.scancontrol import ScanControlSource
-
-            self.sources.append(ScanControlSource(self.inbox, live.scancontrol).start())
+            for src in self.sources:
+                src.close()
+            raise ValueError("live.scancontrol: direct scanCONTROL sensors are not supported "
+                             "by this build; run a profile bridge that sends the TCP profile "
+                             "protocol (dm2.live.tcp_profiles) to live.profiles instead")
         return addresses
 
     # --------------------------------------------------------------------------- the loop
