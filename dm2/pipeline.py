@@ -11,6 +11,7 @@ each layer's end (:mod:`dm2.layers`), triangulated (:mod:`dm2.surface`).
 from __future__ import annotations
 
 import logging
+import time
 from collections import Counter
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
@@ -18,15 +19,17 @@ from dataclasses import dataclass
 import numpy as np
 
 from dm2.config import MonitorConfig, ProcessConfig
-from dm2.frames import invert
 from dm2.layers import LayerTracker
-from dm2.messages import Calibration, LayerMark, Toolpath
-from dm2.registration import spot_B
+from dm2.messages import Calibration, Toolpath
+from dm2.registration import profile_frames, spot_B
 from dm2.surface import SurfaceExtractor, SurfaceMesh
 from dm2.sync import StreamSync, SyncedProfile
 from dm2.tsdf import SparseTSDF
 
 log = logging.getLogger(__name__)
+
+DEFAULT_BATCH_PROFILES = 96  # about 3 s of a 3 x 10 Hz stream per kernel call when replaying
+DEFAULT_MAX_DELAY_S = 0.02
 
 
 @dataclass(frozen=True)
@@ -64,7 +67,12 @@ class Monitor:
     on_layer_done : optional callback ``f(LayerSurface)`` called when a layer finishes
     bounds_O : optional ``(lo (3,), hi (3,))`` [mm]; points outside are dropped as out_of_range
     batch_profiles : synchronised profiles are fused in batches of this many (3 = one frame set
-        of the three cascaded sensors); layer ends, ``surface()`` and ``finish()`` flush early
+        of the three cascaded sensors, the previous default); layer ends, ``surface()`` and
+        ``finish()`` flush early. Batching never changes the result: each profile keeps its own
+        pose and active region, and profiles are fused in stream order
+    max_delay_s : float [s], wall-clock time after which a waiting batch is fused at the next
+        message even when not full, so a live stream sees its profiles fused within about this
+        long (a replay, which runs faster than real time, still fuses full batches)
 
     Attributes
     ----------
@@ -75,7 +83,8 @@ class Monitor:
     def __init__(self, calibration: Calibration, monitor_cfg: MonitorConfig,
                  process: ProcessConfig, toolpath: Toolpath | None = None,
                  on_layer_done: Callable[[LayerSurface], None] | None = None,
-                 bounds_O: tuple | None = None, batch_profiles: int = 3):
+                 bounds_O: tuple | None = None, batch_profiles: int = DEFAULT_BATCH_PROFILES,
+                 max_delay_s: float = DEFAULT_MAX_DELAY_S):
         if not calibration.T_B_S:
             raise ValueError("Monitor: the calibration holds no sensor pose (T_B_S is empty)")
         self.calibration = calibration
@@ -103,7 +112,16 @@ class Monitor:
         self._axis_B = calibration.T_B_N[:3, 2].copy()
         self._last_stamp_s = float("nan")
         self._finished = False
-        self._pending: list[SyncedProfile] = []
+        self.max_delay_s = float(max_delay_s)
+        # the batch waiting to be fused, one entry per synchronised profile
+        self._p_xz: list[np.ndarray] = []
+        self._p_T: list[np.ndarray] = []
+        self._p_sensor: list[int] = []
+        self._p_stamp: list[float] = []
+        self._pending_since = 0.0
+        self._sensor_row = {sid: i for i, sid in enumerate(calibration.T_B_S)}
+        self._T_B_S = np.stack([np.asarray(T, np.float64) for T in calibration.T_B_S.values()])
+        self._T_F_O = np.ascontiguousarray(calibration.T_F_O, np.float64)
 
     # --------------------------------------------------------------------------------- input
     @property
@@ -126,7 +144,11 @@ class Monitor:
         """Take one message of any kind; bad ones are counted in :attr:`dropped`, never raised."""
         if self._finished:
             raise RuntimeError("Monitor.feed: the monitor was finished")
-        self._handle(self.sync.push(msg))
+        ready = self.sync.push(msg)
+        if ready:
+            self._handle(ready)
+        elif self._p_xz and time.perf_counter() - self._pending_since > self.max_delay_s:
+            self._flush()
 
     def feed_all(self, messages: Iterable) -> None:
         for m in messages:
@@ -135,7 +157,9 @@ class Monitor:
     def finish(self) -> list[LayerSurface]:
         """Flush the stream and close the current layer; returns all finished layers."""
         if not self._finished:
-            self._handle(self.sync.flush())
+            ready = self.sync.flush()
+            if ready:
+                self._handle(ready)
             self._flush()
             self._finish_layer(self.layers.layer)
             self._finished = True
@@ -156,19 +180,43 @@ class Monitor:
     # ------------------------------------------------------------------------------ internal
     def _handle(self, ready: list) -> None:
         for item in ready:
-            if isinstance(item, LayerMark):
+            if type(item) is SyncedProfile:
+                if not self._p_xz:
+                    self._pending_since = time.perf_counter()
+                self._p_xz.append(item.xz_S)
+                self._p_T.append(item.T_B_F)
+                self._p_sensor.append(self._sensor_row[item.profile.sensor_id])
+                self._p_stamp.append(item.profile.stamp_s)
+            else:  # a LayerMark
                 self._flush()
                 finished = self.layers.on_mark(item.layer)
                 if finished is not None:
                     self._finish_layer(finished)
-            else:
-                self._pending.append(item)
-        if len(self._pending) >= self.batch_profiles:
+        if len(self._p_xz) >= self.batch_profiles:
             self._flush()
 
     def _flush(self) -> None:
-        batch, self._pending = self._pending, []
-        self._fuse(batch)
+        """Fuse the profiles waiting in the batch (in stream order)."""
+        if not self._p_xz:
+            return
+        xz = np.concatenate(self._p_xz) if len(self._p_xz) > 1 else self._p_xz[0]
+        offsets = np.zeros(len(self._p_xz) + 1, dtype=np.int64)
+        np.cumsum([len(a) for a in self._p_xz], out=offsets[1:])
+        T_O_S, spots_O, axes_O = profile_frames(
+            np.array(self._p_T), self._T_F_O, self._T_B_S, np.array(self._p_sensor),
+            self._spot_B, self._axis_B)
+        stamps = self._p_stamp
+        self._p_xz, self._p_T, self._p_sensor, self._p_stamp = [], [], [], []
+        start, k = 0, len(stamps)
+        if self.layers.source == "toolpath":
+            for j in range(k):
+                finished = self.layers.on_spots(spots_O[j: j + 1])
+                if finished:
+                    self._fuse_range(xz, offsets, T_O_S, spots_O, axes_O, stamps, start, j)
+                    start = j
+                    for layer in finished:
+                        self._finish_layer(layer)
+        self._fuse_range(xz, offsets, T_O_S, spots_O, axes_O, stamps, start, k)
 
     def _finish_layer(self, layer: int) -> None:
         ls = LayerSurface(int(layer), self._last_stamp_s, self.extractor.update())
@@ -178,49 +226,16 @@ class Monitor:
         if self.on_layer_done is not None:
             self.on_layer_done(ls)
 
-    def _fuse(self, batch: list[SyncedProfile]) -> None:
-        if not batch:
-            return
-        T_B_F = np.stack([s.T_B_F for s in batch])
-        T_O_B = invert(T_B_F @ self.calibration.T_F_O)
-        spots_O = np.einsum("kij,j->ki", T_O_B[:, :3, :3], self._spot_B) + T_O_B[:, :3, 3]
-        axes_O = np.einsum("kij,j->ki", T_O_B[:, :3, :3], self._axis_B)
-        start = 0
-        if self.layers.source == "toolpath":
-            for j in range(len(batch)):
-                finished = self.layers.on_spots(spots_O[j: j + 1])
-                if finished:
-                    self._fuse_range(batch, T_O_B, spots_O, axes_O, start, j)
-                    start = j
-                    for layer in finished:
-                        self._finish_layer(layer)
-        self._fuse_range(batch, T_O_B, spots_O, axes_O, start, len(batch))
-
-    def _fuse_range(self, batch, T_O_B, spots_O, axes_O, a: int, b: int) -> None:
+    def _fuse_range(self, xz, offsets, T_O_S, spots_O, axes_O, stamps, a: int, b: int) -> None:
+        """Register and fuse profiles ``a:b`` of a batch (one numba pass, eq 1 then eqs 2-5)."""
         if b <= a:
             return
-        sel = batch[a:b]
-        counts = np.array([len(s.xz_S) for s in sel])
-        xz = np.concatenate([s.xz_S for s in sel])
-        T_B_S = np.stack([self.calibration.T_B_S[s.profile.sensor_id] for s in sel])
-        T_O_S = T_O_B[a:b] @ T_B_S
-        R = np.repeat(T_O_S[:, :3, :3], counts, axis=0)
-        origins = np.repeat(T_O_S[:, :3, 3], counts, axis=0)
-        points = origins + R[:, :, 0] * xz[:, :1] + R[:, :, 2] * xz[:, 1:]
-        spot = np.repeat(spots_O[a:b], counts, axis=0)
-        axis = np.repeat(axes_O[a:b], counts, axis=0)
-        keep = xz[:, 1] > 0.0  # in front of the sensor
-        if self.bounds_O is not None:
-            keep &= np.all((points >= self.bounds_O[0]) & (points <= self.bounds_O[1]), axis=1)
-        n_out = int(keep.size - np.count_nonzero(keep))
+        lo, hi = offsets[a], offsets[b]
+        fused, n_out = self.tsdf.integrate_profiles(
+            xz[lo:hi], offsets[a: b + 1] - lo, T_O_S[a:b], spots_O[a:b], axes_O[a:b],
+            self.active_radius_mm, self.bounds_O)
         if n_out:
             self._point_drops["out_of_range"] += n_out
-            points, origins, spot, axis = points[keep], origins[keep], spot[keep], axis[keep]
-        rel = points - spot
-        along = np.einsum("ij,ij->i", rel, axis)
-        lateral2 = np.einsum("ij,ij->i", rel, rel) - along * along
-        active = lateral2 <= self.active_radius_mm ** 2
-        self.tsdf.integrate(origins, points, active)
-        self.points_fused += len(points)
-        self.profiles_fused += len(sel)
-        self._last_stamp_s = sel[-1].profile.stamp_s
+        self.points_fused += fused
+        self.profiles_fused += b - a
+        self._last_stamp_s = stamps[b - 1]

@@ -9,6 +9,7 @@ The deposition spot follows the nozzle axis: ``spot_B = origin(T_B_N) + standoff
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 from dm2.frames import invert
 from dm2.messages import Calibration
@@ -57,3 +58,66 @@ def distance_to_axis(points_O: np.ndarray, spot_O: np.ndarray, axis_O: np.ndarra
     rel = np.asarray(points_O) - spot_O
     along = rel @ axis_O
     return np.sqrt(np.maximum(np.einsum("ij,ij->i", rel, rel) - along * along, 0.0))
+
+
+@njit(cache=True)
+def profile_frames(T_B_F, T_F_O, T_B_S, sensor_index, spot_B, axis_B):
+    """Per-profile frames of a batch, each computed alone (the same bits whatever the batch).
+
+    Parameters
+    ----------
+    T_B_F : (k, 4, 4) float64, flange pose at each profile's stamp
+    T_F_O : (4, 4) float64, work object on the flange
+    T_B_S : (m, 4, 4) float64, the calibrated sensor poses
+    sensor_index : (k,) int64, row of ``T_B_S`` that took each profile
+    spot_B, axis_B : (3,) float64, deposition spot [mm] and unit spray axis in ``B``
+
+    Returns
+    -------
+    T_O_S : (k, 4, 4) float64, ``inv(T_B_F @ T_F_O) @ T_B_S``
+    spot_O, axis_O : (k, 3) float64, deposition spot [mm] and spray axis in ``O``
+    """
+    k = T_B_F.shape[0]
+    T_O_S = np.zeros((k, 4, 4))
+    spot_O = np.empty((k, 3))
+    axis_O = np.empty((k, 3))
+    T_B_O = np.empty((4, 4))
+    T_O_B = np.zeros((4, 4))
+    for j in range(k):
+        for r in range(4):
+            for c in range(4):
+                acc = 0.0
+                for m in range(4):
+                    acc += T_B_F[j, r, m] * T_F_O[m, c]
+                T_B_O[r, c] = acc
+        for r in range(3):  # rigid inverse: R^T, -R^T t
+            for c in range(3):
+                T_O_B[r, c] = T_B_O[c, r]
+            T_O_B[r, 3] = -(T_B_O[0, r] * T_B_O[0, 3] + T_B_O[1, r] * T_B_O[1, 3]
+                            + T_B_O[2, r] * T_B_O[2, 3])
+        T_O_B[3, 3] = 1.0
+        s = sensor_index[j]
+        for r in range(4):
+            for c in range(4):
+                acc = 0.0
+                for m in range(4):
+                    acc += T_O_B[r, m] * T_B_S[s, m, c]
+                T_O_S[j, r, c] = acc
+        for r in range(3):
+            spot_O[j, r] = T_O_B[r, 0] * spot_B[0] + T_O_B[r, 1] * spot_B[1] \
+                + T_O_B[r, 2] * spot_B[2] + T_O_B[r, 3]
+            axis_O[j, r] = T_O_B[r, 0] * axis_B[0] + T_O_B[r, 1] * axis_B[1] \
+                + T_O_B[r, 2] * axis_B[2]
+    return T_O_S, spot_O, axis_O
+
+
+def register_profiles(xz_S: np.ndarray, offsets: np.ndarray, T_O_S: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Points ``(n, 3)`` [mm] in ``O`` and their rays' origins ``(n, 3)`` of a profile batch
+    (``xz_S (n, 2)``, ``offsets (k + 1,)``, ``T_O_S (k, 4, 4)``), with the arithmetic of
+    :func:`dm2.tsdf_kernels.fuse_profiles`."""
+    counts = np.diff(np.asarray(offsets, dtype=np.int64))
+    xz = np.asarray(xz_S, dtype=np.float64)
+    R = np.repeat(np.asarray(T_O_S)[:, :3, :3], counts, axis=0)
+    origins = np.repeat(np.asarray(T_O_S)[:, :3, 3], counts, axis=0)
+    return origins + R[:, :, 0] * xz[:, :1] + R[:, :, 2] * xz[:, 1:], origins

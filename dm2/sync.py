@@ -54,6 +54,9 @@ class SyncedProfile:
 class PoseBuffer:
     """Time-sorted robot flange poses with bracketed SLERP interpolation.
 
+    New poses wait in a short Python list (an append, no array copy per robot state) and are
+    merged into the sorted arrays in one step when poses are next queried.
+
     Parameters
     ----------
     horizon_s : float [s], poses older than the newest minus this are pruned
@@ -64,54 +67,86 @@ class PoseBuffer:
         self._t = np.empty(capacity)
         self._T = np.empty((capacity, 4, 4))
         self._n = 0
+        self._new_t: list[float] = []  # waiting to be merged, poses in _new_T[:len(_new_t)]
+        self._new_T = np.empty((256, 4, 4))
+        self._new_sorted = True  # the waiting stamps increase and follow the buffered ones
+        self._known: set[float] = set()  # stamps buffered or waiting, for the duplicate test
+        self._latest = -np.inf
 
     def __len__(self) -> int:
-        return self._n
+        return self._n + len(self._new_t)
 
     @property
     def latest_s(self) -> float:
-        return float(self._t[self._n - 1]) if self._n else -np.inf
+        return float(self._latest)
 
     @property
     def stamps_s(self) -> np.ndarray:
+        self._merge()
         return self._t[: self._n]
 
     def add(self, stamp_s: float, T_B_F: np.ndarray) -> bool:
         """Insert a pose; False when a pose with the same stamp is already buffered."""
-        if self._n + 1 >= len(self._t):
-            self._compact()
-        n = self._n
-        if n and stamp_s <= self._t[n - 1]:
-            i = int(np.searchsorted(self._t[:n], stamp_s))
-            if i < n and self._t[i] == stamp_s:
-                return False
-            self._t[i + 1: n + 1] = self._t[i:n].copy()
-            self._T[i + 1: n + 1] = self._T[i:n].copy()
+        if stamp_s in self._known:
+            return False
+        self._known.add(stamp_s)
+        if stamp_s > self._latest:
+            self._latest = stamp_s
         else:
-            i = n
-        self._t[i] = stamp_s
-        self._T[i] = T_B_F
-        self._n = n + 1
+            self._new_sorted = False
+        m = len(self._new_t)
+        self._new_T[m] = T_B_F
+        self._new_t.append(stamp_s)
+        if m + 1 == len(self._new_T):
+            self._merge()
         return True
 
-    def _compact(self) -> None:
+    def _merge(self) -> None:
+        if not self._new_t:
+            return
+        t_new = np.array(self._new_t)
+        m = t_new.size
+        T_new = self._new_T[:m]
+        self._new_t.clear()
+        in_order, self._new_sorted = self._new_sorted, True
+        if self._n + m > len(self._t):
+            self._compact(t_new)
         n = self._n
-        keep = self._t[:n] >= self._t[n - 1] - self.horizon_s
-        k = int(keep.sum())
-        if k + 2 >= len(self._t):  # horizon holds more than capacity: grow
-            self._t = np.concatenate([self._t, np.empty(len(self._t))])
-            self._T = np.concatenate([self._T, np.empty_like(self._T)])
-        first = n - k
-        self._t[:k] = self._t[first:n].copy()
-        self._T[:k] = self._T[first:n].copy()
+        if in_order:
+            self._t[n: n + m] = t_new
+            self._T[n: n + m] = T_new
+        else:  # late arrivals: merge the two sorted runs
+            t_all = np.concatenate([self._t[:n], t_new])
+            order = np.argsort(t_all, kind="stable")
+            self._T[: n + m] = np.concatenate([self._T[:n], T_new])[order]
+            self._t[: n + m] = t_all[order]
+        self._n = n + m
+
+    def _compact(self, t_new: np.ndarray) -> None:
+        """Drop poses older than the horizon; grow when the horizon needs more room for the
+        poses ``t_new`` about to be merged."""
+        n, incoming = self._n, t_new.size
+        k0 = int(np.searchsorted(self._t[:n], self._latest - self.horizon_s)) if n else 0
+        k = n - k0
+        if k + incoming + 2 >= len(self._t):
+            size = 2 * max(len(self._t), k + incoming + 2)
+            t, T = np.empty(size), np.empty((size, 4, 4))
+            t[:k], T[:k] = self._t[k0:n], self._T[k0:n]
+            self._t, self._T = t, T
+        else:
+            self._t[:k] = self._t[k0:n].copy()
+            self._T[:k] = self._T[k0:n].copy()
         self._n = k
+        if k0:
+            self._known = set(self._t[:k].tolist()) | set(t_new.tolist())
 
     def covers(self, stamp_s: float) -> bool:
-        return self._n > 0 and self._t[self._n - 1] >= stamp_s
+        return self._latest >= stamp_s
 
     def poses_at(self, stamps_s: np.ndarray, max_gap_s: float) -> tuple[np.ndarray, np.ndarray]:
         """Interpolated poses ``(k, 4, 4)`` at ``stamps_s (k,)`` and ``ok (k,) bool`` (False
         where no two poses at most ``max_gap_s`` apart bracket the stamp)."""
+        self._merge()
         q = np.ascontiguousarray(stamps_s, dtype=np.float64).reshape(-1)
         out = np.empty((q.size, 4, 4))
         ok = np.zeros(q.size, dtype=np.bool_)
@@ -211,14 +246,20 @@ class StreamSync:
     def push(self, msg) -> list:
         """Take one message; return what became ready: ``SyncedProfile`` and ``LayerMark``
         items in stamp order."""
-        if isinstance(msg, RobotState):
-            if msg.stamp_s < self.watermark_s - self.reorder_window_s:
+        if type(msg) is RobotState or isinstance(msg, RobotState):
+            stamp = msg.stamp_s
+            if stamp < self.watermark_s - self.reorder_window_s:
                 self.dropped["late_message"] += 1
                 return []
-            if not self.poses.add(msg.stamp_s, msg.T_B_F):
+            if not self.poses.add(stamp, msg.T_B_F):
                 self.dropped["duplicate_state"] += 1
                 return []
-            self._advance(msg.stamp_s)
+            if stamp > self.watermark_s:
+                self.watermark_s = stamp
+            heap = self._heap
+            if not heap or (heap[0][0] > self.poses.latest_s and heap[0][0] > self.watermark_s
+                            - self.reorder_window_s):
+                return []  # the first waiting item is neither covered nor due: nothing to do
             return self._release(final=False)
         if isinstance(msg, Profile):
             if not self._accept_profile(msg):
@@ -296,16 +337,31 @@ class StreamSync:
         return ready
 
     def _synced(self, p: Profile, T_B_F: np.ndarray, pose_ok: bool) -> SyncedProfile | None:
-        valid = p.valid
-        finite = np.isfinite(p.xz_S).all(axis=1)
-        n_nan = int(np.count_nonzero(valid & ~finite))
+        xz, n_nan = _usable_points(p.xz_S, p.valid)
         if n_nan:
             self.dropped["nan_points"] += n_nan
-        use = valid & finite
-        if not use.any():
+        if not xz.shape[0]:
             self.dropped["empty_profile"] += 1
             return None
         if not pose_ok:
             self.dropped["pose_gap"] += 1
             return None
-        return SyncedProfile(p, p.xz_S[use], T_B_F)
+        return SyncedProfile(p, xz, T_B_F)
+
+
+@njit(cache=True)
+def _usable_points(xz_S, valid):
+    """Valid finite points ``(k, 2)`` of a profile and the number flagged valid but not finite."""
+    out = np.empty_like(xz_S)
+    k = 0
+    n_nan = 0
+    for i in range(xz_S.shape[0]):
+        if valid[i]:
+            x, z = xz_S[i, 0], xz_S[i, 1]
+            if np.isfinite(x) and np.isfinite(z):
+                out[k, 0] = x
+                out[k, 1] = z
+                k += 1
+            else:
+                n_nan += 1
+    return out[:k], n_nan

@@ -4,8 +4,9 @@ Storage
 -------
 Voxels of edge ``voxel_mm`` are grouped in blocks of 8**3 voxels that are allocated only where a
 ray has passed (like VDB leaf nodes). Block rows live in growable preallocated arrays
-(``tsdf_mm``, ``weight`` of shape ``(capacity, 512)`` float32) found through an open-addressing
-hash of the block coordinates; memory is ``~4 KiB`` per observed block plus the hash table.
+(``voxels`` of shape ``(capacity, 512, 2)`` float32: signed distance and weight side by side)
+found through an open-addressing hash of the block coordinates; memory is ``~4 KiB`` per
+observed block plus the hash table.
 
 Update
 ------
@@ -43,6 +44,7 @@ from dm2 import tsdf_kernels as K
 log = logging.getLogger(__name__)
 
 MAX_WEIGHT = 1.0e4  # weight of inactive voxels saturates here (float32 stays exact enough)
+_NO_BOUNDS = np.zeros(3)
 
 
 class SparseTSDF:
@@ -68,8 +70,7 @@ class SparseTSDF:
         self.truncation_mm = float(truncation_mm)
         self.weight_cap = float(weight_cap)
         cap = max(64, int(initial_blocks))
-        self.tsdf_mm = np.zeros((cap, K.BLOCK_VOXELS), dtype=np.float32)
-        self.weight = np.zeros((cap, K.BLOCK_VOXELS), dtype=np.float32)
+        self.voxels = np.zeros((cap, K.BLOCK_VOXELS, 2), dtype=np.float32)
         self.block_keys = np.full(cap, K.EMPTY, dtype=np.int64)
         self.touched = np.zeros(cap, dtype=np.bool_)
         self._state = np.zeros(1, dtype=np.int64)  # number of allocated blocks
@@ -82,12 +83,22 @@ class SparseTSDF:
         return int(self._state[0])
 
     @property
+    def tsdf_mm(self) -> np.ndarray:
+        """Signed distances ``(capacity, 512)`` float32 [mm] of the block rows (a view)."""
+        return self.voxels[:, :, 0]
+
+    @property
+    def weight(self) -> np.ndarray:
+        """Weights ``(capacity, 512)`` float32 of the block rows (a view)."""
+        return self.voxels[:, :, 1]
+
+    @property
     def block_mm(self) -> float:
         return self.voxel_mm * K.BLOCK
 
     def nbytes(self) -> int:
         """Bytes held by the field's arrays."""
-        return int(self.tsdf_mm.nbytes + self.weight.nbytes + self.block_keys.nbytes
+        return int(self.voxels.nbytes + self.block_keys.nbytes
                    + self.touched.nbytes + self._table_keys.nbytes + self._table_slots.nbytes)
 
     def block_coords(self) -> np.ndarray:
@@ -115,19 +126,65 @@ class SparseTSDF:
         while start < p.shape[0]:
             start = K.integrate_rays(o, p, a, self.voxel_mm, self.truncation_mm,
                                      self.weight_cap, MAX_WEIGHT, self._table_keys,
-                                     self._table_slots, self.block_keys, self.tsdf_mm,
-                                     self.weight, self.touched, self._state, start)
+                                     self._table_slots, self.block_keys, self.voxels,
+                                     self.touched, self._state, start)
             if start < p.shape[0]:
                 self._grow()
 
+    def integrate_profiles(self, xz_S: np.ndarray, offsets: np.ndarray, T_O_S: np.ndarray,
+                           spot_O: np.ndarray, axis_O: np.ndarray, active_radius_mm: float,
+                           bounds_O: tuple | None = None) -> tuple[int, int]:
+        """Register profiles into ``O`` (eq 1) and fuse them, in one pass without temporaries.
+
+        Parameters
+        ----------
+        xz_S : (n, 2) float64 [mm], laser-plane points of all profiles, finite, in stream order
+        offsets : (k + 1,) int64, profile ``j`` owns ``xz_S[offsets[j]:offsets[j + 1]]``
+        T_O_S : (k, 4, 4) float64, sensor pose of each profile in ``O`` at its stamp
+        spot_O, axis_O : (k, 3) float64, deposition spot [mm] and unit spray axis at its stamp
+        active_radius_mm : float [mm], points this close to the nozzle axis are active
+        bounds_O : optional ``(lo (3,), hi (3,))`` [mm]; points outside are not fused
+
+        Returns
+        -------
+        (fused, out_of_range) : numbers of points fused and of points skipped (behind the
+        sensor, ``z <= 0``, or outside ``bounds_O``)
+        """
+        xz = np.ascontiguousarray(xz_S, dtype=np.float64)
+        off = np.ascontiguousarray(offsets, dtype=np.int64)
+        k = off.shape[0] - 1
+        T = np.ascontiguousarray(T_O_S, dtype=np.float64)
+        spot = np.ascontiguousarray(spot_O, dtype=np.float64)
+        axis = np.ascontiguousarray(axis_O, dtype=np.float64)
+        if xz.ndim != 2 or xz.shape[1] != 2 or k < 0 or T.shape != (k, 4, 4) or \
+                spot.shape != (k, 3) or axis.shape != (k, 3) or \
+                (k and (off[0] != 0 or off[-1] != xz.shape[0] or np.any(np.diff(off) < 0))):
+            raise ValueError(f"SparseTSDF.integrate_profiles: xz_S {xz.shape}, offsets "
+                             f"{off.shape}, T_O_S {T.shape}, spot_O {spot.shape}, axis_O "
+                             f"{axis.shape} do not describe one batch of profiles")
+        use_bounds = bounds_O is not None
+        lo, hi = (np.asarray(bounds_O[0], np.float64), np.asarray(bounds_O[1], np.float64)) \
+            if use_bounds else (_NO_BOUNDS, _NO_BOUNDS)
+        counts = np.zeros(2, dtype=np.int64)
+        r2 = float(active_radius_mm) ** 2
+        start, n = 0, xz.shape[0]
+        while start < n:
+            start = K.fuse_profiles(xz, off, T, spot, axis, r2, lo, hi, use_bounds, start,
+                                    self.voxel_mm, self.truncation_mm, self.weight_cap,
+                                    MAX_WEIGHT, self._table_keys, self._table_slots,
+                                    self.block_keys, self.voxels, self.touched, self._state,
+                                    counts)
+            if start < n:
+                self._grow()
+        return int(counts[1]), int(counts[0])
+
     def _grow(self) -> None:
         n = self.n_blocks
-        cap = self.tsdf_mm.shape[0]
+        cap = self.voxels.shape[0]
         if n + K.MAX_NEW_BLOCKS_PER_RAY > cap:
             new_cap = 2 * cap
             log.debug("SparseTSDF: growing block storage %d -> %d blocks", cap, new_cap)
-            self.tsdf_mm = _resized(self.tsdf_mm, new_cap, 0.0)
-            self.weight = _resized(self.weight, new_cap, 0.0)
+            self.voxels = _resized(self.voxels, new_cap, 0.0)
             self.block_keys = _resized(self.block_keys, new_cap, K.EMPTY)
             self.touched = _resized(self.touched, new_cap, False)
         table = self._table_keys.shape[0]
@@ -145,7 +202,7 @@ class SparseTSDF:
     def dense(self, origin_voxel: np.ndarray, shape) -> tuple[np.ndarray, np.ndarray]:
         """Dense sub-volume from voxel index ``origin_voxel (3,)``: ``(tsdf_mm, weight)`` of
         ``shape (nx, ny, nz)`` float32; unobserved voxels hold ``+truncation_mm`` and weight 0."""
-        return K.gather_dense(self._table_keys, self._table_slots, self.tsdf_mm, self.weight,
+        return K.gather_dense(self._table_keys, self._table_slots, self.voxels,
                               np.asarray(origin_voxel, dtype=np.int64),
                               np.asarray(shape, dtype=np.int64), np.float32(self.truncation_mm))
 

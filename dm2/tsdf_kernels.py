@@ -3,11 +3,13 @@
 Storage layout (see :mod:`dm2.tsdf`): voxels live in blocks of ``BLOCK**3`` voxels. A block's
 integer coordinates ``(bx, by, bz)`` are packed into one non-negative int64 key and found through
 an open-addressing hash table (linear probing, ``EMPTY`` marks a free entry) that maps the key to
-a row ("slot") of the preallocated ``tsdf_mm`` / ``weight`` arrays of shape ``(capacity, 512)``.
+a row ("slot") of the preallocated ``voxels`` array of shape ``(capacity, 512, 2)`` float32 that
+keeps each voxel's signed distance [mm] and weight side by side (one cache line per update).
 
 The integrator walks each sensor ray through the voxel grid with a 3-D DDA (Amanatides & Woo)
 from ``truncation`` in front of the measured point to ``truncation`` behind it and updates every
-voxel it crosses with the projective signed distance (eqs 2-3 of the paper).
+voxel it crosses with the projective signed distance (eqs 2-3 of the paper). ``fuse_profiles``
+also registers the profiles (eq 1) and decides each point's active region in the same pass.
 """
 
 from __future__ import annotations
@@ -106,91 +108,157 @@ def _get_or_alloc(bx, by, bz, table_keys, table_slots, block_keys, touched, stat
 
 @njit(cache=True)
 def integrate_rays(origins_O, points_O, active, voxel_mm, truncation_mm, active_weight_cap,
-                   max_weight, table_keys, table_slots, block_keys, tsdf_mm, weight, touched,
-                   state, start):
+                   max_weight, table_keys, table_slots, block_keys, voxels, touched, state,
+                   start):
     """Fuse rays ``origins_O[i] -> points_O[i]`` into the sparse TSDF, from index ``start``.
-
-    Signed distance ``d`` [mm] is positive in front of the measured point (free space towards
-    the sensor) and negative behind it. Weights: ``w_A = 1`` over the whole band in the active
-    region; ``w_I = 1`` in front and ``1 - behind / truncation`` behind the point elsewhere
-    (eqs 4-5). In the active region the stored weight is first capped at ``active_weight_cap``.
 
     ``state[0]`` is the number of allocated blocks. Returns the index of the first ray that was
     not integrated because the block arrays or the hash table need to grow (``n`` when done).
     """
     n = points_O.shape[0]
-    capacity = tsdf_mm.shape[0]
+    offsets = np.array([0, n], dtype=np.int64)
+    none3 = np.zeros((0, 3))
+    counts = np.zeros(2, dtype=np.int64)
+    return _fuse(False, origins_O, points_O, active, points_O, offsets, np.zeros((0, 4, 4)),
+                 none3, none3, 0.0, none3[0:0, 0], none3[0:0, 0], False, start, voxel_mm,
+                 truncation_mm, active_weight_cap, max_weight, table_keys, table_slots,
+                 block_keys, voxels, touched, state, counts)
+
+
+@njit(cache=True)
+def fuse_profiles(xz_S, offsets, T_O_S, spot_O, axis_O, active_r2_mm2, bounds_lo, bounds_hi,
+                  use_bounds, start, voxel_mm, truncation_mm, active_weight_cap, max_weight,
+                  table_keys, table_slots, block_keys, voxels, touched, state, counts):
+    """Register and fuse a batch of profiles (paper eq 1, then eqs 2-5), from point ``start``.
+
+    Profile ``k`` owns points ``xz_S[offsets[k]:offsets[k + 1]]``; its point ``(x, z)`` lies at
+    ``p = t + x * R[:, 0] + z * R[:, 2]`` in ``O`` with ``R, t`` of ``T_O_S[k]`` and its ray
+    starts at ``t`` (the laser's emission point). A point is active when its distance from the
+    nozzle axis through ``spot_O[k]`` along ``axis_O[k]`` is at most ``sqrt(active_r2_mm2)``.
+    Points with ``z <= 0`` (behind the sensor) or, with ``use_bounds``, outside
+    ``[bounds_lo, bounds_hi]`` are skipped and counted in ``counts[0]``; fused points are
+    counted in ``counts[1]``. Returns the index of the first point not handled because the
+    block arrays or the hash table need to grow (``len(xz_S)`` when done).
+    """
+    none3 = np.zeros((0, 3))
+    return _fuse(True, none3, none3, np.zeros(0, np.bool_), xz_S, offsets, T_O_S, spot_O,
+                 axis_O, active_r2_mm2, bounds_lo, bounds_hi, use_bounds, start, voxel_mm,
+                 truncation_mm, active_weight_cap, max_weight, table_keys, table_slots,
+                 block_keys, voxels, touched, state, counts)
+
+
+@njit(cache=True)
+def _fuse(register, origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, axis_O,
+          active_r2_mm2, bounds_lo, bounds_hi, use_bounds, start, voxel_mm, truncation_mm,
+          active_weight_cap, max_weight, table_keys, table_slots, block_keys, voxels, touched,
+          state, counts):
+    """The one integration loop behind :func:`integrate_rays` (``register=False``: rays given
+    in ``O``) and :func:`fuse_profiles` (``register=True``: profiles registered here).
+
+    Signed distance ``d`` [mm] is positive in front of the measured point (free space towards
+    the sensor) and negative behind it. Weights: ``w_A = 1`` over the whole band in the active
+    region; ``w_I = 1`` in front and ``1 - behind / truncation`` behind the point elsewhere
+    (eqs 4-5). In the active region the stored weight is first capped at ``active_weight_cap``.
+    ``voxels[slot, li, 0]`` is the signed distance, ``voxels[slot, li, 1]`` the weight.
+    """
+    capacity = voxels.shape[0]
     table_limit = table_keys.shape[0] // 2
     inv_vox = 1.0 / voxel_mm
-    for i in range(start, n):
-        if state[0] + MAX_NEW_BLOCKS_PER_RAY > capacity or \
-                state[0] + MAX_NEW_BLOCKS_PER_RAY > table_limit:
-            return i
-        ox, oy, oz = origins_O[i, 0], origins_O[i, 1], origins_O[i, 2]
-        dx, dy, dz = points_O[i, 0] - ox, points_O[i, 1] - oy, points_O[i, 2] - oz
-        r = np.sqrt(dx * dx + dy * dy + dz * dz)
-        if r <= truncation_mm:
+    r00 = r10 = r20 = r02 = r12 = r22 = ox = oy = oz = sx = sy = sz = ax = ay = az = 0.0
+    for k in range(offsets.shape[0] - 1):
+        if offsets[k + 1] <= start:
             continue
-        dx /= r
-        dy /= r
-        dz /= r
-        act = active[i]
-        t0 = r - truncation_mm
-        t1 = r + truncation_mm
-        # DDA in voxel units from t0 to t1
-        sx, sy, sz = (ox + dx * t0) * inv_vox, (oy + dy * t0) * inv_vox, (oz + dz * t0) * inv_vox
-        vx, vy, vz = int(np.floor(sx)), int(np.floor(sy)), int(np.floor(sz))
-        span = (t1 - t0) * inv_vox
-        stx = 1 if dx > 0 else -1
-        sty = 1 if dy > 0 else -1
-        stz = 1 if dz > 0 else -1
-        big = 1e30
-        tdx = abs(1.0 / dx) if dx != 0 else big
-        tdy = abs(1.0 / dy) if dy != 0 else big
-        tdz = abs(1.0 / dz) if dz != 0 else big
-        tmx = ((vx + 1 - sx) if dx > 0 else (sx - vx)) * tdx if dx != 0 else big
-        tmy = ((vy + 1 - sy) if dy > 0 else (sy - vy)) * tdy if dy != 0 else big
-        tmz = ((vz + 1 - sz) if dz > 0 else (sz - vz)) * tdz if dz != 0 else big
-        last_bx, last_by, last_bz, slot = 1 << 40, 0, 0, -1
-        t = 0.0
-        while t <= span:
-            bx, by, bz = vx >> BLOCK_SHIFT, vy >> BLOCK_SHIFT, vz >> BLOCK_SHIFT
-            if bx != last_bx or by != last_by or bz != last_bz:
-                slot = _get_or_alloc(bx, by, bz, table_keys, table_slots, block_keys, touched,
-                                     state)
-                last_bx, last_by, last_bz = bx, by, bz
-            cx = (vx + 0.5) * voxel_mm - ox
-            cy = (vy + 0.5) * voxel_mm - oy
-            cz = (vz + 0.5) * voxel_mm - oz
-            d = r - (cx * dx + cy * dy + cz * dz)
-            if d > truncation_mm:
-                d = truncation_mm
-            elif d < -truncation_mm:
-                d = -truncation_mm
-            if act or d >= 0.0:
-                w = 1.0
+        if register:
+            r00, r10, r20 = T_O_S[k, 0, 0], T_O_S[k, 1, 0], T_O_S[k, 2, 0]
+            r02, r12, r22 = T_O_S[k, 0, 2], T_O_S[k, 1, 2], T_O_S[k, 2, 2]
+            ox, oy, oz = T_O_S[k, 0, 3], T_O_S[k, 1, 3], T_O_S[k, 2, 3]
+            sx, sy, sz = spot_O[k, 0], spot_O[k, 1], spot_O[k, 2]
+            ax, ay, az = axis_O[k, 0], axis_O[k, 1], axis_O[k, 2]
+        for i in range(max(offsets[k], start), offsets[k + 1]):
+            if state[0] + MAX_NEW_BLOCKS_PER_RAY > capacity or \
+                    state[0] + MAX_NEW_BLOCKS_PER_RAY > table_limit:
+                return i
+            if register:
+                x, z = xz_S[i, 0], xz_S[i, 1]
+                if not z > 0.0:  # behind the sensor
+                    counts[0] += 1
+                    continue
+                px = ox + r00 * x + r02 * z
+                py = oy + r10 * x + r12 * z
+                pz = oz + r20 * x + r22 * z
+                if use_bounds and not (bounds_lo[0] <= px <= bounds_hi[0]
+                                       and bounds_lo[1] <= py <= bounds_hi[1]
+                                       and bounds_lo[2] <= pz <= bounds_hi[2]):
+                    counts[0] += 1
+                    continue
+                qx, qy, qz = px - sx, py - sy, pz - sz
+                along = qx * ax + qy * ay + qz * az
+                act = (qx * qx + qy * qy + qz * qz) - along * along <= active_r2_mm2
             else:
-                w = 1.0 + d / truncation_mm
-            if w > 0.0:
-                li = (vx & 7) + 8 * ((vy & 7) + 8 * (vz & 7))
-                w_prev = weight[slot, li]
-                if act and w_prev > active_weight_cap:
-                    w_prev = active_weight_cap
-                w_new = w_prev + w
-                tsdf_mm[slot, li] = (w_prev * tsdf_mm[slot, li] + w * d) / w_new
-                weight[slot, li] = min(w_new, max_weight)
-            # step to the next voxel
-            if tmx < tmy:
-                if tmx < tmz:
-                    t = tmx
-                    vx += stx
-                    tmx += tdx
-                else:
-                    t = tmz
-                    vz += stz
-                    tmz += tdz
-            else:
-                if tmy < tmz:
+                ox, oy, oz = origins_O[i, 0], origins_O[i, 1], origins_O[i, 2]
+                px, py, pz = points_O[i, 0], points_O[i, 1], points_O[i, 2]
+                act = active[i]
+            counts[1] += 1
+            dx, dy, dz = px - ox, py - oy, pz - oz
+            r = np.sqrt(dx * dx + dy * dy + dz * dz)
+            if r <= truncation_mm:
+                continue
+            dx /= r
+            dy /= r
+            dz /= r
+            t0 = r - truncation_mm
+            t1 = r + truncation_mm
+            # DDA (Amanatides & Woo) in voxel units from t0 to t1
+            sx0, sy0, sz0 = (ox + dx * t0) * inv_vox, (oy + dy * t0) * inv_vox, \
+                (oz + dz * t0) * inv_vox
+            vx, vy, vz = int(np.floor(sx0)), int(np.floor(sy0)), int(np.floor(sz0))
+            span = (t1 - t0) * inv_vox
+            stx = 1 if dx > 0 else -1
+            sty = 1 if dy > 0 else -1
+            stz = 1 if dz > 0 else -1
+            big = 1e30
+            tdx = abs(1.0 / dx) if dx != 0 else big
+            tdy = abs(1.0 / dy) if dy != 0 else big
+            tdz = abs(1.0 / dz) if dz != 0 else big
+            tmx = ((vx + 1 - sx0) if dx > 0 else (sx0 - vx)) * tdx if dx != 0 else big
+            tmy = ((vy + 1 - sy0) if dy > 0 else (sy0 - vy)) * tdy if dy != 0 else big
+            tmz = ((vz + 1 - sz0) if dz > 0 else (sz0 - vz)) * tdz if dz != 0 else big
+            last_bx, last_by, last_bz, slot = 1 << 40, 0, 0, -1
+            t = 0.0
+            while t <= span:
+                bx, by, bz = vx >> BLOCK_SHIFT, vy >> BLOCK_SHIFT, vz >> BLOCK_SHIFT
+                if bx != last_bx or by != last_by or bz != last_bz:
+                    slot = _get_or_alloc(bx, by, bz, table_keys, table_slots, block_keys,
+                                         touched, state)
+                    last_bx, last_by, last_bz = bx, by, bz
+                cx = (vx + 0.5) * voxel_mm - ox
+                cy = (vy + 0.5) * voxel_mm - oy
+                cz = (vz + 0.5) * voxel_mm - oz
+                d = r - (cx * dx + cy * dy + cz * dz)
+                if d > truncation_mm:
+                    d = truncation_mm
+                elif d < -truncation_mm:
+                    d = -truncation_mm
+                w = 1.0 if (act or d >= 0.0) else 1.0 + d / truncation_mm
+                if w > 0.0:
+                    li = (vx & 7) + 8 * ((vy & 7) + 8 * (vz & 7))
+                    w_prev = voxels[slot, li, 1]
+                    if act and w_prev > active_weight_cap:
+                        w_prev = active_weight_cap
+                    w_new = w_prev + w
+                    voxels[slot, li, 0] = (w_prev * voxels[slot, li, 0] + w * d) / w_new
+                    voxels[slot, li, 1] = min(w_new, max_weight)
+                # step to the next voxel along the axis whose boundary comes first
+                if tmx < tmy:
+                    if tmx < tmz:
+                        t = tmx
+                        vx += stx
+                        tmx += tdx
+                    else:
+                        t = tmz
+                        vz += stz
+                        tmz += tdz
+                elif tmy < tmz:
                     t = tmy
                     vy += sty
                     tmy += tdy
@@ -198,11 +266,11 @@ def integrate_rays(origins_O, points_O, active, voxel_mm, truncation_mm, active_
                     t = tmz
                     vz += stz
                     tmz += tdz
-    return n
+    return offsets[offsets.shape[0] - 1]
 
 
 @njit(cache=True)
-def gather_dense(table_keys, table_slots, tsdf_mm, weight, origin_voxel, shape, fill_mm):
+def gather_dense(table_keys, table_slots, voxels, origin_voxel, shape, fill_mm):
     """Dense ``tsdf (shape)`` and ``weight (shape)`` sub-volumes starting at voxel index
     ``origin_voxel (3,)``; voxels of unallocated blocks get ``fill_mm`` and weight 0."""
     nx, ny, nz = shape[0], shape[1], shape[2]
@@ -233,6 +301,6 @@ def gather_dense(table_keys, table_slots, tsdf_mm, weight, origin_voxel, shape, 
                             if gx < 0 or gx >= nx:
                                 continue
                             li = lx + BLOCK * (ly + BLOCK * lz)
-                            out_d[gx, gy, gz] = tsdf_mm[s, li]
-                            out_w[gx, gy, gz] = weight[s, li]
+                            out_d[gx, gy, gz] = voxels[s, li, 0]
+                            out_w[gx, gy, gz] = voxels[s, li, 1]
     return out_d, out_w

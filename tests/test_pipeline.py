@@ -11,6 +11,7 @@ import dm2.pipeline as pipeline_mod
 from dm2.config import MonitorConfig, ProcessConfig
 from dm2.messages import LayerMark, Toolpath
 from dm2.pipeline import Monitor
+from dm2.registration import register_profiles
 
 
 @pytest.fixture(scope="module")
@@ -22,13 +23,13 @@ def test_registration_puts_every_point_on_the_true_surface(cal, monkeypatch):
     scene = Scene(boxes=[((50, 50, 0), (66, 66, 6))])
     msgs, hits = raster_run(scene, cal, [((40, 58, 0), (80, 58, 0))], step_mm=4.0)
     got = []
-    real = pipeline_mod.SparseTSDF.integrate
+    real = pipeline_mod.SparseTSDF.integrate_profiles
 
-    def spy(self, origins, points, active):
-        got.append(points.copy())
-        return real(self, origins, points, active)
+    def spy(self, xz_S, offsets, T_O_S, *args):
+        got.append(register_profiles(xz_S, offsets, T_O_S)[0])
+        return real(self, xz_S, offsets, T_O_S, *args)
 
-    monkeypatch.setattr(pipeline_mod.SparseTSDF, "integrate", spy)
+    monkeypatch.setattr(pipeline_mod.SparseTSDF, "integrate_profiles", spy)
     mon = Monitor(cal, MonitorConfig(), ProcessConfig())
     mon.feed_all(msgs)
     mon.finish()
