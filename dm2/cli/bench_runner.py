@@ -28,6 +28,7 @@ from dm2.config import Scenario
 log = logging.getLogger(__name__)
 
 Progress = Callable[[float, float], None]  # (process seconds done, total process seconds)
+SWEEP_DECIMALS = 6  # sweep results: 1 nm on lengths, far below any scored difference
 
 
 @dataclass
@@ -221,7 +222,9 @@ def sweep_case(scenario_dict: dict, source: str) -> dict:
     """One Monte Carlo case (run in a sweep worker): the scored run without timings.
 
     ``scenario_dict`` is a complete scenario (seed and fault size already set); the run folder
-    is temporary. The result depends only on the scenario, so equal seeds give equal results.
+    is temporary. The result depends only on the scenario, so equal seeds give equal results:
+    floats are rounded to :data:`SWEEP_DECIMALS` decimals, below which the summation order of
+    vectorised and threaded kernels (memory alignment, thread count) may differ between runs.
     """
     from dm2.config import parse_scenario
 
@@ -232,6 +235,16 @@ def sweep_case(scenario_dict: dict, source: str) -> dict:
     fault = score["faults"][0] if score["faults"] else {}
     keep = ("detected", "sign_ok", "qualifies", "peak_height_mm", "onset_layer",
             "first_layer_detected", "onset_delay_layers", "iou", "height_error_mm")
-    return {**{k: fault.get(k) for k in keep},
-            "false_positive_tracks": len(score["false_positive_tracks"]),
-            "layers": score["layers"], "reconstruction_rms_mm": score["reconstruction_rms_mm"]}
+    return _rounded({**{k: fault.get(k) for k in keep},
+                     "false_positive_tracks": len(score["false_positive_tracks"]),
+                     "layers": score["layers"],
+                     "reconstruction_rms_mm": score["reconstruction_rms_mm"]})
+
+
+def _rounded(obj, decimals: int | None = None):
+    decimals = SWEEP_DECIMALS if decimals is None else decimals
+    if isinstance(obj, dict):
+        return {k: _rounded(v, decimals) for k, v in obj.items()}
+    if isinstance(obj, float):
+        return round(obj, decimals)
+    return obj
