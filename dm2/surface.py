@@ -5,7 +5,7 @@ sub-volume with a one-voxel apron on its upper faces and triangulated with
 ``skimage.measure.marching_cubes``, only in cubes whose eight corners were observed with weight
 ``>= min_weight``. Chunk meshes are cached; an update re-meshes only the chunks whose blocks
 (or apron) were touched since the last extraction. Vertices shared by neighbouring chunks are merged
-when the chunks are assembled.
+when the chunks are assembled (only vertices on chunk faces are compared).
 """
 
 from __future__ import annotations
@@ -201,7 +201,10 @@ class SurfaceExtractor:
         verts, normals, faces = verts[used], normals[used], remap[faces]
         wv = map_coordinates(w, (verts / vox).T, order=1, mode="nearest").astype(np.float32)
         verts_O = verts + (origin + 0.5) * vox  # voxel centres sit at (i + 0.5) * voxel
-        return verts_O, faces.astype(np.int64), wv, -normals.astype(np.float64)  # point outward
+        # vertices on the chunk's faces are shared with a neighbour; only they are merged
+        g = verts / vox
+        border = np.any((np.abs(g) < 1e-4) | (np.abs(g - n) < 1e-4), axis=1)
+        return verts_O, faces.astype(np.int64), wv, -normals.astype(np.float64), border
 
     def assemble(self) -> SurfaceMesh:
         parts = [m for m in self._chunks.values() if m is not None]
@@ -212,13 +215,20 @@ class SurfaceExtractor:
         faces = np.concatenate([p[1] + o for p, o in zip(parts, offs[:-1], strict=True)])
         weight = np.concatenate([p[2] for p in parts])
         normals = np.concatenate([p[3] for p in parts])
-        # merge vertices duplicated on chunk borders
-        key = np.round(verts / (1e-4 * self.tsdf.voxel_mm)).astype(np.int64)
+        # merge vertices duplicated on chunk borders (only border vertices can be: a sort of
+        # that small subset, not of the whole surface)
+        on_border = np.flatnonzero(np.concatenate([p[4] for p in parts]))
+        key = np.round(verts[on_border] / (1e-4 * self.tsdf.voxel_mm)).astype(np.int64)
         _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
-        inverse = inverse.ravel()
-        faces = inverse[faces]
+        target = np.arange(len(verts))
+        target[on_border] = on_border[first][inverse.ravel()]  # each copy -> its first copy
+        kept = np.ones(len(verts), dtype=bool)
+        kept[on_border] = False
+        kept[on_border[first]] = True
+        new_index = np.cumsum(kept) - 1
+        faces = new_index[target[faces]]
         keep = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & \
             (faces[:, 0] != faces[:, 2])
-        nrm = normals[first]
+        nrm = normals[kept]
         nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
-        return SurfaceMesh(verts[first], faces[keep], weight[first], nrm)
+        return SurfaceMesh(verts[kept], faces[keep], weight[kept], nrm)
