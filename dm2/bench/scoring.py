@@ -22,8 +22,9 @@ onset layer
 matching track
     a track (global or local kind) active at or after the fault's first affected layer whose
     region boxes come within :data:`MATCH_MARGIN_MM` of the truth region box in xy. The fault
-    is *detected* when a matching track has the fault's sign; ``sign_ok`` says whether the
-    largest matching track (by peak area) has it.
+    is *detected* when a matching track has the fault's sign (``detected_global`` when one of
+    those is a global over/underbuild track); ``sign_ok`` says whether the largest matching
+    track (by peak area) has it.
 false-positive track
     a global (over/underbuild) track that matches no truth fault of its sign. Unmatched local
     tracks are counted separately as early warnings (the paper allows them individually).
@@ -153,7 +154,9 @@ def score_fault(fault: dict, report: dict, *, config: dict | None = None,
     primary = max(matched, key=lambda t: max(r["area_mm2"] for r in regions[t]), default=None)
     out = {"fault_id": fault.get("id"), "kind": fault["kind"], "sign": sign,
            "peak_height_mm": peak, "qualifies": bool(qualifies), "onset_layer": onset,
-           "detected": bool(right), "sign_ok": primary is not None
+           "detected": bool(right),
+           "detected_global": any(tracks[t]["kind"] in GLOBAL_KINDS for t in right),
+           "sign_ok": primary is not None
            and track_sign(tracks[primary]["kind"]) == sign,
            "track_ids": sorted(right), "first_layer_detected": None,
            "onset_delay_layers": None, "onset_delay_s": None, "iou": None,

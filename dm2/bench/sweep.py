@@ -94,7 +94,8 @@ def _collect(client, cases, case_fn, progress) -> list[dict]:
 def summarize_sweep(results: list[dict], reliable: float = RELIABLE_PROBABILITY) -> dict:
     """Detection probability per size and the smallest size detected reliably from there up.
 
-    A case counts as detected when the fault was found with the right sign. The smallest
+    A case counts as detected when the fault was found with the right sign by any track
+    (``probability``) or by a global over/underbuild track (``probability_global``). The smallest
     reliable size is the smallest size at and above which every size's probability is at
     least ``reliable`` (None if even the largest misses it).
     """
@@ -103,10 +104,12 @@ def summarize_sweep(results: list[dict], reliable: float = RELIABLE_PROBABILITY)
     for s in sizes:
         rows = [r for r in results if r["size"] == s]
         hits = [bool(r.get("detected") and r.get("sign_ok")) for r in rows]
+        hits_global = [bool(r.get("detected_global") and r.get("sign_ok")) for r in rows]
         peaks = [r["peak_height_mm"] for r in rows if r.get("peak_height_mm") is not None]
         delays = [r["onset_delay_layers"] for r in rows if r.get("onset_delay_layers") is not None]
         by_size.append({"size": s, "n": len(rows), "detected": int(sum(hits)),
                         "probability": float(np.mean(hits)),
+                        "probability_global": float(np.mean(hits_global)),
                         "mean_peak_height_mm": float(np.mean(peaks)) if peaks else None,
                         "mean_onset_delay_layers": float(np.mean(delays)) if delays else None,
                         "false_positive_tracks": int(sum(r.get("false_positive_tracks", 0)
@@ -129,7 +132,10 @@ def plot_sweep(path: str | Path, summary: dict, param: str, title: str = "") -> 
 
     rows = summary["by_size"]
     fig, ax = plt.subplots(figsize=(6, 4))
-    ax.plot([r["size"] for r in rows], [r["probability"] for r in rows], "o-", label="detected")
+    ax.plot([r["size"] for r in rows], [r["probability"] for r in rows], "o-",
+            label="detected (any track)")
+    ax.plot([r["size"] for r in rows], [r.get("probability_global", np.nan) for r in rows],
+            "s--", label="global over/underbuild track")
     ax.axhline(summary["reliable_probability"], ls="--", c="gray",
                label=f"{summary['reliable_probability']:.0%}")
     if summary["smallest_reliable_size"] is not None:

@@ -233,7 +233,7 @@ def sweep_case(scenario_dict: dict, source: str) -> dict:
         run = run_scenario(sc, Path(tmp) / "run", full_report=False)
         score = score_scenario_run(run)
     fault = score["faults"][0] if score["faults"] else {}
-    keep = ("detected", "sign_ok", "qualifies", "peak_height_mm", "onset_layer",
+    keep = ("detected", "detected_global", "sign_ok", "qualifies", "peak_height_mm", "onset_layer",
             "first_layer_detected", "onset_delay_layers", "iou", "height_error_mm")
     return _rounded({**{k: fault.get(k) for k in keep},
                      "false_positive_tracks": len(score["false_positive_tracks"]),

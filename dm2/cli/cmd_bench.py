@@ -223,11 +223,13 @@ def sweep(
                                         encoding="utf-8")
     plot_sweep(out_dir / "sweep.png", summary, param, f"{Path(path).stem}: detection vs {param}")
     table = Table(title=f"Detection probability against {param}")
-    for c in ("size", "n", "detected", "probability", "mean peak mm", "FP tracks"):
+    for c in ("size", "n", "detected", "probability", "P global track", "mean peak mm",
+              "FP tracks"):
         table.add_column(c, justify="right")
     for r in summary["by_size"]:
         table.add_row(f"{r['size']:g}", str(r["n"]), str(r["detected"]),
-                      f"{r['probability']:.2f}", _fmt(r["mean_peak_height_mm"]),
+                      f"{r['probability']:.2f}", f"{r['probability_global']:.2f}",
+                      _fmt(r["mean_peak_height_mm"]),
                       str(r["false_positive_tracks"]))
     console.print(table)
     smallest = summary["smallest_reliable_size"]
