@@ -156,37 +156,10 @@ class VirtualProfiler:
 
     def trace_reference(self, hf, T_B_O: np.ndarray,
                         occluders: Sequence | None = None) -> ProfileTrace:
-        """:meth:`trace` in whole-array numpy operations on any surface object with
-        ``raycast``, ``normals_at``, ``height_at``, ``size_mm`` and ``thickness_mm``."""
-        occluders = tuple(occluders or ())
-        n = self.dirs_S.shape[0]
-        T_O_S = invert(T_B_O) @ self.T_B_S
-        R_O_S, o_O = T_O_S[:3, :3], T_O_S[:3, 3]
-        dirs_O = self.dirs_S @ R_O_S.T
-        origins_O = np.broadcast_to(o_O, (n, 3)).copy()
-        t_hit = np.asarray(hf.raycast(origins_O, dirs_O, max_range_mm=float(self._t_max.max())),
-                           dtype=np.float64)
-        in_range = np.isfinite(t_hit) & (t_hit >= self._t_min) & (t_hit <= self._t_max)
-        reason = np.where(in_range, VALID, NO_SURFACE).astype(np.int8)
+        """:meth:`trace` in plain numpy (:mod:`twin.profiler_reference`), on any surface."""
+        from twin.profiler_reference import trace_reference
 
-        points_O = np.full((n, 3), np.nan)
-        hit = np.isfinite(t_hit)
-        points_O[hit] = o_O + t_hit[hit, None] * dirs_O[hit]
-        normals_O = np.zeros((n, 3))
-        normals_O[hit] = _solid_normals(hf, points_O[hit])
-        cos_inc = np.clip(-np.einsum("ij,ij->i", normals_O, dirs_O), 0.0, 1.0)
-
-        if occluders:
-            reason[(reason == VALID) & (self._laser_occluder_t(occluders) < t_hit)] = \
-                LASER_BLOCKED
-
-        cand = np.flatnonzero(reason == VALID)
-        if cand.size:
-            reason[cand] = self._camera_visibility(hf, T_B_O, T_O_S, points_O[cand],
-                                                   normals_O[cand], occluders)
-        dark = (reason == VALID) & (cos_inc < self.noise.min_intensity)
-        reason[dark] = TOO_DARK
-        return ProfileTrace(t_hit, reason, cos_inc, points_O)
+        return trace_reference(self, hf, T_B_O, occluders)
 
     def _laser_occluder_t(self, occluders: tuple) -> np.ndarray:
         """Distance (n,) [mm] along each laser ray to the first occluder (inf: none).
@@ -204,30 +177,6 @@ class VirtualProfiler:
             # the occluders are held so that their ids stay theirs while cached
             cached = self._occluder_cache = (key, occluders, t_occ)
         return cached[2]
-
-    def _camera_visibility(self, hf, T_B_O, T_O_S, hits_O, normals_O,
-                           occluders) -> np.ndarray:
-        """Reason codes (VALID or a camera failure) for lit points ``hits_O (m, 3)``."""
-        camera_O = T_O_S[:3, :3] @ self.camera_S + T_O_S[:3, 3]
-        to_cam = camera_O - hits_O
-        dist = np.linalg.norm(to_cam, axis=1)
-        u = to_cam / dist[:, None]
-        out = np.full(hits_O.shape[0], VALID, dtype=np.int8)
-        facing = np.einsum("ij,ij->i", normals_O, u) > 1e-9
-        out[~facing] = BACK_FACING
-        starts = hits_O + _LIFT_MM * normals_O
-        remaining = np.linalg.norm(camera_O - starts, axis=1)
-        u = (camera_O - starts) / remaining[:, None]
-        t_hf = np.asarray(hf.raycast(starts, u, max_range_mm=float(remaining.max())),
-                          dtype=np.float64)
-        shadow = t_hf < remaining
-        out[facing & shadow] = CAMERA_SHADOW
-        if occluders:
-            starts_B = starts @ T_B_O[:3, :3].T + T_B_O[:3, 3]
-            u_B = u @ T_B_O[:3, :3].T
-            blocked = _first_occluder_hit(occluders, starts_B, u_B) < remaining
-            out[(out == VALID) & blocked] = CAMERA_BLOCKED
-        return out
 
     # ------------------------------------------------------------------ sensor output
     def scan(self, hf, T_B_O: np.ndarray, stamp_s: float, counter: int,
@@ -280,46 +229,16 @@ class VirtualProfiler:
         return gauss, speckle, u_drop, u_ghost, ghost_mm
 
     def measure_reference(self, trace: ProfileTrace, stamp_s: float, counter: int) -> Profile:
-        """:meth:`measure` in whole-array numpy operations (the reference)."""
-        counter = int(counter)
-        noisy_range, reason, intensity = self._noise(trace, counter)
-        z = noisy_range * self.dirs_S[:, 2]
-        reason[(reason == VALID) & ((z < self.sensors.z_start_mm)
-                                    | (z > self.sensors.z_end_mm))] = NO_SURFACE
-        valid = reason == VALID
-        xz = np.full((reason.size, 2), np.nan)
-        xz[valid, 0] = noisy_range[valid] * self.dirs_S[valid, 0]
-        xz[valid, 1] = z[valid]
-        intensity = np.where(valid, intensity, 0.0).astype(np.float32)
-        return Profile(self.sensor_id, stamp_s, counter, xz, valid, intensity)
+        """:meth:`measure` in plain numpy (:mod:`twin.profiler_reference`)."""
+        from twin.profiler_reference import measure_reference
+
+        return measure_reference(self, trace, stamp_s, counter)
 
     def _noise(self, trace: ProfileTrace, counter: int):
-        """Noisy ranges, reasons and intensities; every draw is made whatever the settings."""
-        nz = self.noise
-        n = trace.range_mm.size
-        rng = np.random.default_rng([self.seed, self.sensor_index, counter])
-        gauss = rng.standard_normal(n)
-        speckle = _correlated_normal(rng, n, nz.speckle_length_points)
-        u_drop = rng.random(n)
-        u_ghost = rng.random(n)
-        ghost_mm = rng.uniform(nz.outlier_offset_mm[0], nz.outlier_offset_mm[1], n)
+        """Noisy ranges, reasons (DROPOUT marked) and intensities, before the measuring range."""
+        from twin.profiler_reference import _noise
 
-        reason = trace.reason.copy()
-        rng_mm = trace.range_mm + nz.range_sigma_mm * gauss + nz.speckle_sigma_mm * speckle
-        ghost = (reason == VALID) & (u_ghost < nz.outlier_prob)
-        rng_mm = np.where(ghost, rng_mm + ghost_mm, rng_mm)
-        intensity = np.where(ghost, 0.5 * trace.cos_incidence, trace.cos_incidence)
-        reason[(reason == VALID) & (u_drop < nz.dropout_prob)] = DROPOUT
-        return rng_mm, reason, intensity
-
-
-def _correlated_normal(rng: np.random.Generator, n: int, length_points: float) -> np.ndarray:
-    """Unit-variance Gaussian noise ``(n,)`` correlated over ``length_points`` along the line."""
-    half = int(np.ceil(3.0 * length_points))
-    white = rng.standard_normal(n + 2 * half)
-    k = np.exp(-0.5 * (np.arange(-half, half + 1) / length_points) ** 2)
-    k /= np.sqrt(np.sum(k * k))
-    return np.convolve(white, k, mode="valid")
+        return _noise(self, trace, counter)
 
 
 def _first_occluder_hit(occluders, origins_B: np.ndarray, dirs_B: np.ndarray) -> np.ndarray:
@@ -327,27 +246,6 @@ def _first_occluder_hit(occluders, origins_B: np.ndarray, dirs_B: np.ndarray) ->
     for occ in occluders:
         t = np.minimum(t, occ.hit_t(origins_B, dirs_B))
     return t
-
-
-def _solid_normals(hf, points_O: np.ndarray) -> np.ndarray:
-    """Outward unit normals ``(m, 3)`` of the plate-and-deposit solid at surface points.
-
-    Points on the top surface take the exact bilinear-patch normal; points below it lie on
-    the plate's side faces or bottom and take that face's normal.
-    """
-    if points_O.shape[0] == 0:
-        return np.zeros((0, 3))
-    normals = np.asarray(hf.normals_at(points_O[:, :2]), dtype=np.float64).copy()
-    top_z = np.asarray(hf.height_at(points_O[:, :2]), dtype=np.float64)
-    on_face = ~(points_O[:, 2] >= top_z - _FACE_TOL_MM)  # NaN height: just off the plate
-    if np.any(on_face):
-        p = points_O[on_face]
-        lx, ly = float(hf.size_mm[0]), float(hf.size_mm[1])
-        gaps = np.column_stack([p[:, 0], lx - p[:, 0], p[:, 1], ly - p[:, 1],
-                                p[:, 2] + float(hf.thickness_mm)])
-        faces = np.array([[-1.0, 0, 0], [1.0, 0, 0], [0, -1.0, 0], [0, 1.0, 0], [0, 0, -1.0]])
-        normals[on_face] = faces[np.argmin(np.abs(gaps), axis=1)]
-    return normals
 
 
 def trigger_schedule(t_end_s: float, sensors: SensorConfig, t0_s: float = 0.0,
