@@ -104,8 +104,9 @@ def _splat(H, bmax, zmax, cell, x, y, vol, w):
     A packet stands for many particles that flatten on impact; spreading it over a few cells
     keeps single packets from building cell-sized spikes that then shadow their neighbours
     (ballistic columnar growth, far rougher than a cold-spray deposit). Weights are normalised
-    over the cells that exist, so volume is conserved exactly. ``w`` is a scratch array of
-    ``(2 * SPLAT_RADIUS_CELLS + 1) ** 2`` weights (each exponential is evaluated once).
+    over the cells that exist, so volume is conserved exactly. The Gaussian is separable, so
+    ``w`` (scratch, at least ``2 * (2 * SPLAT_RADIUS_CELLS + 1)`` floats) holds the x and the
+    y weights: 10 exponentials per packet instead of 25.
     """
     ny, nx = H.shape
     u = x / cell - 0.5
@@ -113,30 +114,34 @@ def _splat(H, bmax, zmax, cell, x, y, vol, w):
     ic = int(math.floor(u + 0.5))
     jc = int(math.floor(v + 0.5))
     r = SPLAT_RADIUS_CELLS
+    m = 2 * r + 1
     inv2s2 = 1.0 / (2.0 * SPLAT_SIGMA_CELLS * SPLAT_SIGMA_CELLS)
-    wsum = 0.0
-    for dj in range(-r, r + 1):
-        j = jc + dj
-        if j < 0 or j >= ny:
-            continue
-        for di in range(-r, r + 1):
-            i = ic + di
-            if 0 <= i < nx:
-                wk = math.exp(-((i - u) ** 2 + (j - v) ** 2) * inv2s2)
-                w[(dj + r) * (2 * r + 1) + di + r] = wk
-                wsum += wk
-    if wsum <= 0.0:
+    # separable weights: exp(-(dx^2 + dy^2)/2s^2) = wx * wy; w[:m] holds x, w[m:2m] holds y
+    sx = 0.0
+    sy = 0.0
+    for d in range(-r, r + 1):
+        i = ic + d
+        wx = math.exp(-((i - u) ** 2) * inv2s2) if 0 <= i < nx else 0.0
+        w[d + r] = wx
+        sx += wx
+        j = jc + d
+        wy = math.exp(-((j - v) ** 2) * inv2s2) if 0 <= j < ny else 0.0
+        w[m + d + r] = wy
+        sy += wy
+    if sx <= 0.0 or sy <= 0.0:
         return
-    dh = vol / (cell * cell * wsum)
+    dh = vol / (cell * cell * sx * sy)
     for dj in range(-r, r + 1):
-        j = jc + dj
-        if j < 0 or j >= ny:
+        wy = w[m + dj + r]
+        if wy == 0.0:
             continue
+        j = jc + dj
         for di in range(-r, r + 1):
-            i = ic + di
-            if i < 0 or i >= nx:
+            wx = w[di + r]
+            if wx == 0.0:
                 continue
-            H[j, i] += dh * w[(dj + r) * (2 * r + 1) + di + r]
+            i = ic + di
+            H[j, i] += dh * wx * wy
             h = H[j, i]
             raise_block_max(bmax, j, i, h)
             if h > zmax[0]:
