@@ -2,8 +2,8 @@
 surface extraction per layer, peak memory, on synthetic profiles over a twisted-tower-sized
 volume (60 x 60 x 100 mm).
 
-The default ``Monitor`` (batched replay, ``batch_profiles=96``) is compared in the same process
-with the previous behaviour, one kernel call per frame set (``batch_profiles=3``).
+The batched replay (``batch_profiles=REPLAY_BATCH_PROFILES``) is compared in the same process
+with one kernel call per frame set (``batch_profiles=3``, the default for live and sessions).
 
 Three profilers (640 points each) look at a growing 60 x 60 mm block while the spot rasters over
 its top, which rises 100 mm over the run. Profiles are cast analytically before timing starts.
@@ -28,7 +28,7 @@ from test_monitor_scene import Scene, make_calibration, raster_run  # noqa: E402
 
 from dm2.config import MonitorConfig, ProcessConfig  # noqa: E402
 from dm2.messages import Profile  # noqa: E402
-from dm2.pipeline import DEFAULT_BATCH_PROFILES, Monitor  # noqa: E402
+from dm2.pipeline import REPLAY_BATCH_PROFILES, Monitor  # noqa: E402
 from dm2.surface import SurfaceExtractor  # noqa: E402
 from dm2.tsdf import SparseTSDF  # noqa: E402
 
@@ -51,7 +51,7 @@ def make_stream(frames: int):
     return cal, msgs
 
 
-def run_once(cal, msgs, measure_latency: bool, batch_profiles: int = DEFAULT_BATCH_PROFILES,
+def run_once(cal, msgs, measure_latency: bool, batch_profiles: int = REPLAY_BATCH_PROFILES,
              layer_every: int = 0):
     """One replay; with ``layer_every`` > 0 the surface is extracted every that many profiles
     (like a layer end) and the extraction times are returned instead of latencies."""
@@ -115,15 +115,15 @@ def main() -> None:
     run_once(cal, msgs[:2000], False)  # JIT warm-up
     run_once(cal, msgs[:2000], False, batch_profiles=3)
 
-    rates = {DEFAULT_BATCH_PROFILES: [], 3: []}
+    rates = {REPLAY_BATCH_PROFILES: [], 3: []}
     mon = None
     for _ in range(args.repeats):
         for bp in rates:  # interleaved, so both see the same machine load
             mon, elapsed, _ = run_once(cal, msgs, False, batch_profiles=bp)
             rates[bp].append(mon.points_fused / elapsed)
-    new, old = (statistics.median(rates[bp]) for bp in (DEFAULT_BATCH_PROFILES, 3))
+    new, old = (statistics.median(rates[bp]) for bp in (REPLAY_BATCH_PROFILES, 3))
     print(f"end-to-end fusion (sync + registration + TSDF), median of {args.repeats}: "
-          f"{new / 1e6:.2f} M points/s batched (batch_profiles={DEFAULT_BATCH_PROFILES}); "
+          f"{new / 1e6:.2f} M points/s batched (batch_profiles={REPLAY_BATCH_PROFILES}); "
           f"{old / 1e6:.2f} M points/s one frame set per call (batch_profiles=3); ratio "
           f"{new / old:.2f}x ({mon.points_fused} points, {mon.tsdf.n_blocks} blocks, "
           f"voxel {mon.cfg.voxel_mm} mm)")
@@ -140,7 +140,7 @@ def main() -> None:
     print(f"incremental surface per layer (every {every} frame sets, touched chunks only): "
           f"p50 {np.percentile(ext_ms, 50):.0f} ms, max {ext_ms.max():.0f} ms over "
           f"{len(ext_ms)} layers")
-    mon = run_once(cal, msgs, False)[0]
+    mon = run_once(cal, msgs, False, batch_profiles=REPLAY_BATCH_PROFILES)[0]
     t = time.perf_counter()
     surf = SurfaceExtractor(mon.tsdf, mon.cfg.min_weight).update()  # a new one meshes all
     print(f"surface extraction from scratch (all {mon.tsdf.n_blocks} blocks): "

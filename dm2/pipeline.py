@@ -28,7 +28,11 @@ from dm2.tsdf import SparseTSDF
 
 log = logging.getLogger(__name__)
 
-DEFAULT_BATCH_PROFILES = 96  # about 3 s of a 3 x 10 Hz stream per kernel call when replaying
+# One frame set of the three cascaded sensors per kernel call: what per-frame-set consumers
+# (the session's real-time deviation, live latency) need. Offline replays with no such consumer
+# may pass REPLAY_BATCH_PROFILES (about 3 s of a 3 x 10 Hz stream per call).
+DEFAULT_BATCH_PROFILES = 3
+REPLAY_BATCH_PROFILES = 96
 DEFAULT_MAX_DELAY_S = 0.02
 
 
@@ -66,9 +70,10 @@ class Monitor:
     toolpath : optional; splits layers when the stream carries no layer marks
     on_layer_done : optional callback ``f(LayerSurface)`` called when a layer finishes
     bounds_O : optional ``(lo (3,), hi (3,))`` [mm]; points outside are dropped as out_of_range
-    batch_profiles : synchronised profiles are fused in batches of this many (3 = one frame set
-        of the three cascaded sensors, the previous default); layer ends, ``surface()`` and
-        ``finish()`` flush early. Batching never changes the result: each profile keeps its own
+    batch_profiles : synchronised profiles are fused in batches of this many (default 3 = one
+        frame set of the three cascaded sensors; ``REPLAY_BATCH_PROFILES`` for offline replays
+        that read nothing between frame sets); layer ends, ``surface()`` and ``finish()`` flush
+        early. Batching never changes the result: each profile keeps its own
         pose and active region, and profiles are fused in stream order
     max_delay_s : float [s], wall-clock time after which a waiting batch is fused at the next
         message even when not full, so a live stream sees its profiles fused within about this
