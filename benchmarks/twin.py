@@ -66,8 +66,7 @@ def per_sample_messages(sim: Simulation):
     for i in range(n):
         layer = int(motion.layer[i])
         if layer != prev:
-            if prev >= 0:
-                faults.apply_blobs(hf, prev)
+            faults.apply_blobs(hf, layer)
             yield LayerMark(float(t[i]), layer)
             prev = layer
         T_B_F = motion.T_B_F[i]

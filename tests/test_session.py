@@ -49,3 +49,50 @@ def test_layer_analysis_tracks_the_global_overbuild_from_the_fault_layer(feed_st
     for r in session.results:
         if r.layer < layer_of_fault:  # before the fault: no global overbuild region
             assert not [g for g in r.regions if g.kind == "overbuild" and g.area_mm2 > 20]
+
+
+@pytest.fixture(scope="module")
+def bump_session(tmp_path_factory):
+    import json
+
+    from twin.simulate import Simulation
+
+    sc = parse_scenario({
+        "name": "pad_bump", "seed": 3, "part": {"generator": "pad"},
+        "toolpath": {"contour_angle_deg": 0.0}, "process": {"feed_g_min": 26.0},
+        "faults": [{"kind": "bump", "center_O_mm": [57.0, 60.0], "height_mm": 1.0,
+                    "width_mm": 5.0, "layers": [3, 3]}]})
+    sim = Simulation(sc)
+    session = MonitoringSession(sim.calibration, sc.monitor, sc.process, sc.cell.plate_size_mm,
+                                toolpath=sim.toolpath)
+    truth_dir = tmp_path_factory.mktemp("truth")
+    for msg in sim.messages(truth_dir=truth_dir):
+        session.feed(msg)
+    session.finish()
+    (fault,) = json.loads((truth_dir / "faults.json").read_text())["faults"]
+    return session, fault
+
+
+def test_bump_at_layer_3_is_found_at_layer_3_with_its_size(bump_session):
+    session, fault = bump_session
+    assert fault["sign"] == 1 and fault["layers"][0] == 3
+    over = [t for t in session.tracks if t.kind == "overbuild"]
+    near = [t for t in over if np.hypot(t.history[0]["centroid_O_mm"][0] - 57.0,
+                                        t.history[0]["centroid_O_mm"][1] - 60.0) < 2.0]
+    assert len(near) == 1, [t.to_dict() for t in over]
+    track = near[0]
+    assert track.first_layer == 3
+    first = track.history[0]
+    truth_area = fault["area_mm2_by_layer"]["3"]
+    assert first["area_mm2"] == pytest.approx(truth_area, rel=0.2)
+    assert first["max_deviation_mm"] == pytest.approx(fault["deviation_by_layer_mm"]["3"],
+                                                      abs=0.2)
+    # it persists into the last layer under the same id
+    assert track.last_layer == 4 and [h["layer"] for h in track.history] == [3, 4]
+
+
+def test_nothing_global_before_the_bump(bump_session):
+    session, _ = bump_session
+    for r in session.results:
+        if r.layer < 3:
+            assert not [g for g in r.regions if g.kind in ("overbuild", "underbuild")]

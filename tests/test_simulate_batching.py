@@ -54,8 +54,7 @@ def _per_sample_stream(sim: Simulation):
     for i in range(n):
         layer = int(motion.layer[i])
         if layer != prev:
-            if prev >= 0:
-                sim.faults.apply_blobs(hf, prev)
+            sim.faults.apply_blobs(hf, layer)
             out.append(LayerMark(float(t[i]), layer))
             prev = layer
         T_B_F = motion.T_B_F[i].copy()

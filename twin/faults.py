@@ -182,17 +182,18 @@ class FaultSchedule:
                      f.corner_angle_deg, f.extra_dwell_s)
         return dwell
 
-    def apply_blobs(self, hf, layer_just_finished: int) -> int:
-        """Add bumps / cut dents whose window holds ``layer_just_finished``; returns how many."""
+    def apply_blobs(self, hf, layer: int) -> int:
+        """Add bumps / cut dents whose window holds ``layer`` (called as that layer starts, so
+        the layer's own scans see the blob); returns how many."""
         count = 0
         for f in self.faults:
-            if f.kind not in BLOB_KINDS or not f.layers[0] <= layer_just_finished <= f.layers[1]:
+            if f.kind not in BLOB_KINDS or not f.layers[0] <= layer <= f.layers[1]:
                 continue
             blob = blob_heights(hf, f.center_O_mm, f.height_mm, f.width_mm)
             hf.add_heights(blob if f.kind == "bump" else -blob)
             count += 1
-            log.info("%s of %.2f mm at %s after layer %d", f.kind, f.height_mm, f.center_O_mm,
-                     layer_just_finished)
+            log.info("%s of %.2f mm at %s as layer %d starts", f.kind, f.height_mm, f.center_O_mm,
+                     layer)
         return count
 
 

@@ -141,8 +141,9 @@ class Simulation:
         for a, b in _chunks(t[:n], layers, trig_s):
             layer = int(layers[a])
             if layer != layer_prev:
-                if layer_prev >= 0:
-                    self._finish_layer(hf, layer_prev, truth)
+                if layer_prev >= 0 and truth is not None:
+                    truth.layer(hf, layer_prev)
+                faults.apply_blobs(hf, layer)  # a bump or dent appears as its layer starts
                 yield LayerMark(stamps[a], layer)
                 layer_prev = layer
             # the executed motion holds finite float64 joints and rigid flange poses, so the
@@ -167,9 +168,7 @@ class Simulation:
                 prof = profilers[trig_sensor[k]]
                 yield prof.scan(hf, trig_T_B_O[k], trig_stamps[k], trig_counter[k], occluders)
                 k += 1
-        if layer_prev >= 0 and n == len(t):
-            self._finish_layer(hf, layer_prev, truth)
-        elif layer_prev >= 0 and truth is not None:  # stopped early: truth as it stands
+        if layer_prev >= 0 and truth is not None:  # (if stopped early: as it stands)
             truth.layer(hf, layer_prev)
         if truth is not None and n:
             truth.finish(int(motion.segment[n - 1]))
@@ -201,11 +200,6 @@ class Simulation:
                 out[layer] = hf.heights_mm.copy()
         return out
 
-    def _finish_layer(self, hf, layer: int, truth) -> None:
-        self.faults.apply_blobs(hf, layer)
-        if truth is not None:
-            truth.layer(hf, layer)
-
 
 class _TruthWriter:
     """Ground truth beside a run: the true top surface after each layer (PLY in O) and
@@ -230,7 +224,8 @@ class _TruthWriter:
         nominal = (self.sim.nominal_layer_heights(last_segment, sorted(self.faulty))
                    if sc.faults else self.faulty)
         write_fault_truth(self.dir / "faults.json", sc.faults, self.faulty, nominal,
-                          toolpath=self.sim.toolpath, cell_mm=HEIGHTFIELD_CELL_MM)
+                          toolpath=self.sim.toolpath, cell_mm=HEIGHTFIELD_CELL_MM,
+                          area_threshold_mm=sc.monitor.delta_global_mm)
 
 
 def _chunks(t_s: np.ndarray, layer: np.ndarray, trig_s: np.ndarray):

@@ -97,7 +97,8 @@ def _default_sign(f: FaultConfig) -> int:
 
 def fault_truth(faults: Sequence[FaultConfig], hf_faulty_by_layer, hf_nominal_by_layer,
                 toolpath: Toolpath | None = None, cell_mm: float | None = None,
-                threshold_mm: float = 0.05, footprint_fraction: float = 0.9) -> dict:
+                threshold_mm: float = 0.05, footprint_fraction: float = 0.9,
+                area_threshold_mm: float | None = None) -> dict:
     """What each fault did, from the faulty and fault-free height fields per layer.
 
     Parameters
@@ -109,6 +110,9 @@ def fault_truth(faults: Sequence[FaultConfig], hf_faulty_by_layer, hf_nominal_by
     threshold_mm : a layer counts as affected when the fault's deviation reaches this
     footprint_fraction : global faults are measured where the nominal final height exceeds
         this fraction of its 95th percentile (their region bbox is where it exceeds half)
+    area_threshold_mm : when given (the monitor's global tolerance), each fault also reports
+        per layer the projected area [mm^2] where its deviation, in its sign, exceeds this —
+        the area a monitor with that tolerance should flag (``area_mm2_by_layer``)
     """
     faulty = _as_layers(hf_faulty_by_layer)
     nominal = _as_layers(hf_nominal_by_layer)
@@ -154,8 +158,12 @@ def fault_truth(faults: Sequence[FaultConfig], hf_faulty_by_layer, hf_nominal_by
         else:
             mask, region = footprint, outline
         sign0 = _default_sign(f)
-        by_layer = {}
+        by_layer, area_by_layer = {}, {}
+        area_mask = mask if f.kind in LOCAL_KINDS else np.ones(shape, bool)
         for k in layers:
+            if area_threshold_mm is not None:
+                dev_k = sign0 * (faulty[k] - nominal[k])[area_mask]
+                area_by_layer[str(k)] = float(np.count_nonzero(dev_k > area_threshold_mm)) * c * c
             d = (faulty[k] - nominal[k])[mask]
             if d.size == 0:
                 by_layer[k] = 0.0
@@ -178,6 +186,9 @@ def fault_truth(faults: Sequence[FaultConfig], hf_faulty_by_layer, hf_nominal_by
             "expected_deviation_mm": dev,
             "deviation_by_layer_mm": {str(k): v for k, v in by_layer.items()},
         }
+        if area_threshold_mm is not None:
+            entry["area_threshold_mm"] = float(area_threshold_mm)
+            entry["area_mm2_by_layer"] = area_by_layer
         out.append(entry)
         log.info("fault %d (%s): sign %+d, %.3f mm at layer %d", i, f.kind, sign, dev,
                  layers[-1])
