@@ -1,10 +1,12 @@
-"""``dm2 monitor``: replay a recording through the fusion pipeline, write per-layer surfaces."""
+"""``dm2 monitor``: replay a recording through the pipeline; per-layer surfaces and a report."""
 
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
+import numpy as np
 import typer
 
 from dm2.cli.common import app, bad_input_exits, console, fail
@@ -13,7 +15,7 @@ from dm2.cli.common import app, bad_input_exits, console, fail
 def _load_inputs(run: Path, calibration: Path | None, toolpath: Path | None):
     """Open the recording and resolve calibration, toolpath and configuration."""
     from dm2.calibration_io import read_calibration_toml
-    from dm2.config import MonitorConfig, ProcessConfig, parse_scenario
+    from dm2.config import CellConfig, MonitorConfig, ProcessConfig, parse_scenario
     from dm2.recording import read_recording
     from dm2.toolpath.formats import read_csv
 
@@ -23,7 +25,7 @@ def _load_inputs(run: Path, calibration: Path | None, toolpath: Path | None):
         raise ValueError(f"{run}: no calibration attached and no complete /tf_static; "
                          "give one with --calibration FILE.toml")
     tp = read_csv(toolpath) if toolpath is not None else rec.toolpath
-    monitor_cfg, process = MonitorConfig(), ProcessConfig()
+    monitor_cfg, process, plate_mm = MonitorConfig(), ProcessConfig(), CellConfig().plate_size_mm
     if rec.scenario_toml is not None:
         import tomllib
 
@@ -31,8 +33,43 @@ def _load_inputs(run: Path, calibration: Path | None, toolpath: Path | None):
             sc = parse_scenario(tomllib.loads(rec.scenario_toml), f"{run}:scenario.toml")
         except tomllib.TOMLDecodeError as exc:
             raise ValueError(f"{run}: attached scenario is not valid TOML: {exc}") from None
-        monitor_cfg, process = sc.monitor, sc.process
-    return rec, cal, tp, monitor_cfg, process
+        monitor_cfg, process, plate_mm = sc.monitor, sc.process, sc.cell.plate_size_mm
+    if tp is not None:
+        check_toolpath_matches(rec, cal, tp, process, toolpath or "the attached toolpath")
+    return rec, cal, tp, monitor_cfg, process, plate_mm
+
+
+def check_toolpath_matches(rec, cal, tp, process, tp_name, n_states: int = 500,
+                           max_median_mm: float = 3.0) -> None:
+    """Refuse a toolpath the recorded robot did not follow (before any fusion work).
+
+    The spray spot of the first ``n_states`` robot states (in ``O``) must lie within
+    ``max_median_mm`` (median) of the toolpath polyline.
+    """
+    from scipy.spatial import cKDTree
+
+    from dm2.frames import invert
+    from dm2.layers import resample_toolpath
+    from dm2.messages import RobotState
+    from dm2.registration import spot_B
+
+    spot = spot_B(cal, process.standoff_mm)
+    spots = []
+    for msg in rec.messages():
+        if isinstance(msg, RobotState):
+            T_O_B = invert(msg.T_B_F @ cal.T_F_O)
+            spots.append(T_O_B[:3, :3] @ spot + T_O_B[:3, 3])
+            if len(spots) >= n_states:
+                break
+    if not spots:
+        return
+    pts, _ = resample_toolpath(tp, spacing_mm=0.5)
+    dist, _ = cKDTree(pts).query(np.asarray(spots))
+    med = float(np.median(dist))
+    if med > max_median_mm:
+        raise ValueError(f"{tp_name} does not match the recording {rec.path}: the spray spot of "
+                         f"its first {len(spots)} robot states lies a median {med:.1f} mm from "
+                         f"the toolpath (at most {max_median_mm} mm expected)")
 
 
 @app.command()
@@ -47,11 +84,17 @@ def monitor(
                                    help="Override the TSDF voxel size [mm]."),
     live: Path = typer.Option(None, "--live", help="Cell file: monitor the live cell (EGM + "
                               "profile sources) instead of a recording; see dm2.live.config."),
+    analyse: bool = typer.Option(True, "--analyse/--no-analyse", help="Also compare each layer "
+                                 "with the near-net reference and write OUT/report/."),
 ) -> None:
-    """Reconstruct the part from a recording: sync, register, fuse (TSDF), mesh per layer.
+    """Monitor a recording: sync, register, fuse (TSDF), mesh per layer, deviation, tracks.
 
     Writes `layer_NNNN.ply` (frame O, mm, per-vertex `scalar_weight`) for every finished layer,
-    `monitor.toml` (the configuration used) and `monitor.json` (counts, drops, layers).
+    `monitor.toml` (the configuration used), `monitor.json` (counts, drops, layers) and, unless
+    `--no-analyse`, the report folder `report/` (report.json, tracks.csv, deviation meshes and
+    maps, index.html) comparing each layer with the near-net reference.
+
+    Example: `dm2 monitor run.mcap --out runs/replay`
     """
     if live is not None:
         from dm2.cli.cmd_live import run_live_monitor
@@ -65,50 +108,78 @@ def monitor(
     from rich.table import Table
 
     from dm2.config import dump_toml
-    from dm2.pipeline import LayerSurface, Monitor
+    from dm2.report import check_output_dir, write_report
+    from dm2.session import MonitoringSession
 
+    t_start = time.perf_counter()
     with bad_input_exits():
-        rec, cal, tp, monitor_cfg, process = _load_inputs(run, calibration, toolpath)
+        rec, cal, tp, monitor_cfg, process, plate_mm = _load_inputs(run, calibration, toolpath)
         if voxel_mm is not None:
             monitor_cfg = monitor_cfg.model_copy(update={"voxel_mm": voxel_mm})
         if out.exists() and not out.is_dir():
             fail(f"--out {out}: exists and is not a folder")
-    out.mkdir(parents=True, exist_ok=True)
+        if analyse:
+            check_output_dir(out / "report")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        fail(f"--out {out}: cannot create the folder: {exc.strerror}")
     (out / "monitor.toml").write_text(dump_toml({
         "recording": str(run),
         "monitor": monitor_cfg.model_dump(mode="json", exclude_none=True),
         "process": process.model_dump(mode="json", exclude_none=True)}), encoding="utf-8")
     written = []
 
-    def save(ls: LayerSurface) -> None:
+    def save(result) -> None:  # each layer's surface is on disk as soon as it is analysed
+        ls = session.monitor.layer_done[-1]
         path = out / f"layer_{ls.layer:04d}.ply"
         ls.surface.write_ply(path)
         written.append({"layer": ls.layer, "file": path.name, "stamp_s": ls.stamp_s,
                         "vertices": ls.surface.n_vertices, "faces": ls.surface.n_faces,
-                        "area_mm2": round(ls.surface.area_mm2(), 3)})
-        console.print(f"layer {ls.layer}: {ls.surface.n_vertices} vertices -> {path}")
+                        "area_mm2": round(ls.surface.area_mm2(), 3),
+                        "regions": len(result.regions)})
+        console.print(f"layer {ls.layer}: {ls.surface.n_vertices} vertices, "
+                      f"{len(result.regions)} region(s) -> {path}")
 
-    mon = Monitor(cal, monitor_cfg, process, toolpath=tp, on_layer_done=save)
+    session = MonitoringSession(cal, monitor_cfg, process, plate_size_mm=plate_mm, toolpath=tp,
+                                on_layer=save)
+    mon = session.monitor
     n_msgs = 0
     with console.status("fusing profiles"):
         for msg in rec.messages():
-            mon.feed(msg)
+            session.feed(msg)
             n_msgs += 1
-        mon.finish()
+        session.finish()
     summary = {"schema": 1, "recording": str(run), "messages": n_msgs,
                "profiles_fused": mon.profiles_fused, "points_fused": mon.points_fused,
                "tsdf_blocks": mon.tsdf.n_blocks, "dropped": mon.dropped,
                "recording_skipped": {k: int(v) for k, v in rec.skipped.items()},
                "layer_source": mon.layers.source, "layers": written}
     (out / "monitor.json").write_text(json.dumps(summary, indent=2), encoding="utf-8")
+    if analyse and session.results:
+        write_report(out / "report", session.results, session.tracks,
+                     config_toml=dump_toml({"recording": str(run),
+                                            "monitor": monitor_cfg.model_dump(mode="json",
+                                                                              exclude_none=True),
+                                            "process": process.model_dump(mode="json",
+                                                                          exclude_none=True)}),
+                     dropped={**session.dropped,
+                              **{f"recording_{k}": int(v) for k, v in rec.skipped.items()}},
+                     timing={**session.timing.to_dict(),
+                             "wall_s": time.perf_counter() - t_start},
+                     meta={"recording": str(run), "layers": len(session.results)},
+                     realtime=session.realtime_summary())
     table = Table(title=f"monitor: {run.name}")
     table.add_column("what")
     table.add_column("count", justify="right")
     table.add_row("messages", str(n_msgs))
     table.add_row("points fused", str(mon.points_fused))
     table.add_row("layers", f"{len(written)} (from {mon.layers.source})")
+    table.add_row("defect tracks", str(len(session.tracks)))
     for reason, count in mon.dropped.items():
         table.add_row(f"dropped: {reason}", str(count))
     console.print(table)
+    if analyse and session.results:
+        console.print(f"report: [bold]{out / 'report' / 'index.html'}[/]")
     if mon.points_fused == 0:
         fail(f"{run}: no profile could be fused (dropped: {mon.dropped})", code=1)
