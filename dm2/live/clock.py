@@ -22,6 +22,7 @@ import logging
 from collections import deque
 
 import numpy as np
+from numba import njit
 
 from dm2.messages import Profile
 
@@ -105,12 +106,7 @@ class ClockAligner:
     def _estimate(samples, stamp_s: float) -> float:
         """Theil-Sen skew line through ``(stamp, skew)`` samples, evaluated at ``stamp_s``."""
         s = np.array(samples, dtype=np.float64)
-        t, k = s[:, 0], s[:, 1]
-        i, j = np.triu_indices(len(t), 1)
-        dt = t[j] - t[i]
-        ok = dt > 1e-9
-        slope = float(np.median((k[j] - k[i])[ok] / dt[ok])) if np.any(ok) else 0.0
-        return float(np.median(k + slope * (stamp_s - t)))
+        return float(_theil_sen_at(s[:, 0], s[:, 1], float(stamp_s)))
 
     @staticmethod
     def _shift(p: Profile, corr: float) -> Profile:
@@ -129,3 +125,20 @@ class ClockAligner:
             out.extend(self._shift(q, corr) for q in waiting)
             waiting.clear()
         return out
+
+
+@njit(cache=True)
+def _theil_sen_at(t, k, stamp_s):
+    """Theil-Sen line through ``(t, k)`` (median pairwise slope over pairs more than 1 ns
+    apart, 0 without any; then the median intercept) evaluated at ``stamp_s``."""
+    n = t.shape[0]
+    slopes = np.empty(n * (n - 1) // 2)
+    m = 0
+    for i in range(n):
+        for j in range(i + 1, n):
+            dt = t[j] - t[i]
+            if dt > 1e-9:
+                slopes[m] = (k[j] - k[i]) / dt
+                m += 1
+    slope = np.median(slopes[:m]) if m else 0.0
+    return np.median(k + slope * (stamp_s - t))

@@ -68,16 +68,20 @@ class LiveRunner:
         self.analysis.drop_sources += [lambda: self.inbox.dropped, lambda: self.aligner.dropped]
         self.recorder = None
         if record:
-            from dm2.live.recorder import LiveRecorder
+            from dm2.live.recorder import LiveRecorder, RecorderThread
 
             self.out_dir.mkdir(parents=True, exist_ok=True)
-            self.recorder = LiveRecorder(self.recording_path, attachments=attachments,
-                                         chunk_s=live.chunk_s)
-            self.recorder.write_static_tf(self.calibration)
+            recorder = LiveRecorder(self.recording_path, attachments=attachments,
+                                    chunk_s=live.chunk_s)
+            recorder.write_static_tf(self.calibration)
+            self.recorder = RecorderThread(recorder, maxsize=live.queue_size)
+            self.analysis.drop_sources.append(lambda: self.recorder.dropped)
         self.sources: list = []
         self.latencies_s: list[float] = []  # socket arrival -> fused, per fused profile
         self._pending_arrivals: deque = deque(maxlen=4096)  # (stamp_s, arrival_s)
         self.messages_in = 0
+        self.busy_s = 0.0  # [s] the loop spent handling messages (vs waiting for them)
+        self.max_step_s = 0.0  # [s] longest single message (a layer end, typically)
         self._last_data = None
         self._finished = False
 
@@ -142,7 +146,7 @@ class LiveRunner:
             self._note_fused()
 
     def _note_fused(self) -> None:
-        last = getattr(self.analysis.monitor, "_last_stamp_s", float("inf"))
+        last = self.analysis.monitor.last_fused_stamp_s
         now = time.monotonic()
         pend = self._pending_arrivals
         while pend and pend[0][0] <= last:
@@ -155,6 +159,8 @@ class LiveRunner:
         live = self.cell.live
         max_duration_s = live.max_duration_s if max_duration_s is None else max_duration_s
         idle_stop_s = live.idle_stop_s if idle_stop_s is None else idle_stop_s
+        monitor = self.analysis.monitor
+        batch_delay_s = monitor.max_delay_s
         t0 = time.monotonic()
         try:
             while not (stop is not None and stop.is_set()):
@@ -169,7 +175,13 @@ class LiveRunner:
                 if item is None:
                     continue
                 self._last_data = time.monotonic()
+                # caught up: profiles ready for fusion are fused at this message; behind: they
+                # wait up to the monitor's batch delay so fusion runs in efficient batches
+                monitor.max_delay_s = batch_delay_s if self.inbox.qsize() else 0.0
                 self.process(*item)
+                step = time.monotonic() - self._last_data
+                self.busy_s += step
+                self.max_step_s = max(self.max_step_s, step)
         finally:
             report = self.finish()
         return report
