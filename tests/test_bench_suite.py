@@ -25,8 +25,8 @@ def test_smoke_suite_detects_with_sign_onset_and_no_false_positive(tmp_path):
     assert step["iou"] > 0.5
     (bump,) = runs["bump"]["faults"]
     assert bump["detected"] and bump["sign_ok"] and bump["sign"] == 1
-    # the blob lands when layer 1 closes: the truth has it in layer 1, the scans in layer 2
-    assert bump["onset_layer"] == 1 and bump["onset_delay_layers"] == 1
+    # the blob appears as layer 1 starts: that layer's scans see it
+    assert bump["onset_layer"] == 1 and bump["onset_delay_layers"] == 0
     assert abs(bump["height_error_mm"]) < 0.3
     for r in runs.values():
         assert r["expect_passed"] and r["false_positive_tracks"] == []

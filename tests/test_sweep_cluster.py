@@ -25,7 +25,7 @@ def _base():
     from scenarios import scenario_dir
 
     sc = load_scenario(scenario_dir() / "suites" / "smoke" / "bump.toml").to_toml_dict()
-    # two layers: the blob lands when layer 0 closes and is scanned in layer 1
+    # two layers; the blob appears as layer 0 starts, so layer 0's scans see it
     return apply_overrides(sc, ["toolpath.max_layers=2", "faults.0.layers=[0, 0]"])
 
 
@@ -43,6 +43,6 @@ def test_tiny_sweep_is_reproducible_on_a_local_cluster(client, tmp_path):
     for r in first:
         assert r["false_positive_tracks"] == 0
         if r["size"] == 1.5:
-            assert r["first_layer_detected"] == 1 and r["peak_height_mm"] > 1.0
+            assert r["onset_delay_layers"] == 0 and r["peak_height_mm"] > 1.0
     # the seed changes the stream: different seeds, different reconstructions
     assert first[2]["reconstruction_rms_mm"] != first[3]["reconstruction_rms_mm"]

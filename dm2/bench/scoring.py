@@ -31,7 +31,9 @@ false-positive track
 IoU, area and height error
     at the last layer: the xy box of the matching regions against the truth region box (for
     bump and dent the disc where the blob exceeds the monitor's ``delta_global_mm``); their
-    summed area against the truth footprint; their largest |deviation| against ``|h_L|``.
+    summed area against the truth footprint (the truth's ``area_mm2_by_layer`` where the twin
+    reports it, else the estimate above at ``delta_global_mm``); their largest |deviation|
+    against ``|h_L|``.
 """
 
 from __future__ import annotations
@@ -182,6 +184,9 @@ def score_fault(fault: dict, report: dict, *, config: dict | None = None,
         area = float(sum(r["area_mm2"] for r in final))
         height = float(max(abs(r["max_deviation_mm"]) for r in final))
         truth_h = abs(h.get(last, peak))
+        measured_area = (fault.get("area_mm2_by_layer") or {}).get(str(last))
+        if measured_area is not None:  # the truth's own area beyond the monitor's tolerance
+            out["truth_area_mm2"] = float(measured_area)
         out.update(iou=iou_xy(union, box), area_mm2=area,
                    area_error_mm2=area - out["truth_area_mm2"], height_mm=height,
                    truth_height_mm=truth_h, height_error_mm=height - truth_h)
