@@ -21,6 +21,10 @@ Example::
     bridges = ["127.0.0.1"]
     allow_remote = false                  # binding a non-loopback address needs true
 
+    [[live.scancontrol]]                  # optional: sensors driven through the vendor's
+    sensor_id = "S1"                      # wrapper (dm2.live.scancontrol), besides bridges
+    interface = "192.168.0.11"
+
 Every model rejects unknown keys; errors are :class:`~dm2.config.ConfigError` naming the file
 and the field.
 """
@@ -73,6 +77,9 @@ class ScanControlSensor(_Model):
     sensor_id: Literal["S1", "S2", "S3"]
     interface: str  # the sensor's IP address (Ethernet interface)
     resolution: int = Field(640, gt=0)
+    stamp: Literal["sensor", "arrival"] = "sensor"  # timestamp block or host arrival time
+    exposure_us: int | None = Field(None, gt=0)
+    idle_us: int | None = Field(None, ge=0)
 
 
 class LiveConfig(_Model):

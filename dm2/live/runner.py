@@ -95,26 +95,40 @@ class LiveRunner:
 
     # --------------------------------------------------------------------------- sources
     def open_sources(self) -> dict[str, tuple]:
-        """Bind the configured sources and start their threads; returns their addresses."""
+        """Bind the configured sources and start their threads; returns their addresses.
+
+        OSError (``ScanControlError`` included) when a socket or sensor cannot be opened; the
+        sources opened so far are closed again."""
         from dm2.live.egm_source import EgmSource
         from dm2.live.tcp_profiles import ProfileServer
 
         live = self.cell.live
-        host, port = parse_host_port(live.egm, "live.egm")
-        egm = EgmSource(self.inbox, host, port, controllers=live.controllers,
-                        max_datagram_bytes=live.max_datagram_bytes).start()
-        self.sources.append(egm)
-        host, port = parse_host_port(live.profiles, "live.profiles")
-        prof = ProfileServer(self.inbox, host, port, bridges=live.bridges,
-                             max_frame_bytes=live.max_frame_bytes).start()
-        self.sources.append(prof)
-        addresses = {"egm": egm.address, "profiles": prof.address}
-        if live.scancontrol:
+        try:
+            host, port = parse_host_port(live.egm, "live.egm")
+            egm = EgmSource(self.inbox, host, port, controllers=live.controllers,
+                            max_datagram_bytes=live.max_datagram_bytes).start()
+            self.sources.append(egm)
+            host, port = parse_host_port(live.profiles, "live.profiles")
+            prof = ProfileServer(self.inbox, host, port, bridges=live.bridges,
+                                 max_frame_bytes=live.max_frame_bytes).start()
+            self.sources.append(prof)
+            addresses = {"egm": egm.address, "profiles": prof.address}
+            if live.scancontrol:
+                from dm2.live.scancontrol import ScanControlSource, load_wrapper
+
+                llt = load_wrapper()
+                for sensor in live.scancontrol:
+                    src = ScanControlSource(self.inbox, sensor.sensor_id, sensor.interface,
+                                            sensor.resolution, llt=llt, stamp=sensor.stamp,
+                                            exposure_us=sensor.exposure_us,
+                                            idle_us=sensor.idle_us)
+                    self.sources.append(src.start())
+                    addresses[f"scancontrol {sensor.sensor_id}"] = src.address
+        except BaseException:
             for src in self.sources:
                 src.close()
-            raise ValueError("live.scancontrol: direct scanCONTROL sensors are not supported "
-                             "by this build; run a profile bridge that sends the TCP profile "
-                             "protocol (dm2.live.tcp_profiles) to live.profiles instead")
+            self.sources.clear()
+            raise
         return addresses
 
     # --------------------------------------------------------------------------- the loop

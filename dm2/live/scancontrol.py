@@ -1,0 +1,307 @@
+"""Micro-Epsilon scanCONTROL profilers driven directly through the vendor's Python wrapper.
+
+Setup (Linux): install Micro-Epsilon's scanCONTROL Linux SDK (``libmescan`` and ``libllt``,
+on top of aravis), then put its Python bindings on the path -- the SDK ships them as the
+package ``pyllt`` (older releases: ``pylinllt``), a ctypes wrapper of ``libllt.so``::
+
+    export PYTHONPATH=/opt/scanCONTROL-Linux-SDK/python_bindings:$PYTHONPATH
+    python -c "import pyllt"          # must succeed before `dm2 monitor --live`
+
+and list the sensors in the cell file::
+
+    [[live.scancontrol]]
+    sensor_id = "S1"
+    interface = "192.168.0.11"        # the sensor's address as the SDK lists it
+    resolution = 640
+
+The wrapper is imported only when a cell file names scanCONTROL sensors; without it
+:func:`load_wrapper` raises :class:`ScanControlUnavailable` with these instructions. Sensors on
+another machine can instead run a bridge that speaks :mod:`dm2.live.tcp_profiles`.
+
+Per sensor, :class:`ScanControlSource` selects the interface, connects, checks and sets the
+resolution, selects the ``PROFILE`` transfer format, sets internal triggering (and exposure and
+idle time when given), registers a buffer callback and starts the transfer. Every buffer the
+SDK hands over (``resolution * 64`` bytes: four reflections of 16 bytes per point, the last 16
+bytes of the buffer holding the profile's timestamp block) becomes one
+:class:`~dm2.messages.Profile`:
+
+- ``xz_S`` [mm] from ``convert_profile_2_values`` (first reflection; x along the line, z the
+  distance from the sensor, the sensor frame of this project);
+- points the sensor did not find -- reported with zero intensity or a zero distance -- are
+  ``valid = False`` with NaN coordinates;
+- ``intensity`` is the reflection's maximum (10 bit) scaled to 0..1;
+- ``counter`` is the sensor's profile counter from the timestamp block (24 bit);
+- ``stamp_s`` is the middle of the exposure from the timestamp block (``shutter_open`` and
+  ``shutter_close``, seconds on the sensor's clock, which wraps every 128 s and is unwrapped
+  here); the live runner's clock aligner maps it onto the robot's clock. With
+  ``stamp="arrival"`` the host's arrival time is used instead (for sensors whose clock is not
+  wanted), which the aligner treats the same way.
+
+Buffers that do not convert count ``scancontrol_bad_profile`` in the inbox.
+"""
+
+from __future__ import annotations
+
+import ctypes as ct
+import importlib
+import logging
+import time
+
+import numpy as np
+
+from dm2.live.inbox import Inbox
+from dm2.messages import COUNTER_MODULO, MessageError, Profile
+
+log = logging.getLogger(__name__)
+
+WRAPPER_MODULES = ("pyllt", "pylinllt")
+BYTES_PER_POINT = 64  # PROFILE format: 4 reflections x 16 bytes
+TIMESTAMP_BYTES = 16  # the profile's trailing timestamp block
+MAX_INTENSITY = 1023.0  # the reflection maximum is a 10-bit value
+CLOCK_WRAP_S = 128.0  # the sensor's timestamp seconds field wraps after 128 s
+TRIGGER_INTERNAL = 0  # FEATURE_FUNCTION_TRIGGER value for the sensor's own clock
+SETUP_HINT = ("install Micro-Epsilon's scanCONTROL Linux SDK and put its Python bindings "
+              "(the `pyllt` package in the SDK's python_bindings folder) on PYTHONPATH; see "
+              "dm2.live.scancontrol or README 'Live hardware'. Sensors on another machine can "
+              "send the TCP profile protocol (dm2.live.tcp_profiles) to live.profiles instead")
+
+
+class ScanControlError(OSError):
+    """A scanCONTROL sensor could not be set up (names the sensor and the SDK call)."""
+
+
+class ScanControlUnavailable(ScanControlError):
+    """The vendor's Python wrapper is not installed."""
+
+
+def load_wrapper(names=WRAPPER_MODULES):
+    """Import the scanCONTROL wrapper (the first of ``names`` that imports).
+
+    Raises ScanControlUnavailable with the setup instructions when none does.
+    """
+    errors = []
+    for name in names:
+        try:
+            return importlib.import_module(name)
+        except ImportError as exc:  # also OSError from a missing libllt.so inside the wrapper
+            errors.append(f"{name}: {exc}")
+        except OSError as exc:
+            errors.append(f"{name}: {exc}")
+    raise ScanControlUnavailable("scanCONTROL sensors are listed in live.scancontrol but the "
+                                 f"vendor's Python wrapper is not available ({'; '.join(errors)})"
+                                 f": {SETUP_HINT}")
+
+
+class ClockUnwrapper:
+    """Turn the sensor's 128 s wrapping timestamps into a continuous time [s]."""
+
+    def __init__(self, period_s: float = CLOCK_WRAP_S):
+        self.period_s = float(period_s)
+        self._last: float | None = None
+        self._offset = 0.0
+
+    def __call__(self, t_s: float) -> float:
+        if self._last is not None and t_s < self._last - self.period_s / 2:
+            self._offset += self.period_s
+        elif self._last is not None and t_s > self._last + self.period_s / 2:
+            return t_s + self._offset - self.period_s  # late, from before the wrap
+        self._last = t_s
+        return t_s + self._offset
+
+
+class ProfileConverter:
+    """Raw ``PROFILE`` buffers of one sensor -> :class:`~dm2.messages.Profile`.
+
+    Parameters
+    ----------
+    llt : the wrapper module
+    sensor_id : "S1".."S3"
+    resolution : int, points per profile
+    scanner_type : the value ``get_llt_type`` reported
+    """
+
+    def __init__(self, llt, sensor_id: str, resolution: int, scanner_type):
+        self.llt = llt
+        self.sensor_id = sensor_id
+        self.resolution = int(resolution)
+        self.scanner_type = scanner_type
+        self.buffer_bytes = self.resolution * BYTES_PER_POINT
+        n = self.resolution
+        self._x = (ct.c_double * n)()
+        self._z = (ct.c_double * n)()
+        self._intensity = (ct.c_ushort * n)()
+        self._null_us = ct.POINTER(ct.c_ushort)()
+        self._null_ui = ct.POINTER(ct.c_uint)()
+        self._unwrap = ClockUnwrapper()
+
+    def convert(self, data: bytes, arrival_s: float | None = None) -> Profile:
+        """One profile from one raw buffer; ``arrival_s`` replaces the sensor's stamp.
+
+        Raises MessageError naming the sensor when the buffer does not convert.
+        """
+        llt, n = self.llt, self.resolution
+        if len(data) != self.buffer_bytes:
+            raise MessageError(f"scanCONTROL {self.sensor_id}: buffer of {len(data)} bytes, "
+                               f"expected {self.buffer_bytes} ({n} points x "
+                               f"{BYTES_PER_POINT})")
+        buf = (ct.c_ubyte * len(data)).from_buffer_copy(data)
+        ret = llt.convert_profile_2_values(
+            buf, len(data), n, llt.TProfileConfig.PROFILE, self.scanner_type, 0,
+            self._null_us, self._intensity, self._null_us, self._x, self._z,
+            self._null_ui, self._null_ui)
+        if ret & llt.CONVERT_X == 0 or ret & llt.CONVERT_Z == 0 or \
+                ret & llt.CONVERT_MAXIMUM == 0:
+            raise MessageError(f"scanCONTROL {self.sensor_id}: convert_profile_2_values "
+                               f"returned {ret}")
+        x = np.frombuffer(self._x, dtype=np.float64, count=n).copy()
+        z = np.frombuffer(self._z, dtype=np.float64, count=n).copy()
+        inten = np.frombuffer(self._intensity, dtype=np.uint16, count=n).astype(np.float32)
+        valid = (inten > 0) & (z != 0.0) & np.isfinite(x) & np.isfinite(z)
+        xz = np.column_stack([x, z])
+        xz[~valid] = np.nan
+        stamp_s, counter = self.timestamp(data)
+        if arrival_s is not None:
+            stamp_s = arrival_s
+        return Profile(self.sensor_id, stamp_s, counter % COUNTER_MODULO, xz, valid,
+                       np.minimum(inten / MAX_INTENSITY, 1.0))
+
+    def timestamp(self, data: bytes) -> tuple[float, int]:
+        """``(mid-exposure time [s], unwrapped; profile counter)`` of a raw buffer."""
+        block = (ct.c_ubyte * TIMESTAMP_BYTES).from_buffer_copy(data[-TIMESTAMP_BYTES:])
+        opened, closed, count = ct.c_double(0.0), ct.c_double(0.0), ct.c_uint(0)
+        self.llt.timestamp_2_time_and_count(block, ct.byref(opened), ct.byref(closed),
+                                            ct.byref(count), ct.POINTER(ct.c_ushort)())
+        return self._unwrap(0.5 * (opened.value + closed.value)), int(count.value)
+
+
+class ScanControlSource:
+    """One scanCONTROL sensor feeding an :class:`Inbox` (source name ``"scancontrol"``).
+
+    Parameters
+    ----------
+    inbox : where profiles go
+    sensor_id : "S1".."S3"
+    interface : the sensor's interface as ``get_device_interfaces`` lists it (its IP address)
+    resolution : points per profile (one the sensor offers)
+    llt : the wrapper module (default: :func:`load_wrapper`)
+    stamp : "sensor" (timestamp block) or "arrival" (host clock at the callback)
+    exposure_us, idle_us : optional exposure and idle time [us] to set
+    """
+
+    name = "scancontrol"
+
+    def __init__(self, inbox: Inbox, sensor_id: str, interface: str, resolution: int = 640, *,
+                 llt=None, stamp: str = "sensor", exposure_us: int | None = None,
+                 idle_us: int | None = None):
+        if stamp not in ("sensor", "arrival"):
+            raise ValueError(f"ScanControlSource.stamp: 'sensor' or 'arrival', got {stamp!r}")
+        self.inbox = inbox
+        self.sensor_id = sensor_id
+        self.interface = str(interface)
+        self.resolution = int(resolution)
+        self.stamp = stamp
+        self.exposure_us = exposure_us
+        self.idle_us = idle_us
+        self.llt = load_wrapper() if llt is None else llt
+        self.received = 0
+        self.converter: ProfileConverter | None = None
+        self._handle = None
+        self._callback = None  # keeps the ctypes callback alive while the SDK holds it
+        self._transferring = False
+        self.address = (self.interface, self.sensor_id)
+
+    def _check(self, ret: int, call: str) -> int:
+        if ret < 1:
+            raise ScanControlError(f"scanCONTROL {self.sensor_id} at {self.interface}: {call} "
+                                   f"failed with {ret}")
+        return ret
+
+    def start(self) -> ScanControlSource:
+        """Connect, configure and start the profile transfer (ScanControlError on failure)."""
+        llt = self.llt
+        try:
+            self._handle = h = llt.create_llt_device()
+            names = [ct.create_string_buffer(16) for _ in range(6)]
+            listed = (ct.c_char_p * 6)(*map(ct.addressof, names))
+            found = self._check(llt.get_device_interfaces(listed, len(names)),
+                                "get_device_interfaces")
+            offered = [b.value.decode(errors="replace") for b in names[:found]]
+            if self.interface not in offered:
+                raise ScanControlError(f"scanCONTROL {self.sensor_id}: interface "
+                                       f"{self.interface} not found (the SDK lists {offered})")
+            self._check(llt.set_device_interface(h, self.interface.encode()),
+                        "set_device_interface")
+            self._check(llt.connect(h), "connect")
+            scanner_type = ct.c_int(0)
+            self._check(llt.get_llt_type(h, ct.byref(scanner_type)), "get_llt_type")
+            resolutions = (ct.c_uint * 4)()
+            n_res = self._check(llt.get_resolutions(h, resolutions, len(resolutions)),
+                                "get_resolutions")
+            if self.resolution not in list(resolutions)[:n_res]:
+                raise ScanControlError(f"scanCONTROL {self.sensor_id}: resolution "
+                                       f"{self.resolution} not offered (sensor offers "
+                                       f"{list(resolutions)[:n_res]})")
+            self._check(llt.set_resolution(h, self.resolution), "set_resolution")
+            self._check(llt.set_profile_config(h, llt.TProfileConfig.PROFILE),
+                        "set_profile_config")
+            self._check(llt.set_feature(h, llt.FEATURE_FUNCTION_TRIGGER, TRIGGER_INTERNAL),
+                        "set_feature(trigger)")
+            if self.exposure_us is not None:
+                self._check(llt.set_feature(h, llt.FEATURE_FUNCTION_SHUTTERTIME,
+                                            int(self.exposure_us)), "set_feature(exposure)")
+            if self.idle_us is not None:
+                self._check(llt.set_feature(h, llt.FEATURE_FUNCTION_IDLETIME,
+                                            int(self.idle_us)), "set_feature(idle time)")
+            self.converter = ProfileConverter(llt, self.sensor_id, self.resolution,
+                                              scanner_type.value)
+            self._callback = llt.buffer_cb_func(self._on_buffer)
+            self._check(llt.register_buffer_callback(h, self._callback, None),
+                        "register_buffer_callback")
+            self._check(llt.transfer_profiles(h, llt.TTransferProfileType.NORMAL_TRANSFER, 1),
+                        "transfer_profiles")
+            self._transferring = True
+        except BaseException:
+            self.close()
+            raise
+        log.info("scanCONTROL %s streaming from %s (%d points)", self.sensor_id,
+                 self.interface, self.resolution)
+        return self
+
+    def _on_buffer(self, data, size, _user_data) -> None:
+        """The SDK's buffer callback (its thread): convert and queue; never raises."""
+        arrival = time.monotonic()
+        self.received += 1
+        try:
+            raw = ct.string_at(data, size)
+            p = self.converter.convert(raw, arrival if self.stamp == "arrival" else None)
+        except (MessageError, ValueError, TypeError) as exc:
+            self.inbox.drop("scancontrol_bad_profile")
+            log.debug("%s", exc)
+            return
+        self.inbox.put(p, self.name, arrival)
+
+    def close(self) -> None:
+        """Stop the transfer, disconnect and release the device (errors only logged)."""
+        h, self._handle = self._handle, None
+        if h is None:
+            return
+        llt = self.llt
+        steps = [("disconnect", lambda: llt.disconnect(h)), ("del_device",
+                                                              lambda: llt.del_device(h))]
+        if self._transferring:
+            steps.insert(0, ("transfer_profiles(stop)", lambda: llt.transfer_profiles(
+                h, llt.TTransferProfileType.NORMAL_TRANSFER, 0)))
+        self._transferring = False
+        for call, step in steps:
+            try:
+                ret = step()
+                if ret is not None and ret < 1:
+                    log.warning("scanCONTROL %s: %s returned %s", self.sensor_id, call, ret)
+            except Exception:  # noqa: BLE001 - closing must go on with the other steps
+                log.exception("scanCONTROL %s: %s failed", self.sensor_id, call)
+
+    def __enter__(self) -> ScanControlSource:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
