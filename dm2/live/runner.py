@@ -3,11 +3,18 @@
 :class:`LiveRunner` owns the sockets (EGM over UDP, profile bridges over TCP, optional
 scanCONTROL sensors), one bounded :class:`~dm2.live.inbox.Inbox` they all feed, the
 :class:`~dm2.live.clock.ClockAligner`, the crash-safe :class:`~dm2.live.recorder.LiveRecorder`
-(``<out>/live.mcap``, the stream as the pipeline receives it, stamps on the robot's clock) and
+(``<out>/live.mcap``, the stream as the pipeline receives it, stamps on the robot's clock,
+written by a :class:`~dm2.live.recorder.RecorderThread` off the hot path) and
 a :class:`~dm2.live.analysis.LayerAnalysis` that rewrites ``<out>/report`` (report.json and the
 rest, replaced atomically) after every layer. ``report.json``'s ``dropped`` merges the
 transport's drop counts with the pipeline's. Nothing here imports the twin: the same code
 runs against a real cell.
+
+Latency policy: while the loop is caught up (the inbox empty after the message in hand),
+profiles ready for fusion are fused at the next message (at the latest one robot state, 4 ms,
+later); while it is behind, the monitor's batch delay lets fusion run in larger, cheaper
+batches until it has caught up. :attr:`LiveRunner.latencies_s` holds socket-arrival to fused
+per profile, :attr:`LiveRunner.busy_s` the time spent handling messages.
 """
 
 from __future__ import annotations
