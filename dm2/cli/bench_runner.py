@@ -85,7 +85,8 @@ def stream_session(sim, session, scratch: Path, record: bool,
 def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path | None = None,
                  record: bool = False, full_report: bool = True,
                  progress: Progress | None = None,
-                 on_stream_end: Callable[[], None] | None = None) -> ScenarioRun:
+                 on_stream_end: Callable[[], None] | None = None,
+                 calibration=None) -> ScenarioRun:
     """Simulate ``sc`` on the twin, monitor it and write the run folder ``run_dir``.
 
     Parameters
@@ -98,6 +99,8 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
         and tracks.csv only (the bench's default: the pictures cost more than the monitor)
     progress : called with (process seconds done, total) while the twin runs
     on_stream_end : called once the stream is consumed, before the report is written
+    calibration : dm2.messages.Calibration the pipeline uses instead of the one the scenario
+        hands it (e.g. a solved hand-eye calibration against a perturbed ``calibration_error``)
 
     Raises
     ------
@@ -113,7 +116,7 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
     t_start = time.perf_counter()
     run_dir = check_output_dir(run_dir)
     sim = Simulation(sc)
-    session = MonitoringSession(sim.calibration, sc.monitor, sc.process,
+    session = MonitoringSession(calibration or sim.calibration, sc.monitor, sc.process,
                                 plate_size_mm=sc.cell.plate_size_mm, toolpath=sim.toolpath)
     run_dir.parent.mkdir(parents=True, exist_ok=True)
     scratch = Path(tempfile.mkdtemp(prefix=".dm2-run-", dir=run_dir.parent))
@@ -130,13 +133,17 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
         meta = {"scenario": sc.name, "scenario_file": str(scenario_file or ""), "seed": sc.seed,
                 "layers_simulated": len(session.results)}
         config_toml = dump_toml(sc.to_toml_dict())
+        sections = {"realtime": session.realtime_summary(),
+                    "reconstruction": {str(k): v for k, v in recon.items()}}
         if full_report:
             report = write_report(run_dir, session.results, session.tracks,
                                   config_toml=config_toml, dropped=session.dropped,
-                                  timing=timing, fault_truth=truth, expect=sc.expect, meta=meta)
+                                  timing=timing, fault_truth=truth, expect=sc.expect, meta=meta,
+                                  sections=sections)
         else:
             report = build_report(session.results, session.tracks, dropped=session.dropped,
-                                  timing=timing, fault_truth=truth, expect=sc.expect, meta=meta)
+                                  timing=timing, fault_truth=truth, expect=sc.expect, meta=meta,
+                                  sections=sections)
             _write_lite_report(run_dir, report, session.tracks, config_toml, write_tracks_csv)
         for name in ("truth", "run.mcap"):
             if (scratch / name).exists():

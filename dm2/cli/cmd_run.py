@@ -6,6 +6,7 @@ import time
 from datetime import datetime
 from pathlib import Path
 
+import numpy as np
 import typer
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
@@ -53,11 +54,15 @@ def run(
                                 help="Also write the raw stream to run.mcap in the run folder."),
     duration_s: float = typer.Option(None, "--duration", min=0.1,
                                      help="Stop after this many process seconds."),
+    calibration: Path = typer.Option(None, "--calibration", help="Calibration TOML the "
+                                     "pipeline uses instead of the scenario's (e.g. one solved "
+                                     "by `dm2 calibrate`)."),
 ) -> None:
     """Simulate SCENARIO on the twin, monitor it with the 3D-DM2 pipeline and write a report.
 
     Example: `dm2 run` or `dm2 run pad --out runs/pad`
     """
+    from dm2.calibration_io import read_calibration_toml
     from dm2.config import load_scenario
     from dm2.report import check_output_dir
     from scenarios import resolve_scenario
@@ -68,6 +73,7 @@ def run(
         sc = load_scenario(path)
         if duration_s is not None:
             sc = sc.model_copy(update={"duration_s": duration_s})
+        cal = read_calibration_toml(calibration) if calibration is not None else None
         run_dir = (out or default_run_dir(runs_root, sc.name)).absolute()
         check_output_dir(run_dir)
     run_dir.parent.mkdir(parents=True, exist_ok=True)
@@ -85,7 +91,8 @@ def run(
                                 progress=lambda t, total: bar.update(task, completed=t,
                                                                      total=total),
                                 on_stream_end=lambda: bar.update(task,
-                                                                 description="writing the report"))
+                                                                 description="writing the report"),
+                                calibration=cal)
         except ReachError as exc:
             fail(f"{path}: {exc}")
     report = done.report
@@ -94,6 +101,10 @@ def run(
     for e in report.get("expectations", []):
         mark = "[green]met[/]" if e.get("passed") else "[red]missed[/]"
         console.print(f"expectation {e.get('expect')}: {mark}")
+    if done.reconstruction:
+        rms = [v["rms_mm"] for v in done.reconstruction.values()]
+        console.print(f"reconstruction vs the twin's true surface: RMS {np.median(rms):.3f} mm "
+                      f"(median over {len(rms)} layers, worst {max(rms):.3f} mm)")
     wall = time.perf_counter() - t_start
     console.print(f"report: [bold]{run_dir / 'index.html'}[/]  ({wall:.1f} s wall, "
                   f"{done.process_s:.1f} s of process time)")

@@ -41,7 +41,7 @@ def check_output_dir(out_dir: str | Path) -> Path:
 def write_report(out_dir: str | Path, results, tracks, *, config_toml: str | None = None,
                  dropped: dict | None = None, timing: dict | None = None,
                  fault_truth=None, expect=None, map_layers=None, limit_mm: float = 1.0,
-                 meta: dict | None = None, realtime: dict | None = None) -> dict:
+                 meta: dict | None = None, sections: dict | None = None) -> dict:
     """Write the whole run folder; returns the report dict.
 
     Parameters
@@ -57,7 +57,8 @@ def write_report(out_dir: str | Path, results, tracks, *, config_toml: str | Non
         always including the last)
     limit_mm : colour range of the deviation maps and PLY colours [mm]
     meta : run description copied into report.json
-    realtime : real-time deviation summary (alarms, latency) copied into report.json
+    sections : further top-level report.json sections, e.g. ``realtime`` (alarms, latency)
+        and ``reconstruction`` (distance to the true surface per layer)
     """
     out = check_output_dir(out_dir)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -72,7 +73,7 @@ def write_report(out_dir: str | Path, results, tracks, *, config_toml: str | Non
                               timing={**(timing or {}),
                                       "report_write_s": time.perf_counter() - t0},
                               fault_truth=fault_truth, expect=expect, files=files, meta=meta,
-                              realtime=realtime)
+                              sections=sections)
         (tmp / "report.json").write_text(json.dumps(report, indent=1), encoding="utf-8")
         (tmp / "index.html").write_text(render_index(report), encoding="utf-8")
         if out.exists():

@@ -135,7 +135,7 @@ def check_expectations(tracks: list[Track], expect) -> list[dict]:
 def build_report(results, tracks: list[Track], *, dropped: dict | None = None,
                  timing: dict | None = None, fault_truth: dict | list | None = None,
                  expect=None, files: dict | None = None, meta: dict | None = None,
-                 realtime: dict | None = None) -> dict:
+                 sections: dict | None = None) -> dict:
     """The report.json content (top-level: schema, meta, layers, tracks, dropped, timing, ...).
 
     ``results`` is a list of dm2.defects.LayerResult; ``fault_truth`` a dict with ``faults``
@@ -150,8 +150,10 @@ def build_report(results, tracks: list[Track], *, dropped: dict | None = None,
     doc = {"schema": REPORT_SCHEMA, "meta": meta or {}, "layers": layers,
            "tracks": [t.to_dict() for t in tracks], "dropped": dict(dropped or {}),
            "timing": dict(timing or {}), "files": files or {}}
-    if realtime is not None:
-        doc["realtime"] = realtime
+    for key, value in (sections or {}).items():
+        if key in doc:
+            raise ValueError(f"build_report: section {key!r} would replace a core section")
+        doc[key] = value
     if fault_truth is not None:
         faults = fault_truth.get("faults", []) if isinstance(fault_truth, dict) else fault_truth
         doc["fault_truth"] = compare_with_truth(tracks, list(faults))
