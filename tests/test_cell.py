@@ -115,3 +115,15 @@ def test_pybullet_fk_matches_our_fk(cell):
             pbc.set_joints(q)
             dt, dr = frames.pose_error(pbc.flange_pose(), kin.fk(q))
             assert dt < 1e-6 and dr < 1e-9
+
+
+def test_profilers_that_cannot_reach_the_spot_are_refused():
+    import pytest as _pytest
+
+    from dm2.config import ConfigError, parse_scenario
+    from twin.cell import CellModel
+
+    sc = parse_scenario({"name": "x", "part": {"generator": "pad"},
+                         "cell": {"sensor_distance_mm": 400.0}})
+    with _pytest.raises(ConfigError, match="cell.sensor_distance_mm.*never see the part"):
+        CellModel.from_scenario(sc)

@@ -98,8 +98,23 @@ class CellModel:
 
     @classmethod
     def from_scenario(cls, scenario) -> CellModel:
-        """Build from a ``dm2.config.Scenario`` (uses its ``cell`` and ``process`` sections)."""
-        return cls.from_config(scenario.cell, scenario.process.standoff_mm)
+        """Build from a ``dm2.config.Scenario`` (uses its ``cell``, ``process`` and ``sensors``
+        sections).
+
+        Raises
+        ------
+        ConfigError
+            As :meth:`from_config`, or a profiler whose measuring range does not reach the
+            deposition spot it is aimed at (it would never see the part).
+        """
+        cell, sensors = scenario.cell, scenario.sensors
+        if not sensors.z_start_mm <= cell.sensor_distance_mm <= sensors.z_end_mm:
+            raise ConfigError(
+                f"cell.sensor_distance_mm: the profilers stand {cell.sensor_distance_mm} mm "
+                f"from the deposition spot, outside their measuring range "
+                f"[{sensors.z_start_mm}, {sensors.z_end_mm}] mm (sensors.z_start_mm .. "
+                f"sensors.z_end_mm): they would never see the part")
+        return cls.from_config(cell, scenario.process.standoff_mm)
 
     @classmethod
     def from_config(cls, cell, standoff_mm: float) -> CellModel:

@@ -63,7 +63,7 @@ def run(
     Example: `dm2 run` or `dm2 run pad --out runs/pad`
     """
     from dm2.calibration_io import read_calibration_toml
-    from dm2.config import load_scenario
+    from dm2.config import ConfigError, load_scenario
     from dm2.report import check_output_dir
     from scenarios import resolve_scenario
 
@@ -93,7 +93,7 @@ def run(
                                 on_stream_end=lambda: bar.update(task,
                                                                  description="writing the report"),
                                 calibration=cal)
-        except ReachError as exc:
+        except (ReachError, ConfigError) as exc:
             fail(f"{path}: {exc}")
     report = done.report
     link_latest(run_dir)

@@ -1,0 +1,47 @@
+"""``dm2 run``: the main job's command line, its outputs and its refusals."""
+
+from __future__ import annotations
+
+import json
+
+from typer.testing import CliRunner
+
+from dm2.cli.main import app
+
+
+def test_run_writes_the_report_folder_and_links_latest(tmp_path):
+    runs = tmp_path / "runs"
+    res = CliRunner().invoke(app, ["run", "pad", "--runs", str(runs), "--duration", "12",
+                                   "--no-record"])
+    assert res.exit_code == 0, res.output
+    (run_dir,) = [p for p in runs.iterdir() if p.name != "latest" and not p.name.startswith(".")]
+    assert (runs / "latest").resolve() == run_dir.resolve()
+    report = json.loads((run_dir / "report.json").read_text())
+    assert report["meta"]["scenario"] == "pad" and report["layers"]
+    assert (run_dir / "index.html").exists() and (run_dir / "config.toml").exists()
+    assert (run_dir / "truth").is_dir() and not (run_dir / "run.mcap").exists()
+    assert "reconstruction vs the twin's true surface" in res.output
+
+
+def test_bad_scenarios_exit_2_and_write_nothing(tmp_path):
+    bad = tmp_path / "blind.toml"
+    bad.write_text('name = "blind"\n[part]\ngenerator = "pad"\n[cell]\nsensor_distance_mm = 400.0\n')
+    out = tmp_path / "out"
+    res = CliRunner().invoke(app, ["run", str(bad), "--out", str(out)])
+    assert res.exit_code == 2 and "cell.sensor_distance_mm" in res.output
+    assert not out.exists()
+    res = CliRunner().invoke(app, ["run", "no_such_scenario", "--out", str(out)])
+    assert res.exit_code == 2 and "neither a file nor a shipped scenario" in res.output
+    typo = tmp_path / "typo.toml"
+    typo.write_text('name = "t"\n[part]\ngenerator = "pad"\n[toolpath]\nlayer_mmm = 0.8\n')
+    res = CliRunner().invoke(app, ["run", str(typo), "--out", str(out)])
+    assert res.exit_code == 2 and "toolpath.layer_mmm" in res.output and "unknown key" in res.output
+    assert not out.exists()
+
+
+def test_unwritable_output_is_refused_before_any_work(tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    res = CliRunner().invoke(app, ["run", "pad", "--out", str(blocker)])
+    assert res.exit_code == 2 and "not a folder" in res.output
+    assert blocker.read_text() == "x"
