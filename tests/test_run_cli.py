@@ -25,7 +25,8 @@ def test_run_writes_the_report_folder_and_links_latest(tmp_path):
 
 def test_bad_scenarios_exit_2_and_write_nothing(tmp_path):
     bad = tmp_path / "blind.toml"
-    bad.write_text('name = "blind"\n[part]\ngenerator = "pad"\n[cell]\nsensor_distance_mm = 400.0\n')
+    bad.write_text('name = "blind"\n[part]\ngenerator = "pad"\n'
+                   '[cell]\nsensor_distance_mm = 400.0\n')
     out = tmp_path / "out"
     res = CliRunner().invoke(app, ["run", str(bad), "--out", str(out)])
     assert res.exit_code == 2 and "cell.sensor_distance_mm" in res.output
