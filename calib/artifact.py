@@ -44,14 +44,13 @@ Artifact TOML format
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from dm2.config import ConfigError, format_validation_error
+from dm2.config import ConfigError, format_validation_error, read_toml
 from dm2.frames import from_euler_deg
 
 ARTIFACT_SCHEMA = 1
@@ -268,12 +267,4 @@ def parse_artifact(data: dict, source: str = "<artifact>") -> Artifact:
 def load_artifact(path: str | Path) -> Artifact:
     """Read an artifact TOML file (format in this module's docstring). Raises ConfigError."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read artifact file: {exc.strerror}") from None
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
-    return parse_artifact(data, str(path))
+    return parse_artifact(read_toml(path, "artifact file"), str(path))

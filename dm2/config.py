@@ -210,9 +210,7 @@ class Scenario(_Model):
     @field_validator("schema_")
     @classmethod
     def _schema(cls, v: int) -> int:
-        if v != SCHEMA_VERSION:
-            raise ValueError(f"unsupported schema version {v} (this build reads {SCHEMA_VERSION})")
-        return v
+        return check_schema_version(v)
 
     def to_toml_dict(self) -> dict[str, Any]:
         """The resolved configuration as a TOML-ready dict (None values dropped)."""
@@ -246,18 +244,31 @@ def parse_scenario(data: dict[str, Any], source: str = "<scenario>") -> Scenario
         raise ConfigError(format_validation_error(source, exc)) from None
 
 
-def load_scenario(path: str | Path) -> Scenario:
-    """Read and validate a scenario TOML file. Raises :class:`ConfigError`."""
+def read_toml(path: str | Path, what: str = "file") -> dict[str, Any]:
+    """Parse a TOML file; :class:`ConfigError` naming the file (and ``what`` it is) otherwise."""
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
-        raise ConfigError(f"{path}: cannot read scenario file: {exc.strerror}") from None
+        raise ConfigError(f"{path}: cannot read {what}: {exc.strerror}") from None
     try:
-        data = tomllib.loads(text)
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
-    scenario = parse_scenario(data, str(path))
+
+
+def check_schema_version(version: int) -> int:
+    """Pydantic validator body: only this build's ``schema`` version is read."""
+    if version != SCHEMA_VERSION:
+        raise ValueError(f"unsupported schema version {version} (this build reads "
+                         f"{SCHEMA_VERSION})")
+    return version
+
+
+def load_scenario(path: str | Path) -> Scenario:
+    """Read and validate a scenario TOML file. Raises :class:`ConfigError`."""
+    path = Path(path)
+    scenario = parse_scenario(read_toml(path, "scenario file"), str(path))
     if scenario.part.stl is not None and not Path(scenario.part.stl).is_absolute():
         stl = (path.parent / scenario.part.stl).resolve()
         scenario = scenario.model_copy(update={"part": scenario.part.model_copy(

@@ -32,7 +32,6 @@ and the field.
 from __future__ import annotations
 
 import ipaddress
-import tomllib
 from pathlib import Path
 from typing import Literal
 
@@ -44,7 +43,9 @@ from dm2.config import (
     MonitorConfig,
     ProcessConfig,
     _Model,
+    check_schema_version,
     format_validation_error,
+    read_toml,
 )
 
 
@@ -132,9 +133,7 @@ class CellFile(_Model):
     @field_validator("schema_")
     @classmethod
     def _schema(cls, v: int) -> int:
-        if v != SCHEMA_VERSION:
-            raise ValueError(f"unsupported schema version {v} (this build reads {SCHEMA_VERSION})")
-        return v
+        return check_schema_version(v)
 
 
 def load_cell_file(path: str | Path) -> CellFile:
@@ -143,12 +142,7 @@ def load_cell_file(path: str | Path) -> CellFile:
     Raises ConfigError naming the file and the field.
     """
     path = Path(path)
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read cell file: {exc.strerror}") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    data = read_toml(path, "cell file")
     try:
         cell = CellFile.model_validate(data)
     except ValidationError as exc:
