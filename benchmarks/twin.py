@@ -33,56 +33,9 @@ sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__)
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from dm2.config import load_scenario  # noqa: E402
-from dm2.frames import PoseInterpolator  # noqa: E402
-from dm2.messages import SENSOR_IDS, LayerMark, RobotState  # noqa: E402
 from scenarios import DEFAULT_SCENARIO, resolve_scenario  # noqa: E402
-from twin.simulate import HEIGHTFIELD_CELL_MM, ROBOT_NOISE_SEED_OFFSET, Simulation, simulate  # noqa: E402,E501
-
-
-def per_sample_messages(sim: Simulation):
-    """The orchestrator's stream, one motion sample at a time (the previous implementation)."""
-    from twin.deposition import SprayModel
-    from twin.heightfield import HeightField
-    from twin.occluders import nozzle_occluder
-    from twin.profiler import VirtualProfiler, trigger_schedule
-
-    sc, cell, motion, faults = sim.scenario, sim.cell, sim.motion, sim.faults
-    plate = sc.cell.plate_size_mm
-    hf = HeightField((plate[0], plate[1]), HEIGHTFIELD_CELL_MM, plate[2])
-    spray = SprayModel(sc.process, seed=sc.seed)
-    profs = [VirtualProfiler(s, cell.T_B_S[s], sc.sensors, sc.noise, seed=sc.seed)
-             for s in SENSOR_IDS]
-    occ = [nozzle_occluder(cell.T_B_N, sc.cell)]
-    rng = np.random.default_rng([sc.seed, ROBOT_NOISE_SEED_OFFSET])
-    sigma = sc.noise.robot_repeatability_mm
-    t = motion.t_s
-    n = int(np.searchsorted(t, sim.end_s, side="right"))
-    trig_s, trig_j, trig_c = trigger_schedule(float(t[n - 1]), sc.sensors)
-    poses = PoseInterpolator(t[:n], motion.T_B_O[:n])(trig_s)
-    feed = faults.feed_factor(t[:n], motion.layer[:n])
-    eff = faults.efficiency_factor(motion.layer[:n])
-    stand = faults.standoff_delta_mm(t[:n], motion.layer[:n])
-    k, prev = 0, -1
-    for i in range(n):
-        layer = int(motion.layer[i])
-        if layer != prev:
-            faults.apply_blobs(hf, layer)
-            yield LayerMark(float(t[i]), layer)
-            prev = layer
-        T_B_F = motion.T_B_F[i]
-        if sigma > 0:
-            T_B_F = T_B_F.copy()
-            T_B_F[:3, 3] += rng.normal(0.0, sigma, 3)
-        yield RobotState(float(t[i]), i, motion.joints_rad[i], T_B_F)
-        if motion.spray_on[i]:
-            spray.deposit(hf, motion.position_O[i], motion.axis_O[i], 1.0 / cell.robot_state_hz,
-                          float(feed[i]), float(eff[i]), float(stand[i]))
-        t_next = float(t[i + 1]) if i + 1 < n else np.inf
-        while k < trig_s.size and trig_s[k] < t_next:
-            p = profs[int(trig_j[k])]
-            yield p.measure_reference(p.trace_reference(hf, poses[k], occ), float(trig_s[k]),
-                                      int(trig_c[k]))
-            k += 1
+from twin.simulate import Simulation, simulate  # noqa: E402
+from twin.simulate_reference import per_sample_messages  # noqa: E402
 
 
 def _same(a, b) -> bool:

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from dm2.config import parse_scenario
-from dm2.frames import PoseInterpolator
-from dm2.messages import SENSOR_IDS, LayerMark, Profile, RobotState
-from twin.simulate import HEIGHTFIELD_CELL_MM, ROBOT_NOISE_SEED_OFFSET, Simulation, _chunks
+from dm2.messages import LayerMark, Profile, RobotState
+from twin.simulate import HEIGHTFIELD_CELL_MM, Simulation, _chunks
+from twin.simulate_reference import per_sample_messages
 
 
 def _scenario():
@@ -29,47 +29,12 @@ def _scenario():
 
 
 def _per_sample_stream(sim: Simulation):
-    """The orchestrator's loop, one motion sample at a time (the reference)."""
-    from twin.deposition import SprayModel
+    """The plain per-sample loop (the reference) and the height field it grew."""
     from twin.heightfield import HeightField
-    from twin.occluders import nozzle_occluder
-    from twin.profiler import VirtualProfiler, trigger_schedule
 
-    sc, cell, motion, faults = sim.scenario, sim.cell, sim.motion, sim.faults
-    plate = sc.cell.plate_size_mm
+    plate = sim.scenario.cell.plate_size_mm
     hf = HeightField((plate[0], plate[1]), HEIGHTFIELD_CELL_MM, plate[2])
-    spray = SprayModel(sc.process, seed=sc.seed)
-    profs = [VirtualProfiler(s, cell.T_B_S[s], sc.sensors, sc.noise, seed=sc.seed)
-             for s in SENSOR_IDS]
-    occ = [nozzle_occluder(cell.T_B_N, sc.cell)]
-    rng = np.random.default_rng([sc.seed, ROBOT_NOISE_SEED_OFFSET])
-    t = motion.t_s
-    n = int(np.searchsorted(t, sim.end_s, side="right"))
-    trig_s, trig_j, trig_c = trigger_schedule(float(t[n - 1]), sc.sensors)
-    poses = PoseInterpolator(t[:n], motion.T_B_O[:n])(trig_s)
-    feed = faults.feed_factor(t[:n], motion.layer[:n])
-    eff = faults.efficiency_factor(motion.layer[:n])
-    stand = faults.standoff_delta_mm(t[:n], motion.layer[:n])
-    out, k, prev = [], 0, -1
-    for i in range(n):
-        layer = int(motion.layer[i])
-        if layer != prev:
-            sim.faults.apply_blobs(hf, layer)
-            out.append(LayerMark(float(t[i]), layer))
-            prev = layer
-        T_B_F = motion.T_B_F[i].copy()
-        T_B_F[:3, 3] += rng.normal(0.0, sc.noise.robot_repeatability_mm, 3)
-        out.append(RobotState(float(t[i]), i, motion.joints_rad[i], T_B_F))
-        if motion.spray_on[i]:
-            spray.deposit(hf, motion.position_O[i], motion.axis_O[i], 1.0 / cell.robot_state_hz,
-                          float(feed[i]), float(eff[i]), float(stand[i]))
-        t_next = float(t[i + 1]) if i + 1 < n else np.inf
-        while k < trig_s.size and trig_s[k] < t_next:
-            p = profs[int(trig_j[k])]
-            trace = p.trace_reference(hf, poses[k], occ)
-            out.append(p.measure_reference(trace, float(trig_s[k]), int(trig_c[k])))
-            k += 1
-    return out, hf
+    return list(per_sample_messages(sim, hf)), hf
 
 
 def _assert_same_message(a, b):
