@@ -16,6 +16,16 @@ with the reference as of the same instant (:mod:`dm2.realtime`), so a defect rai
 within a second of process time, before its layer ends; robot states are held back until the
 profiles they bracket are fused, so the reference never runs ahead of the measurement.
 
+Live streams put fusion first: ``feed(msg, defer=True)`` only fuses and notes that a comparison
+is due; :meth:`MonitoringSession.catch_up` (called by the live loop whenever its inbox is empty)
+integrates the held-back robot states in slices of :data:`STATE_SLICE`, runs the comparison at
+the newest fused profile (frame sets that arrived while the loop was busy are compared once,
+together) and pre-meshes the surface chunks touched so far, so a layer end only meshes the last
+fraction of a second. The reference integrates states one by one whatever the slicing, and the
+surface is the same whenever chunks are meshed, so deferred and immediate feeding give the same
+layer results and tracks; ``analysis_thread=True`` runs the layer analysis (deviation,
+segmentation, tracking) on a worker thread, in layer order, off the fusion path.
+
 The same object serves the twin in process, recordings and live sources: it only sees
 messages. The reference of layer ``L`` is taken when the stream reports the start of layer
 ``L + 1`` (a ``LayerMark``), so it holds exactly the deposition of layers ``0..L``; streams
@@ -25,6 +35,8 @@ without layer marks take it when the monitor closes the layer.
 from __future__ import annotations
 
 import logging
+import queue
+import threading
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
@@ -43,6 +55,8 @@ log = logging.getLogger(__name__)
 
 FRAME_SET = 3  # profiles per real-time comparison (the three cascaded profilers)
 STATE_BACKLOG = 2500  # states buffered at most while no profile is fused (10 s at 250 Hz)
+STATE_SLICE = 100  # robot states per reference update while catching up (0.4 s at 250 Hz)
+PREMESH_EVERY_S = 0.5  # [s] wall, pre-meshing of touched surface chunks at most this often
 
 
 @dataclass
@@ -72,13 +86,17 @@ class MonitoringSession:
     process : nominal process parameters (for the near-net reference and the active region)
     plate_size_mm : (Lx, Ly[, thickness]) [mm], extent of the reference height map
     toolpath : optional; splits layers when the stream carries no layer marks
-    on_layer : optional callback ``f(LayerResult)`` when a layer has been analysed
+    on_layer : optional callback ``f(LayerResult)`` when a layer has been analysed (from the
+        worker thread with ``analysis_thread``)
+    analysis_thread : analyse finished layers on a worker thread (live runs); :meth:`finish`
+        waits for it, so the results are the same
     """
 
     def __init__(self, calibration: Calibration, monitor_cfg: MonitorConfig,
                  process: ProcessConfig, plate_size_mm=(120.0, 120.0),
                  toolpath: Toolpath | None = None,
-                 on_layer: Callable[[LayerResult], None] | None = None):
+                 on_layer: Callable[[LayerResult], None] | None = None,
+                 analysis_thread: bool = False):
         self.cfg = monitor_cfg
         self.on_layer = on_layer
         self.reference = NearNetReference(process, monitor_cfg, calibration,
@@ -97,6 +115,10 @@ class MonitoringSession:
         self.progress = ToolpathProgress(toolpath) if toolpath is not None else None
         self._nominal_s = 0.0
         self._finished = False
+        self._last_premesh = 0.0
+        self._jobs: queue.Queue | None = queue.Queue() if analysis_thread else None
+        self._worker: threading.Thread | None = None
+        self._worker_error: BaseException | None = None
 
     @property
     def results(self) -> list[LayerResult]:
@@ -113,8 +135,12 @@ class MonitoringSession:
             out["reference_pose_gap"] = int(self.reference.gaps_skipped)
         return out
 
-    def feed(self, msg) -> None:
-        """Take one message (Profile, RobotState or LayerMark)."""
+    def feed(self, msg, defer: bool = False) -> None:
+        """Take one message (Profile, RobotState or LayerMark).
+
+        ``defer=True`` fuses only: the reference update and the real-time comparison wait for
+        :meth:`catch_up` (layer ends still take the reference of the finished layer at once).
+        """
         self.timing.messages += 1
         if isinstance(msg, RobotState):
             self._states_t.append(msg.stamp_s)
@@ -126,10 +152,48 @@ class MonitoringSession:
         t0 = time.perf_counter()
         self.monitor.feed(msg)
         self.timing.fusion_s += time.perf_counter() - t0
+        if defer:
+            return
         if self.monitor.profiles_fused - self._rt_profiles >= FRAME_SET:
             self._realtime()
         elif len(self._states_t) >= STATE_BACKLOG:  # a stream of poses without profiles
             self._flush_states()
+
+    @property
+    def behind(self) -> bool:
+        """True while a deferred comparison or a backlog of robot states waits."""
+        return (self.monitor.profiles_fused - self._rt_profiles >= FRAME_SET
+                or len(self._states_t) >= STATE_BACKLOG)
+
+    def catch_up(self, should_yield: Callable[[], bool] | None = None) -> bool:
+        """Run the work ``feed(..., defer=True)`` left: reference updates in slices, then one
+        real-time comparison at the newest fused profile, then surface pre-meshing.
+
+        ``should_yield()`` is asked between slices; when it returns True the method returns
+        False at once (call again later). Returns True when nothing is left.
+        """
+        def stop() -> bool:
+            return should_yield is not None and should_yield()
+
+        if self.monitor.profiles_fused - self._rt_profiles >= FRAME_SET:
+            upto = self.monitor.last_fused_stamp_s
+            while not self._flush_states(upto_s=upto, max_states=STATE_SLICE):
+                if stop():
+                    return False
+            self._realtime()
+        while len(self._states_t) >= STATE_BACKLOG:
+            self._flush_states(max_states=STATE_SLICE)
+            if stop():
+                return False
+        now = time.perf_counter()
+        if now - self._last_premesh >= PREMESH_EVERY_S and not stop():
+            t0 = time.perf_counter()
+            done = self.monitor.extractor.premesh(stop)
+            self.timing.fusion_s += time.perf_counter() - t0
+            if done:
+                self._last_premesh = now
+            return done
+        return True
 
     def feed_all(self, messages: Iterable) -> None:
         for m in messages:
@@ -142,21 +206,24 @@ class MonitoringSession:
             t0 = time.perf_counter()
             self.monitor.finish()
             self.timing.fusion_s += time.perf_counter() - t0
+            self._stop_worker()
             self.defects.finish()
             self._finished = True
         return self.results
 
-    def _flush_states(self, upto_s: float = np.inf) -> None:
-        """Integrate the buffered robot states stamped up to ``upto_s`` into the reference."""
+    def _flush_states(self, upto_s: float = np.inf, max_states: int | None = None) -> bool:
+        """Integrate the buffered robot states stamped up to ``upto_s`` into the reference
+        (at most ``max_states`` of them); True when none stamped up to ``upto_s`` is left."""
         if not self._states_t:
-            return
+            return True
         t0 = time.perf_counter()
         stamps = np.asarray(self._states_t)
         order = np.argsort(stamps, kind="stable")
         stamps = stamps[order]
-        n = int(np.searchsorted(stamps, upto_s, side="right"))
+        n_due = int(np.searchsorted(stamps, upto_s, side="right"))
+        n = n_due if max_states is None else min(n_due, int(max_states))
         if n == 0:
-            return
+            return True
         poses = np.stack([self._states_T[i] for i in order[:n]])
         rest = order[n:]
         self._states_t = [self._states_t[i] for i in rest]
@@ -170,10 +237,13 @@ class MonitoringSession:
             self._last_T_B_F = poses[-1]
             if self.progress is not None:  # programmed timing along the executed path
                 spots, _ = self.reference.spot_O(poses)
-                stamps = self._nominal_s + np.cumsum(self.progress.advance(spots))
+                # summed one state after the other: the same clock however states are sliced
+                stamps = np.cumsum(np.concatenate([[self._nominal_s],
+                                                   self.progress.advance(spots)]))[1:]
                 self._nominal_s = float(stamps[-1])
             self.reference.add_states(stamps, poses)
         self.timing.reference_s += time.perf_counter() - t0
+        return n == n_due
 
     def _realtime(self) -> None:
         """Compare the active region with the reference as of the newest fused profile."""
@@ -215,9 +285,41 @@ class MonitoringSession:
         ref = self.reference.layers.get(done.layer)
         if ref is None:  # no layer marks in the stream: take the reference now
             ref = self.reference.end_layer(done.layer)
-        t0 = time.perf_counter()
         stamp = None if not np.isfinite(done.stamp_s) else done.stamp_s
-        result = self.defects.analyse_layer(done.surface, ref, done.layer, stamp)
+        if self._jobs is None:
+            self._analyse(done.surface, ref, done.layer, stamp)
+            return
+        if self._worker_error is not None:
+            raise RuntimeError("layer analysis failed on the worker thread") \
+                from self._worker_error
+        if self._worker is None:
+            self._worker = threading.Thread(target=self._work, name="layer-analysis",
+                                            daemon=True)
+            self._worker.start()
+        self._jobs.put((done.surface, ref, done.layer, stamp))
+
+    def _analyse(self, surface, ref, layer: int, stamp) -> None:
+        t0 = time.perf_counter()
+        result = self.defects.analyse_layer(surface, ref, layer, stamp)
         self.timing.analysis_s += time.perf_counter() - t0
         if self.on_layer is not None:
             self.on_layer(result)
+
+    def _work(self) -> None:
+        while (job := self._jobs.get()) is not None:
+            if self._worker_error is None:
+                try:
+                    self._analyse(*job)
+                except BaseException as exc:  # noqa: BLE001 - re-raised in the feeding thread
+                    log.exception("layer %d: analysis failed", job[2])
+                    self._worker_error = exc
+
+    def _stop_worker(self) -> None:
+        """Wait until every queued layer has been analysed (re-raises a worker failure)."""
+        if self._worker is not None:
+            self._jobs.put(None)
+            self._worker.join()
+            self._worker = None
+        if self._worker_error is not None:
+            raise RuntimeError("layer analysis failed on the worker thread") \
+                from self._worker_error

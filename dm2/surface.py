@@ -4,7 +4,9 @@ The field is cut into chunks of ``CHUNK_BLOCKS**3`` blocks. Each chunk is gather
 sub-volume with a one-voxel apron on its upper faces and triangulated with
 ``skimage.measure.marching_cubes``, only in cubes whose eight corners were observed with weight
 ``>= min_weight``. Chunk meshes are cached; an update re-meshes only the chunks whose blocks
-(or apron) were touched since the last extraction. Vertices shared by neighbouring chunks are merged
+(or apron) were touched since the last extraction; :meth:`SurfaceExtractor.premesh` meshes
+touched chunks ahead of time (a live loop's idle moments) so the next update has less to do,
+with the same result. Vertices shared by neighbouring chunks are merged
 when the chunks are assembled (only vertices on chunk faces are compared).
 """
 
@@ -16,11 +18,30 @@ from pathlib import Path
 import numpy as np
 from scipy.ndimage import map_coordinates
 
+from dm2 import tsdf_kernels as K
 from dm2.messages import MessageError
 from dm2.tsdf import SparseTSDF
 from dm2.tsdf_kernels import BLOCK
 
 CHUNK_BLOCKS = 4
+_MISSING = object()
+
+
+def _chunks_of(blocks: np.ndarray) -> list[tuple[int, int, int]]:
+    """Chunks whose mesh depends on ``blocks (k, 3)``, in a fixed order (a block is also the
+    upper apron of the chunks below/behind it)."""
+    chunks: set = set()
+    if len(blocks):
+        base = np.floor_divide(blocks, CHUNK_BLOCKS)
+        at_low = (blocks - base * CHUNK_BLOCKS) == 0
+        for dx in (0, 1):
+            for dy in (0, 1):
+                for dz in (0, 1):
+                    shift = np.array([dx, dy, dz])
+                    sel = np.all(at_low | (shift == 0), axis=1)
+                    for c in map(tuple, (base[sel] - shift).tolist()):
+                        chunks.add(c)
+    return list(chunks)
 
 
 @dataclass(frozen=True)
@@ -148,27 +169,65 @@ class SurfaceExtractor:
         self.min_weight = float(min_weight)
         self._chunks: dict[tuple[int, int, int], tuple[np.ndarray, ...]] = {}
         self._first = True
+        # pre-meshing (see premesh): block slots whose touch marks it consumed, chunks still
+        # to mesh, and chunk meshes made ahead of the next update that are still current
+        self._consumed = np.zeros(0, dtype=np.bool_)
+        self._todo: dict[tuple[int, int, int], None] = {}
+        self._premeshed: dict[tuple[int, int, int], tuple | None] = {}
 
     def update(self) -> SurfaceMesh:
         """Re-mesh chunks touched since the last call and return the whole surface."""
-        blocks = self.tsdf.take_touched()
+        n = self.tsdf.n_blocks
+        fresh = np.flatnonzero(self.tsdf.touched[:n])
+        for c in _chunks_of(K.unpack_keys(self.tsdf.block_keys[fresh])):
+            self._premeshed.pop(c, None)  # touched after it was pre-meshed
+        self.tsdf.touched[fresh] = False
+        consumed = np.zeros(n, dtype=np.bool_)
+        m = min(n, self._consumed.shape[0])
+        consumed[:m] = self._consumed[:m]
+        consumed[fresh] = True
+        self._consumed[:] = False
+        blocks = K.unpack_keys(self.tsdf.block_keys[np.flatnonzero(consumed)])
         if self._first:  # a new extractor meshes everything observed so far
             blocks, self._first = self.tsdf.block_coords(), False
         if len(blocks):
-            # a block is also the upper apron of the chunks below/behind it
-            chunks = set()
-            base = np.floor_divide(blocks, CHUNK_BLOCKS)
-            at_low = (blocks - base * CHUNK_BLOCKS) == 0
-            for dx in (0, 1):
-                for dy in (0, 1):
-                    for dz in (0, 1):
-                        shift = np.array([dx, dy, dz])
-                        sel = np.all(at_low | (shift == 0), axis=1)
-                        for c in map(tuple, (base[sel] - shift).tolist()):
-                            chunks.add(c)
-            for c in chunks:
-                self._chunks[c] = self._mesh_chunk(np.array(c))
+            for c in _chunks_of(blocks):
+                m = self._premeshed.pop(c, _MISSING)
+                self._chunks[c] = self._mesh_chunk(np.array(c)) if m is _MISSING else m
+        self._premeshed.clear()
+        self._todo.clear()
         return self.assemble()
+
+    def premesh(self, stop=None) -> bool:
+        """Mesh the chunks touched so far ahead of the next :meth:`update`, which then only
+        meshes what was touched afterwards; the surface it returns is the same.
+
+        ``stop()`` is asked before each chunk (a few ms each); True makes it return False at
+        once (call again later). Returns True when no touched chunk is left unmeshed.
+        """
+        n = self.tsdf.n_blocks
+        fresh = np.flatnonzero(self.tsdf.touched[:n])
+        if self._first:  # the first update meshes every block
+            blocks = self.tsdf.block_coords() if not self._premeshed and not self._todo else \
+                K.unpack_keys(self.tsdf.block_keys[fresh])
+        else:
+            blocks = K.unpack_keys(self.tsdf.block_keys[fresh])
+        self.tsdf.touched[fresh] = False
+        if self._consumed.shape[0] < n:
+            grown = np.zeros(self.tsdf.touched.shape[0], dtype=np.bool_)
+            grown[: self._consumed.shape[0]] = self._consumed
+            self._consumed = grown
+        self._consumed[fresh] = True
+        for c in _chunks_of(blocks):
+            self._premeshed.pop(c, None)
+            self._todo[c] = None
+        while self._todo:
+            if stop is not None and stop():
+                return False
+            c = next(iter(self._todo))
+            del self._todo[c]
+            self._premeshed[c] = self._mesh_chunk(np.array(c))
+        return True
 
     def _mesh_chunk(self, chunk: np.ndarray):
         from skimage.measure import marching_cubes

@@ -5,7 +5,9 @@ out-of-range points and sensor dropouts.
 ``dm2 run`` drives in process, so a live run and an in-process run of the same stream give the
 same layers and tracks), gives the fusion monitor the plate's box so points far outside count
 ``out_of_range``, notes sensors silent for longer than allowed (``sensor_dropout`` events) and,
-with an output folder, rewrites the report after every analysed layer. Reports are written by
+with an output folder, rewrites the report after every analysed layer. With ``live=True`` the
+session fuses first and catches up when asked (:meth:`LayerAnalysis.catch_up`, the live loop's
+idle moments) and analyses finished layers on its worker thread. Reports are written by
 a background thread from a snapshot of the results and tracks, so a slow report (plots) never
 holds up the fusion of the profiles arriving meanwhile; the final report is written in the
 caller's thread after the last one finished.
@@ -44,18 +46,21 @@ class LayerAnalysis:
     config_toml : resolved configuration text written beside the report
     max_sensor_gap_s : float [s], a sensor silent longer than this counts ``sensor_dropout``
     meta : extra entries for report.json's ``meta``
+    live : fusion first: reference and real-time comparison wait for :meth:`catch_up`, layer
+        analysis runs on a worker thread (same layer results and tracks)
     """
 
     def __init__(self, calibration, monitor_cfg, process, plate_size_mm, toolpath=None,
                  out_dir: str | Path | None = None, config_toml: str | None = None,
-                 max_sensor_gap_s: float = 1.0, meta: dict | None = None):
+                 max_sensor_gap_s: float = 1.0, meta: dict | None = None, live: bool = False):
         from dm2.session import MonitoringSession
 
         Lx, Ly, th = (float(v) for v in plate_size_mm)
         m = OUT_OF_RANGE_MARGIN_MM
         self.session = MonitoringSession(calibration, monitor_cfg, process,
                                          plate_size_mm=(Lx, Ly), toolpath=toolpath,
-                                         on_layer=self._on_layer)
+                                         on_layer=self._on_layer, analysis_thread=live)
+        self.live = bool(live)
         self.session.monitor.bounds_O = (np.array([-m, -m, -th - m]),
                                          np.array([Lx + m, Ly + m, MAX_PART_HEIGHT_MM]))
         self.out_dir = None if out_dir is None else Path(out_dir)
@@ -88,7 +93,11 @@ class LayerAnalysis:
         """One message of any kind (bad ones are counted, never raised)."""
         if isinstance(msg, Profile):
             self._watch_dropout(msg)
-        self.session.feed(msg)
+        self.session.feed(msg, defer=self.live)
+
+    def catch_up(self, should_yield=None) -> bool:
+        """Deferred session work (see MonitoringSession.catch_up); True when none is left."""
+        return self.session.catch_up(should_yield)
 
     def _watch_dropout(self, p: Profile) -> None:
         last = self._last_profile_s.get(p.sensor_id)
@@ -131,7 +140,16 @@ class LayerAnalysis:
                 "points_fused": mon.points_fused, "complete": self._finished}
         timing = {**self.session.timing.to_dict(), "report_s": self.report_s}
         maps = None if self._finished else ([results[-1].layer] if results else [])
-        return results, copy.deepcopy(self.tracks), self.dropped, timing, meta, maps
+        return results, copy.deepcopy(self.tracks), self._dropped_now(), timing, meta, maps
+
+    def _dropped_now(self) -> dict[str, int]:
+        """:attr:`dropped` read from any thread (the counters may grow meanwhile)."""
+        for _ in range(10):
+            try:
+                return self.dropped
+            except RuntimeError:  # a counter gained a key while it was read
+                continue
+        return self.dropped
 
     @property
     def dropped(self) -> dict[str, int]:

@@ -10,11 +10,15 @@ rest, replaced atomically) after every layer. ``report.json``'s ``dropped`` merg
 transport's drop counts with the pipeline's. Nothing here imports the twin: the same code
 runs against a real cell.
 
-Latency policy: while the loop is caught up (the inbox empty after the message in hand),
-profiles ready for fusion are fused at the next message (at the latest one robot state, 4 ms,
-later); while it is behind, the monitor's batch delay lets fusion run in larger, cheaper
-batches until it has caught up. :attr:`LiveRunner.latencies_s` holds socket-arrival to fused
-per profile, :attr:`LiveRunner.busy_s` the time spent handling messages.
+Latency policy: fusion comes first. The session only fuses as messages arrive; the near-net
+reference, the real-time comparison (at the newest fused profile: frame sets that arrived
+while the loop was busy are compared once, together) and surface pre-meshing run when the
+inbox is empty, in slices that give way as soon as a message arrives; layer analysis runs on
+the session's worker thread. While the loop is caught up, profiles ready for fusion are fused
+at the next message (at the latest one robot state, 4 ms, later); while it is behind, the
+monitor's batch delay lets fusion run in larger, cheaper batches until it has caught up.
+:attr:`LiveRunner.latencies_s` holds socket-arrival to fused per profile,
+:attr:`LiveRunner.busy_s` the time spent handling messages and catching up.
 """
 
 from __future__ import annotations
@@ -71,7 +75,7 @@ class LiveRunner:
                                       cell.plate_size_mm, toolpath=self.toolpath,
                                       out_dir=self.report_dir, config_toml=cell_toml,
                                       max_sensor_gap_s=live.max_sensor_gap_s,
-                                      meta={"mode": "live", "cell": cell.name})
+                                      meta={"mode": "live", "cell": cell.name}, live=True)
         self.analysis.drop_sources += [lambda: self.inbox.dropped, lambda: self.aligner.dropped]
         self.recorder = None
         if record:
@@ -183,6 +187,11 @@ class LiveRunner:
         monitor = self.analysis.monitor
         batch_delay_s = monitor.max_delay_s
         t0 = time.monotonic()
+        pending = False  # deferred session work left by the last catch-up
+
+        def inbox_busy() -> bool:
+            return self.inbox.qsize() > 0
+
         try:
             while not (stop is not None and stop.is_set()):
                 now = time.monotonic()
@@ -192,7 +201,11 @@ class LiveRunner:
                 if idle_stop_s and idle:
                     log.info("no data for %.1f s: ending the run", idle_stop_s)
                     break
-                item = self.inbox.get(timeout_s=0.05)
+                if pending and not self.inbox.qsize():
+                    t_idle = time.monotonic()
+                    pending = not self.analysis.catch_up(inbox_busy)
+                    self.busy_s += time.monotonic() - t_idle
+                item = self.inbox.get(timeout_s=0.005 if pending else 0.05)
                 if item is None:
                     continue
                 self._last_data = time.monotonic()
@@ -203,6 +216,7 @@ class LiveRunner:
                 step = time.monotonic() - self._last_data
                 self.busy_s += step
                 self.max_step_s = max(self.max_step_s, step)
+                pending = True
         finally:
             report = self.finish()
         return report
