@@ -8,10 +8,12 @@ pipeline. The latency of each fused profile runs from the moment its last byte w
 the socket to the end of the fusion call that integrated it. Goal: p99 <= 20 ms at 10x.
 
 Besides the percentiles it prints the pipeline load (seconds the live loop spent handling
-messages per second of stream: above 1 the pipeline cannot keep up with the arrival rate and
-latency grows with the backlog) and the longest single step (a layer end: surface extraction
-and layer analysis run inside the fusion call). Prints the median over runs, after one full
-warm-up run so numba's cached kernels are loaded before anything is timed.
+messages and catching up per second of stream: above 1 the pipeline cannot keep up with the
+arrival rate and latency grows with the backlog) and the longest single step (a layer end: the
+surface chunks touched in the last fraction of a second are meshed inside the fusion call; the
+reference, real-time comparison and pre-meshing of the other chunks run when the inbox is
+empty, the layer analysis on the session's worker thread). Prints the median over runs, after
+one full warm-up run so numba's cached kernels are loaded before anything is timed.
 
 Run: .venv/bin/python benchmarks/live.py [--runs 3] [--seconds 10] [--speeds 10[,3,1]]
 """

@@ -55,8 +55,8 @@ log = logging.getLogger(__name__)
 
 FRAME_SET = 3  # profiles per real-time comparison (the three cascaded profilers)
 STATE_BACKLOG = 2500  # states buffered at most while no profile is fused (10 s at 250 Hz)
-STATE_SLICE = 100  # robot states per reference update while catching up (0.4 s at 250 Hz)
-PREMESH_EVERY_S = 0.5  # [s] wall, pre-meshing of touched surface chunks at most this often
+STATE_SLICE = 25  # robot states per reference update while catching up (0.1 s at 250 Hz)
+PREMESH_EVERY_S = 0.25  # [s] wall, pre-meshing of touched surface chunks at most this often
 
 
 @dataclass

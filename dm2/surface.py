@@ -199,11 +199,13 @@ class SurfaceExtractor:
         return self.assemble()
 
     def premesh(self, stop=None) -> bool:
-        """Mesh the chunks touched so far ahead of the next :meth:`update`, which then only
-        meshes what was touched afterwards; the surface it returns is the same.
+        """Mesh the touched chunks ahead of the next :meth:`update`, which then only meshes
+        what was touched afterwards; the surface it returns is the same. Chunks touched since
+        the previous call (the active region, touched again by the next profiles) wait for a
+        later call.
 
         ``stop()`` is asked before each chunk (a few ms each); True makes it return False at
-        once (call again later). Returns True when no touched chunk is left unmeshed.
+        once (call again later). Returns True when only the recently touched chunks wait.
         """
         n = self.tsdf.n_blocks
         fresh = np.flatnonzero(self.tsdf.touched[:n])
@@ -218,13 +220,14 @@ class SurfaceExtractor:
             grown[: self._consumed.shape[0]] = self._consumed
             self._consumed = grown
         self._consumed[fresh] = True
-        for c in _chunks_of(blocks):
+        hot = _chunks_of(blocks)
+        for c in hot:
             self._premeshed.pop(c, None)
             self._todo[c] = None
-        while self._todo:
+        hot = set(hot)  # touched since the last call: likely touched again, meshed next call
+        for c in [c for c in self._todo if c not in hot]:
             if stop is not None and stop():
                 return False
-            c = next(iter(self._todo))
             del self._todo[c]
             self._premeshed[c] = self._mesh_chunk(np.array(c))
         return True
