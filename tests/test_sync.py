@@ -10,7 +10,8 @@ from dm2.config import MonitorConfig, ProcessConfig
 from dm2.frames import PoseInterpolator, from_euler_deg, pose_error
 from dm2.messages import Calibration, Profile, RobotState
 from dm2.pipeline import Monitor
-from dm2.sync import PoseBuffer, StreamSync
+from dm2.posebuffer import PoseBuffer
+from dm2.sync import StreamSync
 
 
 def test_pose_buffer_matches_slerp_and_respects_the_gap():
