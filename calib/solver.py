@@ -23,6 +23,13 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from calib.artifact import Artifact
+from calib.checks import (  # the errors are part of this module's API
+    CalibrationError,
+    DegenerateError,
+    NotObservedError,
+    check_degenerate,
+    check_observed,
+)
 from calib.fitting import (
     exp_se3,
     kabsch,
@@ -36,23 +43,10 @@ from dm2.frames import invert
 
 log = logging.getLogger(__name__)
 
+__all__ = ["CalibrationError", "CalibrationResult", "DegenerateError", "ISO9283_RP_PER_SIGMA",
+           "NotObservedError", "SensorEstimate", "SolverOptions", "solve_calibration"]
+
 ISO9283_RP_PER_SIGMA = 3.62  # ISO 9283 repeatability RP / per-axis sigma (isotropic Gaussian)
-
-PARAM_NAMES = ("rotation about x_{f}", "rotation about y_{f}", "rotation about z_{f}",
-               "translation along x_{f}", "translation along y_{f}", "translation along z_{f}")
-
-
-class CalibrationError(ValueError):
-    """The calibration data cannot give a trustworthy answer; the text says why."""
-
-
-class NotObservedError(CalibrationError):
-    """A sensor saw the artifact in too few profiles."""
-
-
-class DegenerateError(CalibrationError):
-    """The pose set leaves a direction of a sensor's pose (or the mount) unconstrained."""
-
 
 @dataclass(frozen=True)
 class SolverOptions:
@@ -102,17 +96,6 @@ class CalibrationResult:
     @property
     def T_B_S(self) -> dict:
         return {sid: est.T_B_S for sid, est in self.sensors.items()}
-
-
-def describe_direction(v: np.ndarray, frame_names: list[str]) -> str:
-    """Name the dominant components of a weak parameter direction."""
-    parts = []
-    for i in np.argsort(-np.abs(v)):
-        if abs(v[i]) < 0.3 and parts:
-            break
-        block, j = divmod(int(i), 6)
-        parts.append(f"{PARAM_NAMES[j].format(f=frame_names[block])} ({abs(v[i]):.2f})")
-    return " + ".join(parts)
 
 
 class _Problem:
@@ -201,45 +184,6 @@ def _closed_form_start(prob: _Problem, s: int, T_prior, T_F_A, k, inl, opt) -> n
     return kabsch(np.array(c_S), np.array(c_B))
 
 
-def _check_observed(prob: _Problem, k, inl, opt: SolverOptions) -> None:
-    for s, sid in enumerate(prob.sensors):
-        n_total = sum(o.sensor_id == sid for o in prob.obs)
-        seen = 0
-        for oi in np.unique(prob.obs_idx[prob.sensor_idx == s]):
-            seen += int(np.sum(inl & (prob.obs_idx == oi)) >= opt.min_points)
-        if seen < opt.min_profiles:
-            raise NotObservedError(
-                f"sensor {sid}: the artifact was seen in {seen} of {n_total} profiles (need "
-                f">= {opt.min_profiles} with >= {opt.min_points} sphere points); check the "
-                "poses, the artifact description and the prior calibration")
-
-
-def _check_degenerate(prob: _Problem, J: np.ndarray, idx, mount: bool, opt: SolverOptions):
-    """Raise DegenerateError when a sensor's (or the joint) scaled Jacobian is rank-poor."""
-    S = len(prob.sensors)
-    scale = np.tile([1.0 / opt.rotation_scale_mm] * 3 + [1.0] * 3, S + (1 if mount else 0))
-    Js = J * scale
-    conds = {}
-    blocks = [(s, prob.sensor_idx[idx] == s, slice(6 * s, 6 * s + 6)) for s in range(S)]
-    if mount:
-        blocks.append((S, np.ones(len(idx), bool), slice(0, 6 * S + 6)))
-    names = [f"{sid}" for sid in prob.sensors] + ["A (mount)"]
-    for b, rows, cols in blocks:
-        _, sv, Vt = np.linalg.svd(Js[rows][:, cols] / np.sqrt(max(rows.sum(), 1)),
-                                  full_matrices=False)
-        cond = float(sv[-1] / sv[0]) if sv[0] > 0 else 0.0
-        conds[b] = cond
-        if cond < opt.min_condition:
-            v = np.zeros(Js.shape[1])
-            v[cols] = Vt[-1]
-            who = names[b] if b < S else "the sensors and the artifact mount together"
-            raise DegenerateError(
-                f"{who}: the poses do not constrain {describe_direction(v, names)} "
-                f"(condition {cond:.1e} < {opt.min_condition:.0e}); add poses that cut the "
-                "spheres off-centre, at several heights, tilts and rotations")
-    return conds
-
-
 def solve_calibration(observations: list[Observation], artifact: Artifact, prior_T_B_S: dict,
                       options: SolverOptions | None = None) -> CalibrationResult:
     """Estimate ``T_B_S`` for every sensor in ``prior_T_B_S`` (and optionally ``T_F_A``).
@@ -284,7 +228,7 @@ def _solve_group(prob: _Problem, artifact: Artifact, prior_T_B_S: dict, opt: Sol
     T_FA0 = np.asarray(artifact.T_F_A, dtype=np.float64)
     gate = np.full(S, opt.init_gate_mm or 0.25 * float(artifact.radii_mm.min()))
     k, inl = prob.associate(T0, T_FA0, gate[prob.sensor_idx])
-    _check_observed(prob, k, inl, opt)
+    check_observed(prob, inl, opt)
     T0 = [_closed_form_start(prob, s, T0[s], T_FA0, k, inl, opt) for s in range(S)]
     n_par = 6 * S + (6 if mount else 0)
     for rnd in range(opt.rounds):
@@ -292,9 +236,9 @@ def _solve_group(prob: _Problem, artifact: Artifact, prior_T_B_S: dict, opt: Sol
         idx = np.flatnonzero(inl)
         kk = k[idx]
         if rnd == 0:
-            _check_observed(prob, k, inl, opt)
+            check_observed(prob, inl, opt)
             _, J = prob.residuals(T0, T_FA0, np.zeros(n_par), idx, kk, mount, jac=True)
-            _check_degenerate(prob, J, idx, mount, opt)
+            check_degenerate(prob, J, idx, mount, opt)
         sigma = None if rnd == 0 else 0.2 * float(np.min(gate))  # gate = 5 robust sigmas
         x = _least_squares(prob, T0, T_FA0, idx, kk, mount, opt, sigma)
         T0 = [exp_se3(T0[s], x[6 * s:6 * s + 6]) for s in range(S)]
@@ -307,7 +251,7 @@ def _solve_group(prob: _Problem, artifact: Artifact, prior_T_B_S: dict, opt: Sol
         log.debug("%s round %d: %d inliers, gates %s mm", prob.sensors, rnd, idx.size,
                   np.round(gate, 4))
     res, J = prob.residuals(T0, T_FA0, np.zeros(n_par), idx, kk, mount, jac=True)
-    conds = _check_degenerate(prob, J, idx, mount, opt)
+    conds = check_degenerate(prob, J, idx, mount, opt)
     return T0, T_FA0, res, J, idx, inl, conds
 
 
