@@ -14,7 +14,6 @@ import logging
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -22,7 +21,7 @@ from dm2.config import MonitorConfig, ProcessConfig
 from dm2.layers import LayerTracker
 from dm2.messages import Calibration, Toolpath
 from dm2.registration import profile_frames, spot_B
-from dm2.surface import SurfaceExtractor, SurfaceMesh
+from dm2.surface import PendingSurface, SurfaceExtractor, SurfaceMesh
 from dm2.sync import StreamSync, SyncedProfile
 from dm2.tsdf import SparseTSDF
 
@@ -36,7 +35,6 @@ REPLAY_BATCH_PROFILES = 96
 DEFAULT_MAX_DELAY_S = 0.02
 
 
-@dataclass(frozen=True)
 class LayerSurface:
     """The reconstructed surface when a layer finished.
 
@@ -44,12 +42,25 @@ class LayerSurface:
     ----------
     layer : int, the layer that finished
     stamp_s : float [s], stamp of the last profile fused into it (NaN if none)
-    surface : SurfaceMesh in ``O``
+    surface : SurfaceMesh in ``O``; when built from a :class:`~dm2.surface.PendingSurface`
+        (``Monitor(defer_meshing=True)``) it is meshed on first access, on that thread
     """
 
-    layer: int
-    stamp_s: float
-    surface: SurfaceMesh
+    __slots__ = ("layer", "stamp_s", "_surface")
+
+    def __init__(self, layer: int, stamp_s: float, surface: SurfaceMesh | PendingSurface):
+        self.layer = int(layer)
+        self.stamp_s = float(stamp_s)
+        self._surface = surface
+
+    @property
+    def surface(self) -> SurfaceMesh:
+        if isinstance(self._surface, PendingSurface):
+            self._surface = self._surface.result()
+        return self._surface
+
+    def __repr__(self) -> str:
+        return f"LayerSurface(layer={self.layer}, stamp_s={self.stamp_s})"
 
 
 def default_active_radius_mm(process: ProcessConfig) -> float:
@@ -78,6 +89,8 @@ class Monitor:
     max_delay_s : float [s], wall-clock time after which a waiting batch is fused at the next
         message even when not full, so a live stream sees its profiles fused within about this
         long (a replay, which runs faster than real time, still fuses full batches)
+    defer_meshing : at a layer end only copy the chunk boxes to re-mesh; the layer's
+        surface is meshed where it is first read (a live session's worker thread)
 
     Attributes
     ----------
@@ -89,7 +102,7 @@ class Monitor:
                  process: ProcessConfig, toolpath: Toolpath | None = None,
                  on_layer_done: Callable[[LayerSurface], None] | None = None,
                  bounds_O: tuple | None = None, batch_profiles: int = DEFAULT_BATCH_PROFILES,
-                 max_delay_s: float = DEFAULT_MAX_DELAY_S):
+                 max_delay_s: float = DEFAULT_MAX_DELAY_S, defer_meshing: bool = False):
         if not calibration.T_B_S:
             raise ValueError("Monitor: the calibration holds no sensor pose (T_B_S is empty)")
         self.calibration = calibration
@@ -118,6 +131,7 @@ class Monitor:
         self._last_stamp_s = float("nan")
         self._finished = False
         self.max_delay_s = float(max_delay_s)
+        self.defer_meshing = bool(defer_meshing)
         # the batch waiting to be fused, one entry per synchronised profile
         self._p_xz: list[np.ndarray] = []
         self._p_T: list[np.ndarray] = []
@@ -224,10 +238,12 @@ class Monitor:
         self._fuse_range(xz, offsets, T_O_S, spots_O, axes_O, stamps, start, k)
 
     def _finish_layer(self, layer: int) -> None:
-        ls = LayerSurface(int(layer), self._last_stamp_s, self.extractor.update())
+        pending = self.extractor.gather()
+        log.info("layer %d done: %d blocks, %d chunks to mesh", layer, self.tsdf.n_blocks,
+                 pending.n_to_mesh)
+        ls = LayerSurface(int(layer), self._last_stamp_s,
+                          pending if self.defer_meshing else pending.result())
         self.layer_done.append(ls)
-        log.info("layer %d done: %d vertices, %d faces, %d blocks", layer,
-                 ls.surface.n_vertices, ls.surface.n_faces, self.tsdf.n_blocks)
         if self.on_layer_done is not None:
             self.on_layer_done(ls)
 

@@ -35,8 +35,6 @@ without layer marks take it when the monitor closes the layer.
 from __future__ import annotations
 
 import logging
-import queue
-import threading
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
@@ -45,6 +43,7 @@ import numpy as np
 
 from dm2.config import MonitorConfig, ProcessConfig
 from dm2.defects import DefectMonitor, LayerResult
+from dm2.layer_worker import LayerWorker
 from dm2.messages import Calibration, LayerMark, RobotState, Toolpath
 from dm2.pipeline import LayerSurface, Monitor
 from dm2.progress import ToolpathProgress
@@ -103,7 +102,7 @@ class MonitoringSession:
                                           size_mm=tuple(plate_size_mm[:2]))
         self.defects = DefectMonitor(monitor_cfg)
         self.monitor = Monitor(calibration, monitor_cfg, process, toolpath=toolpath,
-                               on_layer_done=self._layer_done)
+                               on_layer_done=self._layer_done, defer_meshing=analysis_thread)
         self.timing = SessionTiming()
         self._states_t: list[float] = []
         self._states_T: list[np.ndarray] = []
@@ -116,9 +115,7 @@ class MonitoringSession:
         self._nominal_s = 0.0
         self._finished = False
         self._last_premesh = 0.0
-        self._jobs: queue.Queue | None = queue.Queue() if analysis_thread else None
-        self._worker: threading.Thread | None = None
-        self._worker_error: BaseException | None = None
+        self._worker = LayerWorker(self._analyse) if analysis_thread else None
 
     @property
     def results(self) -> list[LayerResult]:
@@ -206,7 +203,8 @@ class MonitoringSession:
             t0 = time.perf_counter()
             self.monitor.finish()
             self.timing.fusion_s += time.perf_counter() - t0
-            self._stop_worker()
+            if self._worker is not None:
+                self._worker.join()
             self.defects.finish()
             self._finished = True
         return self.results
@@ -278,7 +276,7 @@ class MonitoringSession:
         }
 
     def _layer_done(self, done: LayerSurface) -> None:
-        if done.surface.vertices_O.shape[0] == 0:
+        if self._worker is None and done.surface.vertices_O.shape[0] == 0:
             log.warning("layer %d: no surface was reconstructed; skipped", done.layer)
             return
         self._flush_states(upto_s=done.stamp_s if np.isfinite(done.stamp_s) else np.inf)
@@ -286,40 +284,18 @@ class MonitoringSession:
         if ref is None:  # no layer marks in the stream: take the reference now
             ref = self.reference.end_layer(done.layer)
         stamp = None if not np.isfinite(done.stamp_s) else done.stamp_s
-        if self._jobs is None:
-            self._analyse(done.surface, ref, done.layer, stamp)
-            return
-        if self._worker_error is not None:
-            raise RuntimeError("layer analysis failed on the worker thread") \
-                from self._worker_error
         if self._worker is None:
-            self._worker = threading.Thread(target=self._work, name="layer-analysis",
-                                            daemon=True)
-            self._worker.start()
-        self._jobs.put((done.surface, ref, done.layer, stamp))
+            self._analyse(done, ref, stamp)
+        else:  # meshed (done.surface) and analysed on the worker
+            self._worker.submit(done, ref, stamp)
 
-    def _analyse(self, surface, ref, layer: int, stamp) -> None:
+    def _analyse(self, done: LayerSurface, ref, stamp) -> None:
         t0 = time.perf_counter()
-        result = self.defects.analyse_layer(surface, ref, layer, stamp)
+        surface = done.surface
+        if surface.vertices_O.shape[0] == 0:
+            log.warning("layer %d: no surface was reconstructed; skipped", done.layer)
+            return
+        result = self.defects.analyse_layer(surface, ref, done.layer, stamp)
         self.timing.analysis_s += time.perf_counter() - t0
         if self.on_layer is not None:
             self.on_layer(result)
-
-    def _work(self) -> None:
-        while (job := self._jobs.get()) is not None:
-            if self._worker_error is None:
-                try:
-                    self._analyse(*job)
-                except BaseException as exc:  # noqa: BLE001 - re-raised in the feeding thread
-                    log.exception("layer %d: analysis failed", job[2])
-                    self._worker_error = exc
-
-    def _stop_worker(self) -> None:
-        """Wait until every queued layer has been analysed (re-raises a worker failure)."""
-        if self._worker is not None:
-            self._jobs.put(None)
-            self._worker.join()
-            self._worker = None
-        if self._worker_error is not None:
-            raise RuntimeError("layer analysis failed on the worker thread") \
-                from self._worker_error

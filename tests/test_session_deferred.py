@@ -1,10 +1,13 @@
 """Deferred feeding (live mode) gives the same reference, surfaces, layer results and tracks
 as immediate feeding, however the catch-up work is sliced and interrupted."""
 
+import threading
+
 import numpy as np
 import pytest
 
 import dm2.session as session_mod
+import dm2.surface as surface_mod
 from dm2.config import load_scenario
 from dm2.session import MonitoringSession
 from scenarios import resolve_scenario
@@ -45,7 +48,26 @@ def immediate(pad_stream):
 @pytest.mark.parametrize("every", [1, 40])
 def test_deferred_matches_immediate_bit_for_bit(pad_stream, immediate, every, monkeypatch):
     monkeypatch.setattr(session_mod, "PREMESH_EVERY_S", 0.0)  # pre-mesh at every catch-up
+    meshed_on, gathering = [], [False]
+    mesh_volume, gather = surface_mod.mesh_volume, surface_mod.SurfaceExtractor.gather
+
+    def noted_mesh(*args):
+        meshed_on.append((threading.current_thread().name, gathering[0]))
+        return mesh_volume(*args)
+
+    def noted_gather(self):
+        gathering[0] = True
+        try:
+            return gather(self)
+        finally:
+            gathering[0] = False
+
+    monkeypatch.setattr(surface_mod, "mesh_volume", noted_mesh)
+    monkeypatch.setattr(surface_mod.SurfaceExtractor, "gather", noted_gather)
     a, b = immediate, _run(pad_stream, defer=True, catch_up_every=every)
+    # layer ends only copied chunk boxes on the fusion thread; the worker meshed them
+    assert not any(in_gather for _, in_gather in meshed_on)
+    assert sum(name == "layer-analysis" for name, _ in meshed_on) > 0
     assert len(a.monitor.layer_done) >= 2
     assert np.array_equal(a.reference.heights_mm, b.reference.heights_mm)
     for x, y in zip(a.monitor.layer_done, b.monitor.layer_done, strict=True):
