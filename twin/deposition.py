@@ -122,8 +122,8 @@ class SprayModel:
         p = self.process
         lam = p.packets_per_s * feed_factor * dt_s
         vol, n, missed = DK.spray_step(
-            hf._h, hf._bmax, hf._zmax, hf.cell_mm, hf.thickness_mm, self._state, lam, spot,
-            axis, self.sigma_mm(standoff_delta_mm), p.standoff_mm + standoff_delta_mm,
+            hf._h, hf._bmax, hf._zmax, hf._dirty, hf.cell_mm, hf.thickness_mm, self._state, lam,
+            spot, axis, self.sigma_mm(standoff_delta_mm), p.standoff_mm + standoff_delta_mm,
             self.v_packet_mm3, p.deposition_efficiency * efficiency_factor, self._theta_c,
             max(1, round(NORMAL_STEP_MM / hf.cell_mm)))
         self.fed_volume_mm3 += n * self.v_packet_mm3
@@ -158,8 +158,8 @@ class SprayModel:
             np.full(m, self.sigma_mm(0.0))
         out = np.zeros(m)
         counts = np.zeros(2, dtype=np.int64)
-        DK.spray_samples(hf._h, hf._bmax, hf._zmax, hf.cell_mm, hf.thickness_mm, self._state,
-                         lam, spots, np.ascontiguousarray(axes), sigma,
+        DK.spray_samples(hf._h, hf._bmax, hf._zmax, hf._dirty, hf.cell_mm, hf.thickness_mm,
+                         self._state, lam, spots, np.ascontiguousarray(axes), sigma,
                          np.ascontiguousarray(p.standoff_mm + sd, dtype=np.float64),
                          self.v_packet_mm3,
                          np.ascontiguousarray(p.deposition_efficiency * ef, dtype=np.float64),

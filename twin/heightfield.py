@@ -59,6 +59,8 @@ class HeightField:
         self._h = np.zeros((ny, nx), dtype=np.float64)
         self._bmax = np.zeros((ny // K.BLOCK + 1, nx // K.BLOCK + 1), dtype=np.float64)
         self._zmax = np.zeros(1, dtype=np.float64)
+        # cells changed since the last copy_changes_to: [j_min, j_max, i_min, i_max] (inclusive)
+        self._dirty = np.zeros(4, dtype=np.int64)
         self._refresh()
 
     # --- state -----------------------------------------------------------------------------
@@ -93,6 +95,28 @@ class HeightField:
     def _refresh(self) -> None:
         K.compute_block_max(self._h, self._bmax)
         self._zmax[0] = max(float(self._h.max()), 0.0)
+        ny, nx = self._h.shape
+        self._dirty[:] = (0, ny - 1, 0, nx - 1)
+
+    def copy_changes_to(self, mirror: HeightField) -> None:
+        """Make ``mirror`` (made by :meth:`copy`) equal to this field again, bit for bit.
+
+        Only the cells changed since the previous call (and their acceleration blocks) are
+        copied, so keeping a mirror for a reader on another thread costs little; a field keeps
+        track of changes for one mirror.
+        """
+        if mirror._h.shape != self._h.shape:
+            raise ValueError(f"HeightField.copy_changes_to: mirror shape {mirror._h.shape} "
+                             f"differs from {self._h.shape}")
+        j0, j1, i0, i1 = (int(v) for v in self._dirty)
+        if j0 <= j1 and i0 <= i1:
+            mirror._h[j0:j1 + 1, i0:i1 + 1] = self._h[j0:j1 + 1, i0:i1 + 1]
+            b = K.BLOCK  # node (k, m) bounds the blocks of patches k..k+1, m..m+1
+            bj, bi = slice(j0 // b, (j1 + 1) // b + 1), slice(i0 // b, (i1 + 1) // b + 1)
+            mirror._bmax[bj, bi] = self._bmax[bj, bi]
+        mirror._zmax[0] = self._zmax[0]
+        ny, nx = self._h.shape
+        self._dirty[:] = (ny, -1, nx, -1)  # empty
 
     def centres_mm(self) -> tuple[np.ndarray, np.ndarray]:
         """Cell-centre coordinates ``x (nx,)``, ``y (ny,)`` [mm] in O."""
@@ -108,6 +132,7 @@ class HeightField:
         out._h = self._h.copy()
         out._bmax = self._bmax.copy()
         out._zmax = self._zmax.copy()
+        out._dirty = self._dirty.copy()
         return out
 
     # --- queries ---------------------------------------------------------------------------

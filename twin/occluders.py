@@ -55,7 +55,7 @@ class CylinderOccluder:
         return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _cylinder_hit_t(o, d, r2, length, out):
     """Entry distance of rays ``o + t d`` (in the cylinder frame) into the solid cylinder
     ``x^2 + y^2 <= r2, 0 <= z <= length``; inf on a miss, 0 for rays starting inside."""

@@ -22,7 +22,7 @@ LASER_BLOCKED = 2
 DROPOUT = 7
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def laser_pass(H, bmax, cell, thickness, zmax, lx, ly, face_tol, origin, dirs, t_min, t_max,
                max_range, t_occ, has_occ, out_t, out_reason, out_points, out_normals):
     """Cast the laser fan from ``origin (3,)`` along ``dirs (n, 3)`` (all in O).
@@ -95,7 +95,7 @@ def laser_pass(H, bmax, cell, thickness, zmax, lx, ly, face_tol, origin, dirs, t
     return n_valid
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def camera_pass(H, bmax, cell, thickness, zmax, camera, lift, hits, normals, out_u_cam,
                 out_starts, out_u, out_remaining, out_t):
     """Rays from the lit points ``hits (m, 3)`` (lifted by ``lift`` along ``normals``) to the
@@ -133,7 +133,7 @@ def camera_pass(H, bmax, cell, thickness, zmax, camera, lift, hits, normals, out
                            out_starts[k, 2], out_u[k, 0], out_u[k, 1], out_u[k, 2], max_range)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def apply_noise(range_mm, reason, cos_inc, gauss, speckle, u_drop, u_ghost, ghost_mm,
                 range_sigma, speckle_sigma, outlier_prob, dropout_prob, dir_x, dir_z,
                 z_start, z_end, out_xz, out_valid, out_intensity):

@@ -15,6 +15,7 @@ from __future__ import annotations
 import logging
 from collections import Counter
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -136,38 +137,61 @@ class Simulation:
         stamps = t[:n].tolist()
         trig_stamps, trig_sensor, trig_counter = (trig_s.tolist(), trig_j.tolist(),
                                                   trig_c.tolist())
+        # Each chunk's triggers are scanned on a worker thread, on a mirror of the height field
+        # synced (changed cells only) at their stamps, while this thread grows the true field
+        # with the next chunk and yields its robot states; the profiles are yielded before
+        # them, so the stream keeps its order and its bits (the kernels release the GIL).
+        mirror = hf.copy()
+        pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="twin-scan")
+        pending = None  # scans of the previous chunk's triggers
         k = 0  # next trigger
         layer_prev = -1
-        for a, b in _chunks(t[:n], layers, trig_s):
-            layer = int(layers[a])
-            if layer != layer_prev:
-                if layer_prev >= 0 and truth is not None:
-                    truth.layer(hf, layer_prev)
-                faults.apply_blobs(hf, layer)  # a bump or dent appears as its layer starts
-                yield LayerMark(stamps[a], layer)
-                layer_prev = layer
-            # the executed motion holds finite float64 joints and rigid flange poses, so the
-            # states skip re-validation; the noise draws match one (3,) draw per sample
-            T_B_F = np.ascontiguousarray(motion.T_B_F[a:b], dtype=np.float64)
-            if robot_sigma > 0:
-                T_B_F = T_B_F.copy()
-                T_B_F[:, :3, 3] += robot_rng.normal(0.0, robot_sigma, (b - a, 3))
-            joints = np.ascontiguousarray(motion.joints_rad[a:b], dtype=np.float64)
-            for i in range(a, b):
-                yield RobotState.trusted(stamps[i], i, joints[i - a], T_B_F[i - a])
-                if progress is not None and (i % 250 == 0 or i == n - 1):
-                    progress(stamps[i], self.end_s)
-            on = motion.spray_on[a:b]
-            if on.any():
-                spray.deposit_samples(hf, motion.position_O[a:b], motion.axis_O[a:b], dt,
-                                      spray_on=on, feed_factor=feed[a:b],
-                                      efficiency_factor=efficiency[a:b],
-                                      standoff_delta_mm=standoff[a:b])
-            t_next = stamps[b] if b < n else np.inf
-            while k < len(trig_stamps) and trig_stamps[k] < t_next:
-                prof = profilers[trig_sensor[k]]
-                yield prof.scan(hf, trig_T_B_O[k], trig_stamps[k], trig_counter[k], occluders)
-                k += 1
+        try:
+            for a, b in _chunks(t[:n], layers, trig_s):
+                layer = int(layers[a])
+                new_layer = layer != layer_prev
+                if new_layer:
+                    if layer_prev >= 0 and truth is not None:
+                        truth.layer(hf, layer_prev)
+                    faults.apply_blobs(hf, layer)  # a bump or dent appears as its layer starts
+                on = motion.spray_on[a:b]
+                if on.any():
+                    spray.deposit_samples(hf, motion.position_O[a:b], motion.axis_O[a:b], dt,
+                                          spray_on=on, feed_factor=feed[a:b],
+                                          efficiency_factor=efficiency[a:b],
+                                          standoff_delta_mm=standoff[a:b])
+                if pending is not None:
+                    yield from pending.result()
+                    pending = None
+                if new_layer:
+                    yield LayerMark(stamps[a], layer)
+                    layer_prev = layer
+                # the executed motion holds finite float64 joints and rigid flange poses, so
+                # the states skip re-validation; the noise draws match one (3,) draw per sample
+                T_B_F = np.ascontiguousarray(motion.T_B_F[a:b], dtype=np.float64)
+                if robot_sigma > 0:
+                    T_B_F = T_B_F.copy()
+                    T_B_F[:, :3, 3] += robot_rng.normal(0.0, robot_sigma, (b - a, 3))
+                joints = np.ascontiguousarray(motion.joints_rad[a:b], dtype=np.float64)
+                for i in range(a, b):
+                    yield RobotState.trusted(stamps[i], i, joints[i - a], T_B_F[i - a])
+                    if progress is not None and (i % 250 == 0 or i == n - 1):
+                        progress(stamps[i], self.end_s)
+                t_next = stamps[b] if b < n else np.inf
+                k_end = k
+                while k_end < len(trig_stamps) and trig_stamps[k_end] < t_next:
+                    k_end += 1
+                if k_end > k:
+                    hf.copy_changes_to(mirror)
+                    jobs = [(profilers[trig_sensor[q]], trig_T_B_O[q], trig_stamps[q],
+                             trig_counter[q]) for q in range(k, k_end)]
+                    pending = pool.submit(_scan_all, mirror, jobs, occluders)
+                    k = k_end
+            if pending is not None:
+                yield from pending.result()
+                pending = None
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
         if layer_prev >= 0 and truth is not None:  # (if stopped early: as it stands)
             truth.layer(hf, layer_prev)
         if truth is not None and n:
@@ -226,6 +250,12 @@ class _TruthWriter:
         write_fault_truth(self.dir / "faults.json", sc.faults, self.faulty, nominal,
                           toolpath=self.sim.toolpath, cell_mm=HEIGHTFIELD_CELL_MM,
                           area_threshold_mm=sc.monitor.delta_global_mm)
+
+
+def _scan_all(hf, jobs, occluders) -> list[Profile]:
+    """The profiles of ``jobs`` ((profiler, T_B_O, stamp_s, counter) each) on ``hf``."""
+    return [prof.scan(hf, T_B_O, stamp, counter, occluders)
+            for prof, T_B_O, stamp, counter in jobs]
 
 
 def _chunks(t_s: np.ndarray, layer: np.ndarray, trig_s: np.ndarray):
