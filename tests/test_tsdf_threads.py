@@ -1,0 +1,75 @@
+"""Two-thread TSDF fusion gives the serial kernel's field bit for bit."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from dm2 import tsdf as tsdf_mod
+from dm2.tsdf import SparseTSDF
+
+
+def _assert_same_field(a: SparseTSDF, b: SparseTSDF) -> None:
+    assert a.n_blocks == b.n_blocks
+    n = a.n_blocks
+    assert np.array_equal(a.block_keys[:n], b.block_keys[:n])  # same slots, same order
+    assert np.array_equal(a.voxels[:n].view(np.uint32), b.voxels[:n].view(np.uint32))
+    assert np.array_equal(a.touched[:n], b.touched[:n])
+
+
+def _wavy_rays(n, rng):
+    """Overlapping rays from three sensor directions onto a wavy surface (mm)."""
+    x, y = rng.uniform(0, 40, n), rng.uniform(0, 40, n)
+    pts = np.column_stack([x, y, 5 + np.sin(x / 3) + 0.05 * rng.standard_normal(n)])
+    dirs = np.array([[0.0, -54.5, 77.8], [30.0, 20.0, 70.0], [-40.0, 10.0, 60.0]])
+    return pts + dirs[rng.integers(0, 3, n)], pts, rng.random(n) < 0.3
+
+
+def test_two_threads_equal_one_thread_bit_for_bit_on_overlapping_rays():
+    rng = np.random.default_rng(7)
+    o, p, act = _wavy_rays(300_000, rng)
+    one = SparseTSDF(0.5, 1.5, 4.0, initial_blocks=64, threads=1)
+    two = SparseTSDF(0.5, 1.5, 4.0, initial_blocks=64, threads=2)  # grows while planning
+    for t in (one, two):
+        for a in range(0, 300_000, 100_000):  # three passes over the same surface
+            t.integrate(o[a:], p[a:], act[a:])
+    assert one.n_blocks > 64 and (one.weight[: one.n_blocks] > 0).sum() > 30_000
+    _assert_same_field(one, two)
+    assert np.array_equal(one.take_touched(), two.take_touched())
+
+
+def test_two_threads_equal_one_thread_for_registered_profiles():
+    rng = np.random.default_rng(3)
+    k, m = 120, 640  # profiles of 640 points, sensors moving along x over a slanted plane
+    x = np.tile(np.linspace(-20.0, 20.0, m), k)
+    z = 90.0 + 0.2 * rng.standard_normal(k * m)
+    z[rng.random(k * m) < 0.01] = -1.0  # behind the sensor: skipped
+    xz = np.column_stack([x, z])
+    offsets = np.arange(k + 1, dtype=np.int64) * m
+    T = np.tile(np.eye(4), (k, 1, 1))
+    T[:, :3, :3] = np.array([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]])  # looks down -z
+    T[:, 0, 3] = 30.0 + 0.3 * np.arange(k)
+    T[:, 1, 3] = 30.0 + 5.0 * (np.arange(k) % 3)
+    T[:, 2, 3] = 95.0
+    spot = T[:, :3, 3] - [0.0, 0.0, 95.0]
+    axis = np.tile([0.0, 0.0, -1.0], (k, 1))
+    bounds = (np.array([0.0, 0.0, -10.0]), np.array([60.0, 60.0, 20.0]))
+    one = SparseTSDF(0.5, 1.5, 4.0, initial_blocks=64, threads=1)
+    two = SparseTSDF(0.5, 1.5, 4.0, initial_blocks=64, threads=2)
+    got = [t.integrate_profiles(xz, offsets, T, spot, axis, 3.0, bounds) for t in (one, two)]
+    assert got[0] == got[1] and got[0][1] > 0
+    _assert_same_field(one, two)
+
+
+def test_small_batches_use_the_serial_kernel_and_threads_is_validated(monkeypatch):
+    rng = np.random.default_rng(5)
+    o, p, act = _wavy_rays(3000, rng)
+    monkeypatch.setattr(tsdf_mod, "MIN_SPLIT_POINTS", 10**9)
+    serial = SparseTSDF(0.5, 1.5, threads=2)
+    serial.integrate(o, p, act)
+    monkeypatch.setattr(tsdf_mod, "MIN_SPLIT_POINTS", 1)
+    split = SparseTSDF(0.5, 1.5, threads=2)
+    split.integrate(o, p, act)
+    _assert_same_field(serial, split)
+    with pytest.raises(ValueError, match="threads"):
+        SparseTSDF(threads=3)
