@@ -3,7 +3,9 @@
 Runs the default seven-sided scenario for its first ``--process-s`` seconds with all three
 profilers, deposition and robot states and prints the median rate over ``--runs`` runs of:
 
-- stream: consuming ``Simulation.messages`` (what ``dm2 run`` does in process),
+- stream: consuming ``Simulation.messages`` (what ``dm2 run`` does in process): scans on a
+  worker thread over a mirror of the height field while the next chunk deposits,
+- one thread: the same stream with ``scan_thread=False`` (everything on the calling thread),
 - per-sample baseline: the same stream from the plain per-sample loop measured in the same
   process (one deposition call, one validated robot state per 250 Hz motion sample, and the
   profilers' numpy reference path), with the ratio of the two; the baseline is also checked to
@@ -93,10 +95,11 @@ def main() -> None:
                                                          strict=True))
     else:
         _consume(sim.messages())
-    streams, baselines, counts = [], [], Counter()
-    for _ in range(args.runs):  # interleaved, so both see the same machine load
+    streams, serials, baselines, counts = [], [], [], Counter()
+    for _ in range(args.runs):  # interleaved, so all see the same machine load
         wall, cpu, counts = _consume(sim.messages())
         streams.append((wall, cpu))
+        serials.append(_consume(sim.messages(scan_thread=False))[:2])
         if not args.no_baseline:
             baselines.append(_consume(per_sample_messages(sim))[:2])
     with tempfile.TemporaryDirectory() as tmp:
@@ -107,6 +110,8 @@ def main() -> None:
           f"{counts['Profile']} profiles, {counts['RobotState']} robot states, "
           f"{counts['LayerMark']} layer marks; setup {setup_s:.2f} s")
     stream_x = _rates("stream", process_s, streams)
+    serial_x = _rates("one thread", process_s, serials)
+    print(f"stream / one thread = {stream_x / serial_x:.2f} (wall)")
     if baselines:
         base_x = _rates("per-sample baseline", process_s, baselines)
         print(f"stream / baseline = {stream_x / base_x:.2f} (wall); "

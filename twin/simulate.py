@@ -15,7 +15,7 @@ from __future__ import annotations
 import logging
 from collections import Counter
 from collections.abc import Callable, Iterator
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -102,9 +102,13 @@ class Simulation:
                 "toolpath.csv": format_csv(self.toolpath).encode(),
                 "calibration.toml": calibration_to_toml(self.calibration).encode()}
 
-    def messages(self, truth_dir: str | Path | None = None,
-                 progress: Progress | None = None) -> Iterator[Profile | RobotState | LayerMark]:
-        """The message stream in stamp order (deterministic for the scenario's seed)."""
+    def messages(self, truth_dir: str | Path | None = None, progress: Progress | None = None,
+                 *, scan_thread: bool = True) -> Iterator[Profile | RobotState | LayerMark]:
+        """The message stream in stamp order (deterministic for the scenario's seed).
+
+        ``scan_thread`` scans on a worker thread while the next chunk deposits (the same
+        messages either way, bit for bit; False keeps everything on the calling thread).
+        """
         from twin.deposition import SprayModel
         from twin.heightfield import HeightField
         from twin.occluders import nozzle_occluder
@@ -142,7 +146,8 @@ class Simulation:
         # with the next chunk and yields its robot states; the profiles are yielded before
         # them, so the stream keeps its order and its bits (the kernels release the GIL).
         mirror = hf.copy()
-        pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="twin-scan")
+        pool = (ThreadPoolExecutor(max_workers=1, thread_name_prefix="twin-scan")
+                if scan_thread else _InlinePool())
         pending = None  # scans of the previous chunk's triggers
         k = 0  # next trigger
         layer_prev = -1
@@ -250,6 +255,18 @@ class _TruthWriter:
         write_fault_truth(self.dir / "faults.json", sc.faults, self.faulty, nominal,
                           toolpath=self.sim.toolpath, cell_mm=HEIGHTFIELD_CELL_MM,
                           area_threshold_mm=sc.monitor.delta_global_mm)
+
+
+class _InlinePool:
+    """A pool that runs each task as it is submitted (``scan_thread=False``)."""
+
+    def submit(self, fn, *args) -> Future:
+        done: Future = Future()
+        done.set_result(fn(*args))
+        return done
+
+    def shutdown(self, wait: bool = True, cancel_futures: bool = False) -> None:
+        pass
 
 
 def _scan_all(hf, jobs, occluders) -> list[Profile]:
