@@ -95,6 +95,8 @@ class Monitor:
     Attributes
     ----------
     layer_done : list of LayerSurface, finished layers in order
+    fused_log : None, or a deque that receives ``(sensor_id, stamp_s)`` of every fused profile
+        (a live run's latency accounting sets it)
     tsdf : the SparseTSDF being fused
     """
 
@@ -132,6 +134,8 @@ class Monitor:
         self._finished = False
         self.max_delay_s = float(max_delay_s)
         self.defer_meshing = bool(defer_meshing)
+        self.fused_log = None
+        self._sensor_ids = list(calibration.T_B_S)
         # the batch waiting to be fused, one entry per synchronised profile
         self._p_xz: list[np.ndarray] = []
         self._p_T: list[np.ndarray] = []
@@ -224,7 +228,7 @@ class Monitor:
         T_O_S, spots_O, axes_O = profile_frames(
             np.array(self._p_T), self._T_F_O, self._T_B_S, np.array(self._p_sensor),
             self._spot_B, self._axis_B)
-        stamps = self._p_stamp
+        stamps, sensors = self._p_stamp, self._p_sensor
         self._p_xz, self._p_T, self._p_sensor, self._p_stamp = [], [], [], []
         start, k = 0, len(stamps)
         if self.layers.source == "toolpath":
@@ -236,6 +240,9 @@ class Monitor:
                     for layer in finished:
                         self._finish_layer(layer)
         self._fuse_range(xz, offsets, T_O_S, spots_O, axes_O, stamps, start, k)
+        if self.fused_log is not None:
+            self.fused_log.extend((self._sensor_ids[r], t) for r, t in zip(sensors, stamps,
+                                                                          strict=True))
 
     def _finish_layer(self, layer: int) -> None:
         pending = self.extractor.gather()

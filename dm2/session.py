@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
@@ -115,6 +116,12 @@ class MonitoringSession:
         self._nominal_s = 0.0
         self._finished = False
         self._last_premesh = 0.0
+        # reference steps due at a stamp, in stream order: ("mark", layer) ends the reference
+        # of layer - 1; ("layer", LayerSurface) takes a finished layer's reference and hands
+        # the layer to the analysis (deferred feeding runs them when catching up)
+        self._ops: deque = deque()
+        self._marked_layer = self.reference.layer
+        self._defer_layers = bool(analysis_thread)
         self._worker = LayerWorker(self._analyse) if analysis_thread else None
 
     @property
@@ -142,10 +149,11 @@ class MonitoringSession:
         if isinstance(msg, RobotState):
             self._states_t.append(msg.stamp_s)
             self._states_T.append(msg.T_B_F)
-        elif isinstance(msg, LayerMark) and msg.layer > self.reference.layer:
-            self._flush_states(upto_s=msg.stamp_s)
-            self.reference.end_layer(msg.layer - 1)
-            self.reference.layer = msg.layer
+        elif isinstance(msg, LayerMark) and msg.layer > self._marked_layer:
+            self._marked_layer = msg.layer
+            self._ops.append((msg.stamp_s, "mark", msg.layer))
+            if not defer:
+                self._advance(upto_s=msg.stamp_s)
         t0 = time.perf_counter()
         self.monitor.feed(msg)
         self.timing.fusion_s += time.perf_counter() - t0
@@ -154,13 +162,13 @@ class MonitoringSession:
         if self.monitor.profiles_fused - self._rt_profiles >= FRAME_SET:
             self._realtime()
         elif len(self._states_t) >= STATE_BACKLOG:  # a stream of poses without profiles
-            self._flush_states()
+            self._advance()
 
     @property
     def behind(self) -> bool:
         """True while a deferred comparison or a backlog of robot states waits."""
         return (self.monitor.profiles_fused - self._rt_profiles >= FRAME_SET
-                or len(self._states_t) >= STATE_BACKLOG)
+                or len(self._states_t) >= STATE_BACKLOG or bool(self._ops))
 
     def catch_up(self, should_yield: Callable[[], bool] | None = None) -> bool:
         """Run the work ``feed(..., defer=True)`` left: reference updates in slices, then one
@@ -174,12 +182,16 @@ class MonitoringSession:
 
         if self.monitor.profiles_fused - self._rt_profiles >= FRAME_SET:
             upto = self.monitor.last_fused_stamp_s
-            while not self._flush_states(upto_s=upto, max_states=STATE_SLICE):
+            while not self._advance(upto_s=upto, max_states=STATE_SLICE):
                 if stop():
                     return False
             self._realtime()
+        while self._ops and np.isfinite(self._ops[0][0]):
+            self._advance(upto_s=self._ops[0][0], max_states=STATE_SLICE)
+            if stop():
+                return False
         while len(self._states_t) >= STATE_BACKLOG:
-            self._flush_states(max_states=STATE_SLICE)
+            self._advance(max_states=STATE_SLICE)
             if stop():
                 return False
         now = time.perf_counter()
@@ -199,15 +211,33 @@ class MonitoringSession:
     def finish(self) -> list[LayerResult]:
         """Flush everything, close the last layer and end the tracks."""
         if not self._finished:
-            self._flush_states()
+            self._advance()
             t0 = time.perf_counter()
             self.monitor.finish()
             self.timing.fusion_s += time.perf_counter() - t0
+            self._advance()
             if self._worker is not None:
                 self._worker.join()
             self.defects.finish()
             self._finished = True
         return self.results
+
+    def _advance(self, upto_s: float = np.inf, max_states: int | None = None) -> bool:
+        """Integrate the robot states up to ``upto_s``, running the reference steps due on the
+        way in order; with ``max_states`` it returns False after that many states or after one
+        step (call again). True when nothing stamped up to ``upto_s`` is left."""
+        while self._ops and self._ops[0][0] <= upto_s:
+            if not self._flush_states(upto_s=self._ops[0][0], max_states=max_states):
+                return False
+            _, kind, what = self._ops.popleft()
+            if kind == "mark":
+                self.reference.end_layer(what - 1)
+                self.reference.layer = what
+            else:
+                self._take_layer(what)
+            if max_states is not None:
+                return False
+        return self._flush_states(upto_s=upto_s, max_states=max_states)
 
     def _flush_states(self, upto_s: float = np.inf, max_states: int | None = None) -> bool:
         """Integrate the buffered robot states stamped up to ``upto_s`` into the reference
@@ -247,7 +277,7 @@ class MonitoringSession:
         """Compare the active region with the reference as of the newest fused profile."""
         self._rt_profiles = self.monitor.profiles_fused
         stamp = self.monitor.last_fused_stamp_s
-        self._flush_states(upto_s=stamp)
+        self._advance(upto_s=stamp)
         if self._last_T_B_F is None:
             return
         t0 = time.perf_counter()
@@ -279,7 +309,13 @@ class MonitoringSession:
         if self._worker is None and done.surface.vertices_O.shape[0] == 0:
             log.warning("layer %d: no surface was reconstructed; skipped", done.layer)
             return
-        self._flush_states(upto_s=done.stamp_s if np.isfinite(done.stamp_s) else np.inf)
+        self._ops.append((done.stamp_s if np.isfinite(done.stamp_s) else np.inf, "layer", done))
+        if not self._defer_layers:
+            self._advance(upto_s=self._ops[-1][0])
+
+    def _take_layer(self, done: LayerSurface) -> None:
+        """The finished layer's reference (states flushed up to its last profile), then its
+        analysis (here, or queued for the worker)."""
         ref = self.reference.layers.get(done.layer)
         if ref is None:  # no layer marks in the stream: take the reference now
             ref = self.reference.end_layer(done.layer)

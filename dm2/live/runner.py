@@ -17,7 +17,10 @@ inbox is empty, in slices that give way as soon as a message arrives; layer anal
 the session's worker thread. While the loop is caught up, profiles ready for fusion are fused
 at the next message (at the latest one robot state, 4 ms, later); while it is behind, the
 monitor's batch delay lets fusion run in larger, cheaper batches until it has caught up.
-:attr:`LiveRunner.latencies_s` holds socket-arrival to fused per profile,
+:attr:`LiveRunner.latencies_s` holds socket-arrival to fused for every profile fused while the
+stream runs (matched by sensor and stamp, so dropped profiles never count);
+:attr:`LiveRunner.fused_at_end` counts those fused only when the run ended (the last profiles
+of a stream wait for a robot state after their stamp, which never comes),
 :attr:`LiveRunner.busy_s` the time spent handling messages and catching up.
 """
 
@@ -26,7 +29,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections import deque
+from collections import OrderedDict, deque
 from pathlib import Path
 
 from dm2.live.analysis import LayerAnalysis
@@ -39,6 +42,7 @@ log = logging.getLogger(__name__)
 
 RECORDING_NAME = "live.mcap"
 REPORT_DIR = "report"
+MAX_UNFUSED = 4096  # arrival times kept for profiles not fused yet (latency accounting)
 
 
 class LiveRunner:
@@ -89,7 +93,9 @@ class LiveRunner:
             self.analysis.drop_sources.append(lambda: self.recorder.dropped)
         self.sources: list = []
         self.latencies_s: list[float] = []  # socket arrival -> fused, per fused profile
-        self._pending_arrivals: deque = deque(maxlen=4096)  # (stamp_s, arrival_s)
+        self.fused_at_end = 0  # profiles fused only by finish()
+        self._arrivals: OrderedDict = OrderedDict()  # (sensor_id, stamp_s) -> arrival_s
+        self.analysis.monitor.fused_log = deque()
         self.messages_in = 0
         self.busy_s = 0.0  # [s] the loop spent handling messages (vs waiting for them)
         self.max_step_s = 0.0  # [s] longest single message (a layer end, typically)
@@ -151,7 +157,9 @@ class LiveRunner:
             self._deliver(msg)
         elif isinstance(msg, Profile):
             for p in self.aligner.profile(msg, arrival_s):
-                self._pending_arrivals.append((p.stamp_s, arrival_s))
+                self._arrivals[(p.sensor_id, p.stamp_s)] = arrival_s
+                if len(self._arrivals) > MAX_UNFUSED:  # dropped ones are never fused
+                    self._arrivals.popitem(last=False)
                 self._deliver(p)
         elif isinstance(msg, LayerMark):
             self._deliver(msg)
@@ -165,17 +173,17 @@ class LiveRunner:
             except MessageError:
                 self.analysis.extra_dropped["unrecordable_stamp"] += 1
                 return
-        fused_before = self.analysis.monitor.profiles_fused
         self.analysis.feed(msg)
-        if self.analysis.monitor.profiles_fused != fused_before:
+        if self.analysis.monitor.fused_log:
             self._note_fused()
 
     def _note_fused(self) -> None:
-        last = self.analysis.monitor.last_fused_stamp_s
         now = time.monotonic()
-        pend = self._pending_arrivals
-        while pend and pend[0][0] <= last:
-            self.latencies_s.append(now - pend.popleft()[1])
+        log_ = self.analysis.monitor.fused_log
+        while log_:
+            arrival = self._arrivals.pop(log_.popleft(), None)
+            if arrival is not None:
+                self.latencies_s.append(now - arrival)
 
     def run(self, stop: threading.Event | None = None, max_duration_s: float | None = None,
             idle_stop_s: float | None = None) -> dict | None:
@@ -236,8 +244,11 @@ class LiveRunner:
         self.drain()
         for p in self.aligner.flush():
             self._deliver(p)
+        fused = self.analysis.monitor.profiles_fused
         try:
             report = self.analysis.finish()
+            self.fused_at_end = self.analysis.monitor.profiles_fused - fused
+            self.analysis.monitor.fused_log.clear()
         finally:
             if self.recorder is not None:
                 self.recorder.close()
