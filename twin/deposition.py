@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -139,8 +140,16 @@ class SprayModel:
         Optional per-sample ``spray_on (m,)`` bool and factor arrays ``(m,)`` (or scalars).
         Returns the deposited volume per sample (m,) [mm^3].
         """
-        spots = np.asarray(spot_O, dtype=np.float64)
-        axes = np.asarray(axis_O, dtype=np.float64)
+        plan = self.plan_samples(spot_O, axis_O, dt_s, spray_on, feed_factor,
+                                 efficiency_factor, standoff_delta_mm)
+        return self.deposit_plan(hf, plan, 0, plan.lam.size)
+
+    def plan_samples(self, spot_O, axis_O, dt_s: float, spray_on=None, feed_factor=None,
+                     efficiency_factor=None, standoff_delta_mm=None) -> SamplePlan:
+        """The per-sample jet parameters of :meth:`deposit_samples`, worked out once for a
+        whole motion so that :meth:`deposit_plan` can deposit it run by run."""
+        spots = np.ascontiguousarray(spot_O, dtype=np.float64)
+        axes = np.ascontiguousarray(axis_O, dtype=np.float64)
         if spots.ndim != 2 or spots.shape[1] != 3 or axes.shape != spots.shape:
             raise ValueError(f"SprayModel.deposit_samples: spot_O and axis_O must be (m, 3), "
                              f"got {spots.shape} and {axes.shape}")
@@ -156,15 +165,41 @@ class SprayModel:
         lam = np.where(on, p.packets_per_s * ff * dt_s, 0.0).astype(np.float64)
         sigma = np.array([self.sigma_mm(float(d)) for d in sd]) if np.any(sd != 0) else \
             np.full(m, self.sigma_mm(0.0))
-        out = np.zeros(m)
+        return SamplePlan(spots, axes, lam, sigma,
+                          np.ascontiguousarray(p.standoff_mm + sd, dtype=np.float64),
+                          np.ascontiguousarray(p.deposition_efficiency * ef, dtype=np.float64))
+
+    def deposit_plan(self, hf: HeightField, plan: SamplePlan, a: int, b: int) -> np.ndarray:
+        """Deposit samples ``a:b`` of ``plan``; the deposited volume per sample (b - a,)."""
+        out = np.zeros(b - a)
         counts = np.zeros(2, dtype=np.int64)
         DK.spray_samples(hf._h, hf._bmax, hf._zmax, hf._dirty, hf.cell_mm, hf.thickness_mm,
-                         self._state, lam, spots, np.ascontiguousarray(axes), sigma,
-                         np.ascontiguousarray(p.standoff_mm + sd, dtype=np.float64),
-                         self.v_packet_mm3,
-                         np.ascontiguousarray(p.deposition_efficiency * ef, dtype=np.float64),
-                         self._theta_c, max(1, round(NORMAL_STEP_MM / hf.cell_mm)), out, counts)
+                         self._state, plan.lam[a:b], plan.spots_O[a:b], plan.axes_O[a:b],
+                         plan.sigma_mm[a:b], plan.back_mm[a:b], self.v_packet_mm3,
+                         plan.zeta0[a:b], self._theta_c,
+                         max(1, round(NORMAL_STEP_MM / hf.cell_mm)), out, counts)
         self.fed_volume_mm3 += int(counts[0]) * self.v_packet_mm3
         self.deposited_volume_mm3 += float(out.sum())
         self.missed_packets += int(counts[1])
         return out
+
+
+@dataclass(frozen=True)
+class SamplePlan:
+    """Per-sample jet parameters for :meth:`SprayModel.deposit_plan` (made by ``plan_samples``).
+
+    Attributes
+    ----------
+    spots_O, axes_O : (m, 3) float64 [mm] / unit, spray spot and axis in O
+    lam : (m,) float64, expected packets per sample (0 where the spray is off)
+    sigma_mm : (m,) float64 [mm], plume standard deviation
+    back_mm : (m,) float64 [mm], nozzle exit distance behind the spot
+    zeta0 : (m,) float64, normal-impact deposition efficiency (with its fault factor)
+    """
+
+    spots_O: np.ndarray
+    axes_O: np.ndarray
+    lam: np.ndarray
+    sigma_mm: np.ndarray
+    back_mm: np.ndarray
+    zeta0: np.ndarray

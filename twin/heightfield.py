@@ -108,7 +108,7 @@ class HeightField:
         if mirror._h.shape != self._h.shape:
             raise ValueError(f"HeightField.copy_changes_to: mirror shape {mirror._h.shape} "
                              f"differs from {self._h.shape}")
-        j0, j1, i0, i1 = (int(v) for v in self._dirty)
+        j0, j1, i0, i1 = self._dirty.tolist()
         if j0 <= j1 and i0 <= i1:
             mirror._h[j0:j1 + 1, i0:i1 + 1] = self._h[j0:j1 + 1, i0:i1 + 1]
             b = K.BLOCK  # node (k, m) bounds the blocks of patches k..k+1, m..m+1

@@ -23,9 +23,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from dm2.config import NoiseConfig, SensorConfig
-from dm2.frames import invert
 from dm2.messages import COUNTER_MODULO, SENSOR_IDS, Profile
 from twin import profiler_kernels as PK
+from twin.heightfield import HeightField
 
 log = logging.getLogger(__name__)
 
@@ -100,6 +100,8 @@ class VirtualProfiler:
         self._t_min = sensors.z_start_mm / self.dirs_S[:, 2]
         self._t_max = sensors.z_end_mm / self.dirs_S[:, 2]
         self._max_range_mm = float(self._t_max.max())
+        self._dir_x = np.ascontiguousarray(self.dirs_S[:, 0])
+        self._dir_z = np.ascontiguousarray(self.dirs_S[:, 2])
         self._occluder_cache = None
         half = int(np.ceil(3.0 * noise.speckle_length_points))
         kernel = np.exp(-0.5 * (np.arange(-half, half + 1) / noise.speckle_length_points) ** 2)
@@ -113,13 +115,11 @@ class VirtualProfiler:
         :mod:`twin.profiler_kernels`; any other surface object goes through
         :meth:`trace_reference`. Both give the same bits.
         """
-        from twin.heightfield import HeightField
-
         if not isinstance(hf, HeightField):
             return self.trace_reference(hf, T_B_O, occluders)
         occluders = tuple(occluders or ())
         n = self.dirs_S.shape[0]
-        T_O_S = invert(T_B_O) @ self.T_B_S
+        T_O_S = _invert_trusted(T_B_O) @ self.T_B_S
         R_O_S, o_O = T_O_S[:3, :3], T_O_S[:3, 3]
         dirs_O = np.ascontiguousarray(self.dirs_S @ R_O_S.T)
         t_occ = self._laser_occluder_t(occluders) if occluders else self._t_max
@@ -210,7 +210,7 @@ class VirtualProfiler:
                        np.ascontiguousarray(trace.cos_incidence, dtype=np.float64),
                        gauss, speckle, u_drop, u_ghost, ghost_mm, nz.range_sigma_mm,
                        nz.speckle_sigma_mm, nz.outlier_prob, nz.dropout_prob,
-                       self.dirs_S[:, 0].copy(), self.dirs_S[:, 2].copy(), sn.z_start_mm,
+                       self._dir_x, self._dir_z, sn.z_start_mm,
                        sn.z_end_mm, xz, valid, intensity)
         return Profile(self.sensor_id, stamp_s, counter, xz, valid, intensity)
 
@@ -239,6 +239,17 @@ class VirtualProfiler:
         from twin.profiler_reference import _noise
 
         return _noise(self, trace, counter)
+
+
+def _invert_trusted(T_a_b: np.ndarray) -> np.ndarray:
+    """:func:`dm2.frames.invert` of one rigid (4, 4) pose, the same operations without its
+    input check (the scan poses come from the executed motion, already rigid)."""
+    Rt = T_a_b[:3, :3].T
+    out = np.zeros_like(T_a_b)
+    out[:3, :3] = Rt
+    out[:3, 3] = -np.einsum("...ij,...j->...i", Rt, T_a_b[:3, 3])
+    out[3, 3] = 1.0
+    return out
 
 
 def _first_occluder_hit(occluders, origins_B: np.ndarray, dirs_B: np.ndarray) -> np.ndarray:

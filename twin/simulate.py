@@ -139,6 +139,10 @@ class Simulation:
         efficiency = faults.efficiency_factor(layers)
         standoff = faults.standoff_delta_mm(t[:n], layers)
         stamps = t[:n].tolist()
+        spraying = np.asarray(motion.spray_on[:n], dtype=bool)
+        plan = spray.plan_samples(motion.position_O[:n], motion.axis_O[:n], dt,
+                                  spray_on=spraying, feed_factor=feed,
+                                  efficiency_factor=efficiency, standoff_delta_mm=standoff)
         trig_stamps, trig_sensor, trig_counter = (trig_s.tolist(), trig_j.tolist(),
                                                   trig_c.tolist())
         # Each chunk's triggers are scanned on a worker thread, on a mirror of the height field
@@ -159,12 +163,8 @@ class Simulation:
                     if layer_prev >= 0 and truth is not None:
                         truth.layer(hf, layer_prev)
                     faults.apply_blobs(hf, layer)  # a bump or dent appears as its layer starts
-                on = motion.spray_on[a:b]
-                if on.any():
-                    spray.deposit_samples(hf, motion.position_O[a:b], motion.axis_O[a:b], dt,
-                                          spray_on=on, feed_factor=feed[a:b],
-                                          efficiency_factor=efficiency[a:b],
-                                          standoff_delta_mm=standoff[a:b])
+                if spraying[a:b].any():
+                    spray.deposit_plan(hf, plan, a, b)
                 if pending is not None:
                     yield from pending.result()
                     pending = None
