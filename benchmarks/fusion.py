@@ -3,7 +3,10 @@ surface extraction per layer, peak memory, on synthetic profiles over a twisted-
 volume (60 x 60 x 100 mm).
 
 The batched replay (``batch_profiles=REPLAY_BATCH_PROFILES``) is compared in the same process
-with one kernel call per frame set (``batch_profiles=3``, the default for live and sessions).
+with one kernel call per frame set (``batch_profiles=3``, the default for live and sessions), and
+the two-thread TSDF update (``SparseTSDF(threads=2)``, bit-identical) with the one-thread kernel.
+The load average is printed first: on a shared machine the second thread only helps when a
+second core is idle.
 
 Three profilers (640 points each) look at a growing 60 x 60 mm block while the spot rasters over
 its top, which rises 100 mm over the run. Profiles are cast analytically before timing starts.
@@ -14,6 +17,7 @@ Run: ``.venv/bin/python benchmarks/fusion.py [--frames 1200] [--repeats 3]``
 from __future__ import annotations
 
 import argparse
+import os
 import resource
 import statistics
 import sys
@@ -30,7 +34,7 @@ from dm2.config import MonitorConfig, ProcessConfig  # noqa: E402
 from dm2.messages import Profile  # noqa: E402
 from dm2.pipeline import REPLAY_BATCH_PROFILES, Monitor  # noqa: E402
 from dm2.surface import SurfaceExtractor  # noqa: E402
-from dm2.tsdf import SparseTSDF  # noqa: E402
+from dm2.tsdf import MIN_SPLIT_POINTS, SparseTSDF  # noqa: E402
 
 
 def make_stream(frames: int):
@@ -52,10 +56,11 @@ def make_stream(frames: int):
 
 
 def run_once(cal, msgs, measure_latency: bool, batch_profiles: int = REPLAY_BATCH_PROFILES,
-             layer_every: int = 0):
+             layer_every: int = 0, threads: int = 2):
     """One replay; with ``layer_every`` > 0 the surface is extracted every that many profiles
     (like a layer end) and the extraction times are returned instead of latencies."""
     mon = Monitor(cal, MonitorConfig(), ProcessConfig(), batch_profiles=batch_profiles)
+    mon.tsdf.threads = threads
     lat, acc = [], 0.0
     t0 = time.perf_counter()
     if measure_latency:
@@ -107,6 +112,8 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=1200, help="frame sets (3 profiles each)")
     ap.add_argument("--repeats", type=int, default=3)
     args = ap.parse_args()
+    load = " ".join(f"{x:.2f}" for x in os.getloadavg())
+    print(f"load average (1, 5, 15 min): {load} on {os.cpu_count()} cores")
     t = time.perf_counter()
     cal, msgs = make_stream(args.frames)
     n_prof = sum(isinstance(m, Profile) for m in msgs)
@@ -115,18 +122,19 @@ def main() -> None:
     run_once(cal, msgs[:2000], False)  # JIT warm-up
     run_once(cal, msgs[:2000], False, batch_profiles=3)
 
-    rates = {REPLAY_BATCH_PROFILES: [], 3: []}
+    runs = {(REPLAY_BATCH_PROFILES, 2): [], (REPLAY_BATCH_PROFILES, 1): [], (3, 2): []}
     mon = None
     for _ in range(args.repeats):
-        for bp in rates:  # interleaved, so both see the same machine load
-            mon, elapsed, _ = run_once(cal, msgs, False, batch_profiles=bp)
-            rates[bp].append(mon.points_fused / elapsed)
-    new, old = (statistics.median(rates[bp]) for bp in (REPLAY_BATCH_PROFILES, 3))
+        for bp, th in runs:  # interleaved, so all see the same machine load
+            mon, elapsed, _ = run_once(cal, msgs, False, batch_profiles=bp, threads=th)
+            runs[bp, th].append(mon.points_fused / elapsed)
+    new, one, old = (statistics.median(v) for v in runs.values())
     print(f"end-to-end fusion (sync + registration + TSDF), median of {args.repeats}: "
-          f"{new / 1e6:.2f} M points/s batched (batch_profiles={REPLAY_BATCH_PROFILES}); "
-          f"{old / 1e6:.2f} M points/s one frame set per call (batch_profiles=3); ratio "
-          f"{new / old:.2f}x ({mon.points_fused} points, {mon.tsdf.n_blocks} blocks, "
-          f"voxel {mon.cfg.voxel_mm} mm)")
+          f"{new / 1e6:.2f} M points/s batched (batch_profiles={REPLAY_BATCH_PROFILES}, "
+          f"2 threads); {one / 1e6:.2f} M points/s batched with the 1-thread kernel (ratio "
+          f"{new / one:.2f}x); {old / 1e6:.2f} M points/s one frame set per call "
+          f"(batch_profiles=3, serial below {MIN_SPLIT_POINTS} points; ratio {new / old:.2f}x) "
+          f"({mon.points_fused} points, {mon.tsdf.n_blocks} blocks, voxel {mon.cfg.voxel_mm} mm)")
 
     _, _, lat = run_once(cal, msgs, True, batch_profiles=3)
     lat_ms = np.array(lat) * 1e3
@@ -151,21 +159,26 @@ def main() -> None:
     n = 400_000
     pts = np.column_stack([rng.uniform(30, 90, n), rng.uniform(30, 90, n), np.full(n, 50.0)])
     org = pts + np.array([0.0, -54.5, 77.8])
-    tsdf = SparseTSDF(0.5, 1.5, 8.0)
-    tsdf.integrate(org, pts)
-    kt = []
-    for _ in range(args.repeats):
-        s = time.perf_counter()
+    kts = {2: [], 1: []}
+    fields = {th: SparseTSDF(0.5, 1.5, 8.0, threads=th) for th in kts}
+    for tsdf in fields.values():
         tsdf.integrate(org, pts)
-        kt.append(time.perf_counter() - s)
+    for _ in range(args.repeats):
+        for th, tsdf in fields.items():
+            s = time.perf_counter()
+            tsdf.integrate(org, pts)
+            kts[th].append(time.perf_counter() - s)
+    kt, kt1 = kts[2], kts[1]
     bt = []
     for _ in range(args.repeats):
         s = time.perf_counter()
         numpy_baseline(org, pts, 0.5, 1.5)
         bt.append(time.perf_counter() - s)
     k_rate, b_rate = n / statistics.median(kt), n / statistics.median(bt)
-    print(f"TSDF kernel alone: {k_rate / 1e6:.2f} M points/s; numpy scatter baseline "
-          f"{b_rate / 1e6:.2f} M points/s; ratio {k_rate / b_rate:.1f}x")
+    k1_rate = n / statistics.median(kt1)
+    print(f"TSDF kernel alone: {k_rate / 1e6:.2f} M points/s with 2 threads, "
+          f"{k1_rate / 1e6:.2f} M points/s with 1 (ratio {k_rate / k1_rate:.2f}x); numpy "
+          f"scatter baseline {b_rate / 1e6:.2f} M points/s; ratio {k_rate / b_rate:.1f}x")
 
     tracemalloc.start()
     mon, _, _ = run_once(cal, msgs, False)

@@ -51,7 +51,7 @@ _NO_BOUNDS = np.zeros(3)
 # Batches with fewer points are fused by the serial kernel (thread hand-off would dominate).
 MIN_SPLIT_POINTS = 4096
 # Block columns of 2**COL_SHIFT blocks are dealt to the two threads as a checkerboard in x, y.
-COL_SHIFT = 1
+COL_SHIFT = 2
 _POOL: ThreadPoolExecutor | None = None
 
 
