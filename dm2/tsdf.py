@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import logging
 import os
+import time
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -93,6 +94,8 @@ class SparseTSDF:
         if threads not in (1, 2):
             raise ValueError(f"SparseTSDF.threads: 1 or 2, got {threads}")
         self.threads = int(threads)
+        # CPU seconds of the two-thread path so far: serial plan, thread 0, thread 1
+        self.split_cpu_s = np.zeros(3)
         self._ray_f = np.empty((0, 7))
         self._ray_flags = np.empty(0, dtype=np.uint8)
         cap = max(64, int(initial_blocks))
@@ -224,6 +227,7 @@ class SparseTSDF:
             self._ray_f = np.empty((n, 7))
             self._ray_flags = np.empty(n, dtype=np.uint8)
         ray_f, flags = self._ray_f[:n], self._ray_flags[:n]
+        c0 = time.thread_time()
         start = 0
         while start < n:
             start = SK.plan_rays(register, o, p, a, xz, off, T, spot, axis, r2, lo, hi,
@@ -234,8 +238,12 @@ class SparseTSDF:
                 self._grow()
         args = (COL_SHIFT, ray_f, flags, self.voxel_mm, self.truncation_mm, self.weight_cap,
                 MAX_WEIGHT, self._table_keys, self._table_slots, self.voxels, self.touched)
-        other = _pool().submit(SK.update_rays, 1, *args)
-        missing = SK.update_rays(0, *args) + other.result()
+        c1 = time.thread_time()
+        other = _pool().submit(_timed_update, 1, args)
+        missing0, cpu0 = _timed_update(0, args)
+        missing1, cpu1 = other.result()
+        self.split_cpu_s += (c1 - c0, cpu0, cpu1)
+        missing = missing0 + missing1
         if missing:
             raise RuntimeError(f"SparseTSDF: {missing} voxel visits found no block "
                                "(the allocation plan missed a block)")
@@ -278,6 +286,13 @@ class SparseTSDF:
             dd, ww = self.dense(vi, (1, 1, 1))
             d[i], w[i] = dd[0, 0, 0], ww[0, 0, 0]
         return d, w
+
+
+def _timed_update(tid: int, args: tuple) -> tuple[int, float]:
+    """``update_rays`` of thread ``tid`` and the CPU seconds it took on its thread."""
+    c = time.thread_time()
+    missing = SK.update_rays(tid, *args)
+    return missing, time.thread_time() - c
 
 
 def _pow2_at_least(n: int) -> int:
