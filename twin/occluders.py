@@ -54,41 +54,73 @@ class CylinderOccluder:
         _cylinder_hit_t(o, d, float(self.radius_mm**2), float(self.length_mm), out)
         return out
 
+    def blocks(self, T_B_X: np.ndarray, starts_X: np.ndarray, dirs_X: np.ndarray,
+               reach_mm: np.ndarray, out: np.ndarray) -> None:
+        """Mark ``out (n,)`` True where a unit ray ``(n, 3)`` given in frame X (posed by
+        ``T_B_X``) enters the cylinder within ``reach_mm (n,)``; already True stays True.
+
+        The same test as ``hit_t(...) < reach_mm`` in one pass, without the intermediate
+        arrays (last-bit differences of the entry distance could only matter for a ray that
+        meets the cylinder exactly at its reach).
+        """
+        cylinder_blocks(np.ascontiguousarray(self._T_C_B @ T_B_X), float(self.radius_mm**2),
+                        float(self.length_mm), starts_X, dirs_X, reach_mm, out)
+
+
+@njit(cache=True)
+def _cylinder_entry(ox, oy, oz, dx, dy, dz, r2, length):
+    """Entry distance of the ray ``o + t d`` (in the cylinder frame) into the solid cylinder
+    ``x^2 + y^2 <= r2, 0 <= z <= length``; inf on a miss, 0 for a ray starting inside."""
+    t_enter = 0.0
+    t_exit = np.inf
+    # slab along the axis
+    if abs(dz) > _EPS:
+        t0 = (0.0 - oz) / dz
+        t1 = (length - oz) / dz
+        t_enter = max(t_enter, min(t0, t1))
+        t_exit = min(t_exit, max(t0, t1))
+    elif oz < 0.0 or oz > length:
+        return np.inf
+    # infinite circular cylinder x^2 + y^2 = r^2
+    a = dx * dx + dy * dy
+    b = 2.0 * (ox * dx + oy * dy)
+    c = ox * ox + oy * oy - r2
+    if a > _EPS:
+        disc = b * b - 4.0 * a * c
+        if disc < 0.0:
+            return np.inf
+        sq = np.sqrt(disc)
+        t_enter = max(t_enter, (-b - sq) / (2.0 * a))
+        t_exit = min(t_exit, (-b + sq) / (2.0 * a))
+    elif c > 0.0:
+        return np.inf
+    return t_enter if t_enter <= t_exit else np.inf
+
 
 @njit(cache=True, nogil=True)
 def _cylinder_hit_t(o, d, r2, length, out):
-    """Entry distance of rays ``o + t d`` (in the cylinder frame) into the solid cylinder
-    ``x^2 + y^2 <= r2, 0 <= z <= length``; inf on a miss, 0 for rays starting inside."""
+    """:func:`_cylinder_entry` for rays ``o (n, 3)``, ``d (n, 3)`` in the cylinder frame."""
     for k in range(o.shape[0]):
-        ox, oy, oz = o[k, 0], o[k, 1], o[k, 2]
-        dx, dy, dz = d[k, 0], d[k, 1], d[k, 2]
-        t_enter = 0.0
-        t_exit = np.inf
-        # slab along the axis
-        if abs(dz) > _EPS:
-            t0 = (0.0 - oz) / dz
-            t1 = (length - oz) / dz
-            t_enter = max(t_enter, min(t0, t1))
-            t_exit = min(t_exit, max(t0, t1))
-        elif oz < 0.0 or oz > length:
-            out[k] = np.inf
+        out[k] = _cylinder_entry(o[k, 0], o[k, 1], o[k, 2], d[k, 0], d[k, 1], d[k, 2], r2,
+                                 length)
+
+
+@njit(cache=True, nogil=True)
+def cylinder_blocks(T_C_X, r2, length, starts_X, dirs_X, reach, out):
+    """Set ``out[k] = True`` where the ray ``starts_X[k] + t dirs_X[k]`` (frame X, posed by
+    ``T_C_X (4, 4)`` in the cylinder frame) enters the cylinder before ``reach[k]`` [mm]."""
+    for k in range(starts_X.shape[0]):
+        if out[k]:
             continue
-        # infinite circular cylinder x^2 + y^2 = r^2
-        a = dx * dx + dy * dy
-        b = 2.0 * (ox * dx + oy * dy)
-        c = ox * ox + oy * oy - r2
-        if a > _EPS:
-            disc = b * b - 4.0 * a * c
-            if disc < 0.0:
-                out[k] = np.inf
-                continue
-            sq = np.sqrt(disc)
-            t_enter = max(t_enter, (-b - sq) / (2.0 * a))
-            t_exit = min(t_exit, (-b + sq) / (2.0 * a))
-        elif c > 0.0:
-            out[k] = np.inf
-            continue
-        out[k] = t_enter if t_enter <= t_exit else np.inf
+        sx, sy, sz = starts_X[k, 0], starts_X[k, 1], starts_X[k, 2]
+        dx, dy, dz = dirs_X[k, 0], dirs_X[k, 1], dirs_X[k, 2]
+        ox = T_C_X[0, 0] * sx + T_C_X[0, 1] * sy + T_C_X[0, 2] * sz + T_C_X[0, 3]
+        oy = T_C_X[1, 0] * sx + T_C_X[1, 1] * sy + T_C_X[1, 2] * sz + T_C_X[1, 3]
+        oz = T_C_X[2, 0] * sx + T_C_X[2, 1] * sy + T_C_X[2, 2] * sz + T_C_X[2, 3]
+        ex = T_C_X[0, 0] * dx + T_C_X[0, 1] * dy + T_C_X[0, 2] * dz
+        ey = T_C_X[1, 0] * dx + T_C_X[1, 1] * dy + T_C_X[1, 2] * dz
+        ez = T_C_X[2, 0] * dx + T_C_X[2, 1] * dy + T_C_X[2, 2] * dz
+        out[k] = _cylinder_entry(ox, oy, oz, ex, ey, ez, r2, length) < reach[k]
 
 
 def nozzle_occluder(T_B_N: np.ndarray, cell: CellConfig) -> CylinderOccluder:

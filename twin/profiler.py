@@ -146,9 +146,14 @@ class VirtualProfiler:
             out[~facing] = BACK_FACING
             out[facing & (t_cam < remaining)] = CAMERA_SHADOW
             if occluders:
-                starts_B = starts @ T_B_O[:3, :3].T + T_B_O[:3, 3]
-                u_B = u @ T_B_O[:3, :3].T
-                blocked = _first_occluder_hit(occluders, starts_B, u_B) < remaining
+                if all(hasattr(o, "blocks") for o in occluders):  # one pass each, in O
+                    blocked = np.zeros(n_cand, dtype=bool)
+                    for occ in occluders:
+                        occ.blocks(T_B_O, starts, u, remaining, blocked)
+                else:
+                    starts_B = starts @ T_B_O[:3, :3].T + T_B_O[:3, 3]
+                    u_B = u @ T_B_O[:3, :3].T
+                    blocked = _first_occluder_hit(occluders, starts_B, u_B) < remaining
                 out[(out == VALID) & blocked] = CAMERA_BLOCKED
             reason[cand] = out
         reason[(reason == VALID) & (cos_inc < self.noise.min_intensity)] = TOO_DARK
