@@ -47,9 +47,9 @@ from dm2.defects import DefectMonitor, LayerResult
 from dm2.layer_worker import LayerWorker
 from dm2.messages import Calibration, LayerMark, RobotState, Toolpath
 from dm2.pipeline import LayerSurface, Monitor
-from dm2.progress import ToolpathProgress
 from dm2.realtime import RealtimeDeviation
 from dm2.reference import NearNetReference
+from dm2.reference_feed import ReferenceFeed
 
 log = logging.getLogger(__name__)
 
@@ -105,15 +105,10 @@ class MonitoringSession:
         self.monitor = Monitor(calibration, monitor_cfg, process, toolpath=toolpath,
                                on_layer_done=self._layer_done, defer_meshing=analysis_thread)
         self.timing = SessionTiming()
-        self._states_t: list[float] = []
-        self._states_T: list[np.ndarray] = []
-        self._last_state_s = -np.inf
-        self._last_T_B_F: np.ndarray | None = None
+        self.states = ReferenceFeed(self.reference, toolpath)
         self.realtime = RealtimeDeviation(monitor_cfg, size_mm=tuple(plate_size_mm[:2]))
         self._rt_profiles = 0
         self._rt_latency_s: list[float] = []
-        self.progress = ToolpathProgress(toolpath) if toolpath is not None else None
-        self._nominal_s = 0.0
         self._finished = False
         self._last_premesh = 0.0
         # reference steps due at a stamp, in stream order: ("mark", layer) ends the reference
@@ -147,8 +142,7 @@ class MonitoringSession:
         """
         self.timing.messages += 1
         if isinstance(msg, RobotState):
-            self._states_t.append(msg.stamp_s)
-            self._states_T.append(msg.T_B_F)
+            self.states.push(msg.stamp_s, msg.T_B_F)
         elif isinstance(msg, LayerMark) and msg.layer > self._marked_layer:
             self._marked_layer = msg.layer
             self._ops.append((msg.stamp_s, "mark", msg.layer))
@@ -161,14 +155,14 @@ class MonitoringSession:
             return
         if self.monitor.profiles_fused - self._rt_profiles >= FRAME_SET:
             self._realtime()
-        elif len(self._states_t) >= STATE_BACKLOG:  # a stream of poses without profiles
+        elif len(self.states) >= STATE_BACKLOG:  # a stream of poses without profiles
             self._advance()
 
     @property
     def behind(self) -> bool:
         """True while a deferred comparison or a backlog of robot states waits."""
         return (self.monitor.profiles_fused - self._rt_profiles >= FRAME_SET
-                or len(self._states_t) >= STATE_BACKLOG or bool(self._ops))
+                or len(self.states) >= STATE_BACKLOG or bool(self._ops))
 
     def catch_up(self, should_yield: Callable[[], bool] | None = None) -> bool:
         """Run the work ``feed(..., defer=True)`` left: reference updates in slices, then one
@@ -190,7 +184,7 @@ class MonitoringSession:
             self._advance(upto_s=self._ops[0][0], max_states=STATE_SLICE)
             if stop():
                 return False
-        while len(self._states_t) >= STATE_BACKLOG:
+        while len(self.states) >= STATE_BACKLOG:
             self._advance(max_states=STATE_SLICE)
             if stop():
                 return False
@@ -240,48 +234,20 @@ class MonitoringSession:
         return self._flush_states(upto_s=upto_s, max_states=max_states)
 
     def _flush_states(self, upto_s: float = np.inf, max_states: int | None = None) -> bool:
-        """Integrate the buffered robot states stamped up to ``upto_s`` into the reference
-        (at most ``max_states`` of them); True when none stamped up to ``upto_s`` is left."""
-        if not self._states_t:
-            return True
         t0 = time.perf_counter()
-        stamps = np.asarray(self._states_t)
-        order = np.argsort(stamps, kind="stable")
-        stamps = stamps[order]
-        n_due = int(np.searchsorted(stamps, upto_s, side="right"))
-        n = n_due if max_states is None else min(n_due, int(max_states))
-        if n == 0:
-            return True
-        poses = np.stack([self._states_T[i] for i in order[:n]])
-        rest = order[n:]
-        self._states_t = [self._states_t[i] for i in rest]
-        self._states_T = [self._states_T[i] for i in rest]
-        stamps = stamps[:n]
-        # late or duplicated states cannot rewind the reference
-        keep = np.concatenate([[True], np.diff(stamps) > 0]) & (stamps > self._last_state_s)
-        if np.any(keep):
-            stamps, poses = stamps[keep], poses[keep]
-            self._last_state_s = float(stamps[-1])
-            self._last_T_B_F = poses[-1]
-            if self.progress is not None:  # programmed timing along the executed path
-                spots, _ = self.reference.spot_O(poses)
-                # summed one state after the other: the same clock however states are sliced
-                stamps = np.cumsum(np.concatenate([[self._nominal_s],
-                                                   self.progress.advance(spots)]))[1:]
-                self._nominal_s = float(stamps[-1])
-            self.reference.add_states(stamps, poses)
+        done = self.states.flush(upto_s, max_states)
         self.timing.reference_s += time.perf_counter() - t0
-        return n == n_due
+        return done
 
     def _realtime(self) -> None:
         """Compare the active region with the reference as of the newest fused profile."""
         self._rt_profiles = self.monitor.profiles_fused
         stamp = self.monitor.last_fused_stamp_s
         self._advance(upto_s=stamp)
-        if self._last_T_B_F is None:
+        if self.states.last_T_B_F is None:
             return
         t0 = time.perf_counter()
-        spot_O, _ = self.reference.spot_O(self._last_T_B_F)
+        spot_O, _ = self.reference.spot_O(self.states.last_T_B_F)
         frame = self.realtime.update_from_tsdf(self.monitor.tsdf, spot_O, stamp,
                                                self.reference)
         for alarm in frame.alarms:
