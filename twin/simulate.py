@@ -106,7 +106,7 @@ class Simulation:
                  *, scan_thread: bool = True) -> Iterator[Profile | RobotState | LayerMark]:
         """The message stream in stamp order (deterministic for the scenario's seed).
 
-        ``scan_thread`` scans on a worker thread while the next chunk deposits (the same
+        ``scan_thread`` deposits on a worker thread while this one scans and yields (the same
         messages either way, bit for bit; False keeps everything on the calling thread).
         """
         from twin.deposition import SprayModel
@@ -145,30 +145,35 @@ class Simulation:
                                   efficiency_factor=efficiency, standoff_delta_mm=standoff)
         trig_stamps, trig_sensor, trig_counter = (trig_s.tolist(), trig_j.tolist(),
                                                   trig_c.tolist())
-        # Each chunk's triggers are scanned on a worker thread, on a mirror of the height field
-        # synced (changed cells only) at their stamps, while this thread grows the true field
-        # with the next chunk and yields its robot states; the profiles are yielded before
-        # them, so the stream keeps its order and its bits (the kernels release the GIL).
+        # The true field grows on a worker thread (one GIL-free kernel call per chunk) while
+        # this thread yields the chunk's robot states and then scans a mirror of the field
+        # synced (changed cells only) at the chunk's triggers, with the next chunk's
+        # deposition already under way: same order, same bits as one thread.
         mirror = hf.copy()
-        pool = (ThreadPoolExecutor(max_workers=1, thread_name_prefix="twin-scan")
+        pool = (ThreadPoolExecutor(max_workers=1, thread_name_prefix="twin-spray")
                 if scan_thread else _InlinePool())
-        pending = None  # scans of the previous chunk's triggers
+        chunks = list(_chunks(t[:n], layers, trig_s))
+        grown = [-1]  # the layer whose blobs the field holds
+
+        def start(c: int):
+            """Ready the field for chunk ``c`` (truth, blobs) and start its deposition."""
+            a, b = chunks[c]
+            layer = int(layers[a])
+            if layer != grown[0]:
+                if grown[0] >= 0 and truth is not None:
+                    truth.layer(hf, grown[0])
+                faults.apply_blobs(hf, layer)  # a bump or dent appears as its layer starts
+                grown[0] = layer
+            return pool.submit(spray.deposit_plan, hf, plan, a, b) if spraying[a:b].any() \
+                else None
+
         k = 0  # next trigger
         layer_prev = -1
         try:
-            for a, b in _chunks(t[:n], layers, trig_s):
+            growing = start(0) if chunks else None
+            for c, (a, b) in enumerate(chunks):
                 layer = int(layers[a])
-                new_layer = layer != layer_prev
-                if new_layer:
-                    if layer_prev >= 0 and truth is not None:
-                        truth.layer(hf, layer_prev)
-                    faults.apply_blobs(hf, layer)  # a bump or dent appears as its layer starts
-                if spraying[a:b].any():
-                    spray.deposit_plan(hf, plan, a, b)
-                if pending is not None:
-                    yield from pending.result()
-                    pending = None
-                if new_layer:
+                if layer != layer_prev:
                     yield LayerMark(stamps[a], layer)
                     layer_prev = layer
                 # the executed motion holds finite float64 joints and rigid flange poses, so
@@ -182,23 +187,25 @@ class Simulation:
                     yield RobotState.trusted(stamps[i], i, joints[i - a], T_B_F[i - a])
                     if progress is not None and (i % 250 == 0 or i == n - 1):
                         progress(stamps[i], self.end_s)
+                if growing is not None:
+                    growing.result()
                 t_next = stamps[b] if b < n else np.inf
                 k_end = k
                 while k_end < len(trig_stamps) and trig_stamps[k_end] < t_next:
                     k_end += 1
                 if k_end > k:
                     hf.copy_changes_to(mirror)
-                    jobs = [(profilers[trig_sensor[q]], trig_T_B_O[q], trig_stamps[q],
-                             trig_counter[q]) for q in range(k, k_end)]
-                    pending = pool.submit(_scan_all, mirror, jobs, occluders)
-                    k = k_end
-            if pending is not None:
-                yield from pending.result()
-                pending = None
+                growing = start(c + 1) if c + 1 < len(chunks) else None
+                for q in range(k, k_end):
+                    yield profilers[trig_sensor[q]].scan(mirror, trig_T_B_O[q], trig_stamps[q],
+                                                         trig_counter[q], occluders)
+                k = k_end
+            if growing is not None:
+                growing.result()
         finally:
             pool.shutdown(wait=True, cancel_futures=True)
-        if layer_prev >= 0 and truth is not None:  # (if stopped early: as it stands)
-            truth.layer(hf, layer_prev)
+        if grown[0] >= 0 and truth is not None:  # (if stopped early: as it stands)
+            truth.layer(hf, grown[0])
         if truth is not None and n:
             truth.finish(int(motion.segment[n - 1]))
         self.final_heightfield = hf
@@ -267,12 +274,6 @@ class _InlinePool:
 
     def shutdown(self, wait: bool = True, cancel_futures: bool = False) -> None:
         pass
-
-
-def _scan_all(hf, jobs, occluders) -> list[Profile]:
-    """The profiles of ``jobs`` ((profiler, T_B_O, stamp_s, counter) each) on ``hf``."""
-    return [prof.scan(hf, T_B_O, stamp, counter, occluders)
-            for prof, T_B_O, stamp, counter in jobs]
 
 
 def _chunks(t_s: np.ndarray, layer: np.ndarray, trig_s: np.ndarray):
