@@ -3,8 +3,9 @@
 Runs the default seven-sided scenario for its first ``--process-s`` seconds with all three
 profilers, deposition and robot states and prints the median rate over ``--runs`` runs of:
 
-- stream: consuming ``Simulation.messages`` (what ``dm2 run`` does in process): scans on a
-  worker thread over a mirror of the height field while the next chunk deposits,
+- stream: consuming ``Simulation.messages`` (what ``dm2 run`` does in process): the deposition
+  runs on a worker thread while the calling thread yields states and scans a mirror of the
+  height field (it gains only where the machine has a core to spare),
 - one thread: the same stream with ``scan_thread=False`` (everything on the calling thread),
 - per-sample baseline: the same stream from the plain per-sample loop measured in the same
   process (one deposition call, one validated robot state per 250 Hz motion sample, and the
