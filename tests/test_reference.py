@@ -47,8 +47,8 @@ def test_spot_in_O_recovers_the_toolpath_point():
 @pytest.mark.parametrize("sigma,v,rate", [(None, 30.0, 250.0), (1.5, 12.0, 250.0),
                                           (3.0, 50.0, 20.0)])
 def test_straight_pass_matches_analytic_gaussian_integral(sigma, v, rate):
-    proc = ProcessConfig(plume_sigma_mm=sigma)
-    ref = NearNetReference(proc, MonitorConfig(), CAL, cell_mm=0.25)
+    proc = ProcessConfig(plume_sigma_mm=sigma)  # the flat-plate closed form: angle from +z
+    ref = NearNetReference(proc, MonitorConfig(), CAL, cell_mm=0.25, angle_from_surface=False)
     ts, T = straight_pass(proc, v=v, rate_hz=rate)
     ref.add_states(ts, T)
     s = plume_sigma_mm(proc)
@@ -68,15 +68,14 @@ def test_default_sigma_formula_and_efficiency_falloff():
     r = 6.55 / 2 + 30.0 * math.tan(math.radians(5.0))
     assert plume_sigma_mm(proc) == pytest.approx(r / 2) == pytest.approx(2.95, abs=0.01)
     z = deposition_efficiency(np.radians([0.0, 35.0, 75.0, 80.0]), proc)
-    c = math.cos(math.radians(75.0))
     assert z[0] == pytest.approx(0.5)
-    assert z[1] == pytest.approx(0.5 * (math.cos(math.radians(35)) - c) / (1 - c))
+    assert z[1] == pytest.approx(0.5 * math.cos(0.5 * math.pi * (35 / 75) ** 2) ** 2)
     assert z[2] == pytest.approx(0.0, abs=1e-12) and z[3] == 0.0
 
 
 def test_tilted_edge_spray_deposits_zeta_of_its_angle():
     proc = ProcessConfig()
-    ref = NearNetReference(proc, MonitorConfig(), CAL)
+    ref = NearNetReference(proc, MonitorConfig(), CAL, angle_from_surface=False)
     alpha = math.radians(35.0)
     ts, T = straight_pass(proc, axis=np.array([0.0, math.sin(alpha), -math.cos(alpha)]))
     ref.add_states(ts, T)
@@ -151,3 +150,45 @@ def test_layers_split_by_toolpath_without_marks():
     assert layer0.height_at([[60.0, 40.0]])[0] == pytest.approx(peak, rel=0.02)
     assert layer0.height_at([[60.0, 80.0]])[0] < 1e-6
     assert ref.snapshot().height_at([[60.0, 80.0]])[0] == pytest.approx(peak, rel=0.02)
+
+
+def test_tilted_spray_lands_where_its_axis_meets_a_lagging_surface():
+    """A 35 degree edge spray programmed 2 mm above a flat surface lands 2 tan(35) further out."""
+    proc = ProcessConfig()
+    alpha = math.radians(35.0)
+    axis = np.array([0.0, math.sin(alpha), -math.cos(alpha)])
+    ref = NearNetReference(proc, MonitorConfig(), CAL, angle_from_surface=False)
+    ts = np.arange(0.0, 100.0 / 30.0 + 1e-9, 1 / 250)
+    pts = np.column_stack([10.0 + 30.0 * ts, np.full_like(ts, 60.125), np.full_like(ts, 2.0)])
+    ref.add_states(ts, flange_poses(pts, np.tile(axis, (len(ts), 1))))
+    ridge = ref.snapshot().heights_mm[:, 240]
+    y = (np.arange(len(ridge)) + 0.5) * ref.cell_mm
+    centre = float((ridge * y).sum() / ridge.sum())
+    assert centre == pytest.approx(60.125 + 2.0 * math.tan(alpha), abs=0.05)
+    # the same spray onto a surface 2 mm higher than programmed lands 2 tan(35) short of it
+    ref = NearNetReference(proc, MonitorConfig(), CAL, angle_from_surface=False)
+    ref.heights_mm[:] = 2.0
+    pts[:, 2] = 0.0
+    ref.add_states(ts, flange_poses(pts, np.tile(axis, (len(ts), 1))))
+    ridge = ref.snapshot().heights_mm[:, 240] - 2.0
+    centre = float((ridge * y).sum() / ridge.sum())
+    assert centre == pytest.approx(60.125 - 2.0 * math.tan(alpha), abs=0.05)
+
+
+def test_each_footprint_cell_sticks_at_its_own_spray_angle():
+    """A vertical spray centred on the edge of a 50 degree flank: half the powder meets the
+    flat top (zeta(0)), half the flank (zeta(50 deg)); the footprint's centre slope is no
+    stand-in for either."""
+    proc = ProcessConfig()
+    slope = math.radians(50.0)
+    ref = NearNetReference(proc, MonitorConfig(), CAL)
+    x = (np.arange(ref.heights_mm.shape[1]) + 0.5) * ref.cell_mm
+    ref.heights_mm[:] = (40.0 - math.tan(slope) * np.clip(x - 60.0, 0.0, None))[None, :]
+    before = ref.heights_mm.sum()
+    ts = np.arange(0.0, 40.0 / 30.0 + 1e-9, 1 / 250)
+    pts = np.column_stack([np.full_like(ts, 60.0), 40.0 + 30.0 * ts, np.full_like(ts, 40.0)])
+    ref.add_states(ts, flange_poses(pts))
+    zeta = 0.5 * (deposition_efficiency(0.0, proc) + deposition_efficiency(slope, proc))
+    expected = volume_rate_mm3_s(proc) * zeta * ts[-1]
+    assert ref.deposited_mm3 == pytest.approx(expected, rel=0.02)
+    assert (ref.heights_mm.sum() - before) * ref.cell_mm ** 2 == pytest.approx(expected, rel=0.02)
