@@ -56,6 +56,7 @@ PLUME_HALF_ANGLE_DEG = 5.0  # used when the process config has no plume_half_ang
 FOOTPRINT_SIGMAS = 4.0  # footprint truncated at 4 sigma (0.03 % of the mass is left out)
 SLOPE_PROBE_MM = 0.5  # half span of the central difference giving the local surface normal
 MAX_INTEGRATION_GAP_S = 1.0  # longer gaps between robot states are not integrated
+MAX_PIECE_S = 0.1  # a dwell deposits at least every 0.1 s (pieces are sigma / 4 long)
 
 
 def plume_sigma_mm(process) -> float:
@@ -114,15 +115,16 @@ class NearNetReference:
         self._spot_B = T_B_N[:3, :3] @ np.array([0.0, 0.0, process.standoff_mm]) + T_B_N[:3, 3]
         self._axis_B = T_B_N[:3, 2].copy()
         self._T_F_O = np.ascontiguousarray(calibration.T_F_O, dtype=np.float64)
-        self._last = np.zeros(8)  # (valid, stamp, spot_O, axis_O) of the newest state
+        self._last = np.zeros(16)  # newest state and the pending piece (reference_kernels)
         self._zmax = np.zeros(1)
+        self._lut = RK.efficiency_table(process.deposition_efficiency, self._theta_c)
+        self._deposited_mm3 = 0.0
         self._buf_spot = np.empty((64, 3))
         self._buf_axis = np.empty((64, 3))
         side = 2.0 * FOOTPRINT_SIGMAS * self.sigma_mm / 0.2 / self.cell_mm + 3
         self._scratch = np.empty(int(min(side, nx + 1) * min(side, ny + 1)))
         self.stamp_s = 0.0
         self.layers: dict[int, ReferenceMap] = {}
-        self.deposited_mm3 = 0.0
         self.gaps_skipped = 0
         self.angle_from_surface = bool(angle_from_surface)
         self._layer_tracker = LayerTracker(toolpath)
@@ -187,16 +189,35 @@ class NearNetReference:
             self.heights_mm, self.cell_mm, stamps, T, on, self._T_F_O, self._spot_B,
             self._axis_B, self._last, self._buf_spot, self._buf_axis, self.v_dot_mm3_s,
             self.process.deposition_efficiency, self._theta_c, self.sigma_mm, FOOTPRINT_SIGMAS,
-            self._slope_cells, self.process.standoff_mm, MAX_INTEGRATION_GAP_S, self._zmax,
-            self._scratch)
+            self._slope_cells, self.process.standoff_mm, MAX_INTEGRATION_GAP_S, MAX_PIECE_S,
+            self._zmax, self._scratch, self._lut)
         self.stamp_s = float(stamps[-1])
         self.gaps_skipped += int(gaps)
-        self.deposited_mm3 += vol
+        self._deposited_mm3 += vol
         return float(vol)
+
+    def _with_pending(self) -> tuple[np.ndarray, float]:
+        """A copy of the map with the pending piece deposited, and that piece's volume.
+
+        The live map (``heights_mm``) lags the newest state by at most one piece (sigma / 4
+        of travel); snapshots include it without touching the live map, so the reference
+        does not depend on when they are taken.
+        """
+        h = self.heights_mm.copy()
+        vol = RK.flush_pending(h, self.cell_mm, self._last.copy(), self.v_dot_mm3_s,
+                               self.process.deposition_efficiency, self._theta_c, self.sigma_mm,
+                               FOOTPRINT_SIGMAS, self._slope_cells, self.process.standoff_mm,
+                               self._zmax.copy(), self._scratch, self._lut)
+        return h, float(vol)
+
+    @property
+    def deposited_mm3(self) -> float:
+        """Volume deposited up to the newest robot state [mm^3]."""
+        return self._deposited_mm3 + self._with_pending()[1]
 
     def snapshot(self, layer: int | None = None) -> ReferenceMap:
         """The reference as of the last robot state (any time, not only at layer ends)."""
-        return ReferenceMap(self.heights_mm.copy(), self.cell_mm,
+        return ReferenceMap(self._with_pending()[0], self.cell_mm,
                             self.layer if layer is None else layer, self.stamp_s)
 
     def end_layer(self, layer: int | None = None) -> ReferenceMap:
@@ -205,5 +226,5 @@ class NearNetReference:
         ref = self.snapshot(layer)
         self.layers[layer] = ref
         log.debug("reference layer %d: %.1f mm^3 so far, max height %.3f mm", layer,
-                  self.deposited_mm3, float(ref.heights_mm.max()))
+                  self._deposited_mm3, float(ref.heights_mm.max()))
         return ref

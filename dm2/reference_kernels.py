@@ -47,6 +47,11 @@ def efficiency(cos_t, zeta0, theta_c):
     return zeta0 * c * c
 
 
+def efficiency_table(zeta0: float, theta_c: float, n: int = 4097) -> np.ndarray:
+    """:func:`efficiency` at ``n`` evenly spaced ``cos theta`` in [0, 1]."""
+    return np.array([efficiency(c, zeta0, theta_c) for c in np.linspace(0.0, 1.0, n)])
+
+
 @njit(cache=True)
 def spots_from_poses(T_B_F, T_F_O, spot_B, axis_B, out_spot, out_axis):
     """Spot and unit spray axis in ``O`` of each flange pose ``T_B_F`` (m, 4, 4), written to
@@ -99,11 +104,12 @@ def march_to_surface(h, cell, zmax, ox, oy, oz, ax, ay, az, t_max):
 
 @njit(cache=True)
 def deposit_spot(h, cell, px, py, pz, ax, ay, az, dt, v_dot, zeta0, theta_c, sigma, n_sigma,
-                 slope_cells, back_mm, zmax, scratch):
+                 slope_cells, back_mm, zmax, scratch, lut):
     """Deposit ``dt`` seconds of spray aimed at ``p`` along ``a``; returns the volume [mm^3].
 
     ``back_mm`` is the nozzle exit's distance behind ``p`` (the standoff); ``zmax`` (1,) the
-    map's highest value so far, kept up to date.
+    map's highest value so far, kept up to date; ``lut`` the efficiency sampled evenly over
+    ``cos theta`` in [0, 1] (:func:`efficiency_table`).
     """
     ny, nx = h.shape
     if dt <= 0.0 or az >= 0.0:
@@ -126,6 +132,7 @@ def deposit_spot(h, cell, px, py, pz, ax, ay, az, dt, v_dot, zeta0, theta_c, sig
     lim2 = (n_sigma * sigma) ** 2
     zeta_flat = efficiency(-az, zeta0, theta_c)
     total = 0.0
+    zeta_cos = max(math.cos(theta_c), 0.0)
     for j in range(j_lo, j_hi + 1):  # pass 1: the footprint on the surface as it was
         ry = (j + 0.5) * cell - py
         jm = max(j - slope_cells, 0)
@@ -145,7 +152,7 @@ def deposit_spot(h, cell, px, py, pz, ax, ay, az, dt, v_dot, zeta0, theta_c, sig
                 gx = (h[j, ip] - h[j, im]) / (max(ip - im, 1) * cell)
                 gy = (h[jp, i] - h[jm, i]) / (max(jp - jm, 1) * cell)
                 cos_t = (ax * gx + ay * gy - az) / math.sqrt(gx * gx + gy * gy + 1.0)
-                zeta = efficiency(cos_t, zeta0, theta_c)
+                zeta = (lut[int(cos_t * (lut.shape[0] - 1) + 0.5)] if cos_t > zeta_cos else 0.0)
             dz = amp * zeta * math.exp(-d2 * inv2s2)
             scratch[s] = dz
             total += dz
@@ -162,15 +169,35 @@ def deposit_spot(h, cell, px, py, pz, ax, ay, az, dt, v_dot, zeta0, theta_c, sig
 
 
 @njit(cache=True)
+def flush_pending(h, cell, last, v_dot, zeta0, theta_c, sigma, n_sigma, slope_cells, back_mm,
+                  zmax, scratch, lut):
+    """Deposit the pending piece held in ``last[8:16]`` (if any) and clear it; returns volume."""
+    acc_dt = last[8]
+    if acc_dt <= 0.0:
+        return 0.0
+    ax, ay, az = last[13], last[14], last[15]
+    an = math.sqrt(ax * ax + ay * ay + az * az)
+    vol = deposit_spot(h, cell, last[10] / acc_dt, last[11] / acc_dt, last[12] / acc_dt,
+                       ax / an, ay / an, az / an, acc_dt, v_dot, zeta0, theta_c, sigma,
+                       n_sigma, slope_cells, back_mm, zmax, scratch, lut)
+    for c in range(8, 16):
+        last[c] = 0.0
+    return vol
+
+
+@njit(cache=True)
 def integrate_states(h, cell, stamps, T_B_F, on, T_F_O, spot_B, axis_B, last, buf_spot,
                      buf_axis, v_dot, zeta0, theta_c, sigma, n_sigma, slope_cells, back_mm,
-                     max_gap_s, zmax, scratch):
+                     max_gap_s, max_piece_s, zmax, scratch, lut):
     """Deposit along the moves into each of the robot states ``(stamps, T_B_F, on)``.
 
-    ``last`` (8,) holds ``(valid, stamp, spot xyz, axis xyz)`` of the state before this batch
-    and is updated; ``buf_spot`` / ``buf_axis`` (at least (m, 3)) are scratch. Each move is cut
-    into pieces no longer than ``sigma / 4``, a spot at each piece's midpoint with the axis
-    interpolated and normalised. Returns ``(volume [mm^3], moves skipped for a gap)``.
+    ``last`` (16,) holds ``(valid, stamp, spot xyz, axis xyz)`` of the state before this batch
+    and the pending piece ``(dt, length, dt-weighted spot xyz, dt-weighted axis xyz)``; it is
+    updated. ``buf_spot`` / ``buf_axis`` (at least (m, 3)) are scratch. The path is cut into
+    pieces of about ``sigma / 4`` (or ``max_piece_s``), one spot per piece at its time-weighted
+    centre: moves shorter than that are gathered (a 250 Hz stream moves 0.1 mm per state),
+    longer ones split. A piece still open at the end of the batch stays pending, so the result
+    does not depend on how the states are batched. Returns ``(volume [mm^3], gaps skipped)``.
     """
     m = stamps.shape[0]
     spots_from_poses(T_B_F, T_F_O, spot_B, axis_B, buf_spot, buf_axis)
@@ -180,24 +207,35 @@ def integrate_states(h, cell, stamps, T_B_F, on, T_F_O, spot_B, axis_B, last, bu
     for k in range(m):
         if last[0] > 0.0:
             dt = stamps[k] - last[1]
-            if dt > max_gap_s:
-                gaps += 1
-            elif on[k] and dt > 0.0:
+            if dt > max_gap_s or not on[k] or dt <= 0.0:
+                if dt > max_gap_s:
+                    gaps += 1
+                if dt > 0.0:  # what was gathered before the gap or the stop still lands
+                    total += flush_pending(h, cell, last, v_dot, zeta0, theta_c, sigma,
+                                           n_sigma, slope_cells, back_mm, zmax, scratch, lut)
+            else:
                 p0x, p0y, p0z = last[2], last[3], last[4]
                 dx = buf_spot[k, 0] - p0x
                 dy = buf_spot[k, 1] - p0y
                 dzz = buf_spot[k, 2] - p0z
-                n = max(int(math.ceil(math.sqrt(dx * dx + dy * dy + dzz * dzz) / piece)), 1)
+                length = math.sqrt(dx * dx + dy * dy + dzz * dzz)
+                n = max(int(math.ceil(length / piece)), 1)
+                if n > 1:  # a long move: close what is pending, then split the move
+                    total += flush_pending(h, cell, last, v_dot, zeta0, theta_c, sigma,
+                                           n_sigma, slope_cells, back_mm, zmax, scratch, lut)
                 for q in range(n):
                     f = (q + 0.5) / n
-                    ax = last[5] + (buf_axis[k, 0] - last[5]) * f
-                    ay = last[6] + (buf_axis[k, 1] - last[6]) * f
-                    az = last[7] + (buf_axis[k, 2] - last[7]) * f
-                    an = math.sqrt(ax * ax + ay * ay + az * az)
-                    total += deposit_spot(h, cell, p0x + dx * f, p0y + dy * f, p0z + dzz * f,
-                                          ax / an, ay / an, az / an, dt / n, v_dot, zeta0,
-                                          theta_c, sigma, n_sigma, slope_cells, back_mm, zmax,
-                                          scratch)
+                    w = dt / n
+                    last[8] += w
+                    last[9] += length / n
+                    last[10] += w * (p0x + dx * f)
+                    last[11] += w * (p0y + dy * f)
+                    last[12] += w * (p0z + dzz * f)
+                    for c in range(3):
+                        last[13 + c] += w * (last[5 + c] + (buf_axis[k, c] - last[5 + c]) * f)
+                    if n > 1 or last[9] >= piece or last[8] >= max_piece_s:
+                        total += flush_pending(h, cell, last, v_dot, zeta0, theta_c, sigma,
+                                               n_sigma, slope_cells, back_mm, zmax, scratch, lut)
         last[0] = 1.0
         last[1] = stamps[k]
         for c in range(3):
