@@ -1,5 +1,6 @@
 """Benchmark: layer deviation + segmentation + tracking on a 200 k vertex layer (goal <= 1 s),
-and real-time deviation latency per frame set (goal <= 5 ms p99).
+real-time deviation latency per frame set (goal <= 5 ms p99), and the near-net reference's
+add_states per batch of 25 robot states (what a session integrates per frame set).
 
 Run: .venv/bin/python benchmarks/deviation.py [--repeats 5]
 """
@@ -91,6 +92,48 @@ def bench_realtime(frames: int) -> None:
           "(goal p99 <= 5 ms)")
 
 
+def raster_poses(rate_hz=250.0, speed=30.0, spacing=2.0, side=40.0, layers=2, tilt_deg=0.0):
+    """(stamps (m,), flange poses (m, 4, 4)) of a raster over a square at 250 Hz, with the
+    plate on the flange (``T_F_O`` identity) and the nozzle at the origin of B spraying down."""
+    from scipy.spatial.transform import Rotation
+
+    from dm2.frames import make_T
+
+    pts = []
+    for layer in range(layers):
+        for k, y in enumerate(np.arange(60 - side / 2, 60 + side / 2 + 1e-9, spacing)):
+            x = np.arange(0.0, side + 1e-9, speed / rate_hz) + 60 - side / 2
+            xs = x if k % 2 == 0 else x[::-1]
+            pts.append(np.column_stack([xs, np.full_like(xs, y), np.full_like(xs, 0.8 * layer)]))
+    pts = np.vstack(pts)
+    R = Rotation.from_euler("x", 180.0 + tilt_deg, degrees=True)  # R_B_O: z_O -> -z_B
+    T = np.array([make_T(R, np.array([0.0, 0.0, 30.0]) - R.apply(p)) for p in pts])
+    return np.arange(len(pts)) / rate_hz, T
+
+
+def bench_reference(repeats: int) -> None:
+    from dm2.config import ProcessConfig
+    from dm2.frames import make_T
+    from dm2.messages import Calibration
+    from dm2.reference import NearNetReference
+
+    cal = Calibration({}, np.eye(4), make_T(np.eye(3), [0.0, 0.0, 0.0]))
+    stamps, T = raster_poses()
+    per_call = []
+    for _ in range(repeats):
+        ref = NearNetReference(ProcessConfig(feed_g_min=26.0), MonitorConfig(), cal)
+        ref.add_states(stamps[:25], T[:25])  # warm-up (numba cache)
+        t0 = time.perf_counter()
+        calls = 0
+        for a in range(25, len(stamps), 25):
+            ref.add_states(stamps[a:a + 25], T[a:a + 25])
+            calls += 1
+        per_call.append((time.perf_counter() - t0) / calls)
+    print(f"reference add_states per 25 states (250 Hz raster, 2 layers, {calls} calls, "
+          f"{ref.snapshot().heights_mm.shape} map): median {np.median(per_call) * 1e3:.3f} ms "
+          f"over {repeats} runs")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=5)
@@ -98,6 +141,7 @@ def main() -> None:
     args = ap.parse_args()
     bench_layer(args.repeats)
     bench_realtime(args.frames)
+    bench_reference(args.repeats)
 
 
 if __name__ == "__main__":
