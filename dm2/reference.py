@@ -122,7 +122,7 @@ class NearNetReference:
         self._buf_spot = np.empty((64, 3))
         self._buf_axis = np.empty((64, 3))
         side = 2.0 * FOOTPRINT_SIGMAS * self.sigma_mm / 0.2 / self.cell_mm + 3
-        self._scratch = np.empty(int(min(side, nx + 1) * min(side, ny + 1)))
+        self._scratch = np.empty(int(min(side, nx + 1) * min(side, ny + 1)) + nx + ny + 2)
         self.stamp_s = 0.0
         self.layers: dict[int, ReferenceMap] = {}
         self.gaps_skipped = 0

@@ -108,7 +108,8 @@ def deposit_spot(h, cell, px, py, pz, ax, ay, az, dt, v_dot, zeta0, theta_c, sig
     """Deposit ``dt`` seconds of spray aimed at ``p`` along ``a``; returns the volume [mm^3].
 
     ``back_mm`` is the nozzle exit's distance behind ``p`` (the standoff); ``zmax`` (1,) the
-    map's highest value so far, kept up to date; ``lut`` the efficiency sampled evenly over
+    map's highest value so far, kept up to date; ``scratch`` at least the footprint's cells
+    plus ``nx + ny + 2``; ``lut`` the efficiency sampled evenly over
     ``cos theta`` in [0, 1] (:func:`efficiency_table`).
     """
     ny, nx = h.shape
@@ -133,10 +134,22 @@ def deposit_spot(h, cell, px, py, pz, ax, ay, az, dt, v_dot, zeta0, theta_c, sig
     zeta_flat = efficiency(-az, zeta0, theta_c)
     total = 0.0
     zeta_cos = max(math.cos(theta_c), 0.0)
+    # an axis in a coordinate plane (infill, most edges) makes the Gaussian separable:
+    # exp(-d2 / 2s^2) = ex[i] * ey[j]; the tail of ``scratch`` holds ex and ey
+    separable = abs(ax * ay) < 1e-12
+    off = scratch.shape[0] - (nx + ny + 2)
+    if separable:
+        for i in range(i_lo, i_hi + 1):
+            rx = (i + 0.5) * cell - px
+            scratch[off + i - i_lo] = math.exp(-rx * rx * (1.0 - ax * ax) * inv2s2)
+        for j in range(j_lo, j_hi + 1):
+            ry = (j + 0.5) * cell - py
+            scratch[off + w + j - j_lo] = math.exp(-ry * ry * (1.0 - ay * ay) * inv2s2)
     for j in range(j_lo, j_hi + 1):  # pass 1: the footprint on the surface as it was
         ry = (j + 0.5) * cell - py
         jm = max(j - slope_cells, 0)
         jp = min(j + slope_cells, ny - 1)
+        ey = scratch[off + w + j - j_lo] if separable else 0.0
         for i in range(i_lo, i_hi + 1):
             rx = (i + 0.5) * cell - px
             along = rx * ax + ry * ay
@@ -153,7 +166,8 @@ def deposit_spot(h, cell, px, py, pz, ax, ay, az, dt, v_dot, zeta0, theta_c, sig
                 gy = (h[jp, i] - h[jm, i]) / (max(jp - jm, 1) * cell)
                 cos_t = (ax * gx + ay * gy - az) / math.sqrt(gx * gx + gy * gy + 1.0)
                 zeta = (lut[int(cos_t * (lut.shape[0] - 1) + 0.5)] if cos_t > zeta_cos else 0.0)
-            dz = amp * zeta * math.exp(-d2 * inv2s2)
+            g = scratch[off + i - i_lo] * ey if separable else math.exp(-d2 * inv2s2)
+            dz = amp * zeta * g
             scratch[s] = dz
             total += dz
     top = zmax[0]
