@@ -171,6 +171,12 @@ class MonitorConfig(_Model):
     delta_local: float = Field(0.5, gt=0)
     min_weight: float = Field(1.0, ge=0)
     min_region_area_mm2: float = Field(4.0, ge=0)
+    # near-net reference clock along the executed path (see dm2.progress): "programmed" = path
+    # length over the programmed speeds (every slowdown of the robot shows as overbuild);
+    # "executed" = the controller's time while the spray spot progresses, but standing still
+    # (progress slower than dwell_speed_mm_s: dwells, reorientation stops) deposits nothing
+    reference_clock: Literal["executed", "programmed"] = "programmed"
+    dwell_speed_mm_s: float = Field(1.0, gt=0)
 
 
 class ExpectTrack(_Model):

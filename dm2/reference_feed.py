@@ -2,9 +2,13 @@
 
 :class:`ReferenceFeed` buffers the robot states a session receives and integrates them into a
 :class:`~dm2.reference.NearNetReference` on request, up to a stamp and at most so many at a
-time. With a toolpath, each state advances the nominal clock by the programmed time of the
-path it covered (:mod:`dm2.progress`); the clock is summed one state after the other, so the
-reference is the same however the states are sliced. Late or duplicated states cannot rewind
+time. With a toolpath, each state advances the reference's clock along the path it covered
+(:mod:`dm2.progress`): by the controller's time while the spray spot progresses, but not while
+it stands still (``reference_clock = "executed"``: a dwell or a reorientation stop grows the
+part, not the reference), or by the programmed time of the path covered (``"programmed"``, the
+default: every slowdown of the robot grows the part more than the reference).
+The clock is summed one state after the other, so the reference is the
+same however the states are sliced. Late or duplicated states cannot rewind
 the reference.
 """
 
@@ -23,11 +27,18 @@ class ReferenceFeed:
     Parameters
     ----------
     reference : the reference to grow
-    toolpath : the programmed toolpath (nominal clock), or None (the controller's clock)
+    toolpath : the programmed toolpath, or None (then the controller's clock, dwells included)
+    clock : ``"executed"`` or ``"programmed"`` (see the module docstring)
+    dwell_speed_mm_s : [mm/s] progress slower than this counts as standing still
     """
 
-    def __init__(self, reference: NearNetReference, toolpath: Toolpath | None = None):
+    def __init__(self, reference: NearNetReference, toolpath: Toolpath | None = None,
+                 clock: str = "programmed", dwell_speed_mm_s: float = 1.0):
+        if clock not in ("executed", "programmed"):
+            raise ValueError(f"ReferenceFeed: unknown clock {clock!r}")
         self.reference = reference
+        self.clock = clock
+        self.dwell_speed_mm_s = float(dwell_speed_mm_s)
         self.progress = ToolpathProgress(toolpath) if toolpath is not None else None
         self._stamps: list[float] = []
         self._poses: list[np.ndarray] = []
@@ -63,12 +74,15 @@ class ReferenceFeed:
         keep = np.concatenate([[True], np.diff(stamps) > 0]) & (stamps > self._last_stamp_s)
         if np.any(keep):
             stamps, poses = stamps[keep], poses[keep]
+            prev = self._last_stamp_s if np.isfinite(self._last_stamp_s) else stamps[0]
+            elapsed = np.diff(np.concatenate([[prev], stamps]))
             self._last_stamp_s = float(stamps[-1])
             self.last_T_B_F = poses[-1]
             if self.progress is not None:  # programmed timing along the executed path
                 spots, _ = self.reference.spot_O(poses)
-                stamps = np.cumsum(np.concatenate([[self._nominal_s],
-                                                   self.progress.advance(spots)]))[1:]
+                dt = (self.progress.advance(spots) if self.clock == "programmed" else
+                      self.progress.advance(spots, elapsed, self.dwell_speed_mm_s))
+                stamps = np.cumsum(np.concatenate([[self._nominal_s], dt]))[1:]
                 self._nominal_s = float(stamps[-1])
             self.reference.add_states(stamps, poses)
         return n == n_due

@@ -6,10 +6,12 @@ near-net :class:`~dm2.reference.NearNetReference` along the executed motion; whe
 closes a layer, that layer's surface is compared with the reference of the same layer
 (:class:`~dm2.defects.DefectMonitor`: deviation, classification, segmentation, tracking).
 
-The reference follows the executed path at the programmed process (:mod:`dm2.progress`): with
-a toolpath, each robot state advances the nominal clock by the programmed time of the path it
-covered, so a robot that stops and keeps spraying (a corner dwell) grows the part but not the
-reference. Without a toolpath the reference integrates the controller's own clock.
+The reference follows the executed path at the nominal process (:mod:`dm2.reference_feed`,
+:mod:`dm2.progress`): with a toolpath, each robot state advances the reference's clock by the
+programmed time of the path it covered (or, with ``reference_clock = "executed"``, by the
+controller's time while the spray spot progresses), so a robot that stops and keeps spraying
+(a corner dwell, a reorientation stop) grows the part but not the reference.
+Without a toolpath the reference integrates the controller's own clock.
 
 After every fused frame set (three profiles) the active region of the measured TSDF is compared
 with the reference as of the same instant (:mod:`dm2.realtime`), so a defect raises an alarm
@@ -105,7 +107,8 @@ class MonitoringSession:
         self.monitor = Monitor(calibration, monitor_cfg, process, toolpath=toolpath,
                                on_layer_done=self._layer_done, defer_meshing=analysis_thread)
         self.timing = SessionTiming()
-        self.states = ReferenceFeed(self.reference, toolpath)
+        self.states = ReferenceFeed(self.reference, toolpath, monitor_cfg.reference_clock,
+                                    monitor_cfg.dwell_speed_mm_s)
         self.realtime = RealtimeDeviation(monitor_cfg, size_mm=tuple(plate_size_mm[:2]))
         self._rt_profiles = 0
         self._rt_latency_s: list[float] = []

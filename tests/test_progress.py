@@ -60,3 +60,31 @@ def test_leaving_the_path_relocks_without_adding_time():
     dt = prog.advance(np.vstack([on1, off, on2]))
     assert prog.relocks == 1
     assert dt.sum() == pytest.approx(20 / 20, abs=0.02)  # 10 mm + 10 mm at 20 mm/s
+
+
+def test_executed_clock_keeps_slow_motion_and_drops_standing_still():
+    pts = np.array([[0, 0, 0], [30, 0, 0.0]])
+    tp = make_toolpath(pts, [30, 30])
+    # accelerate from rest at 500 mm/s^2 to 30 mm/s, then stand still 0.8 s, then cruise
+    dt = 0.004
+    x, v, xs = 0.0, 0.0, []
+    while x < 10.0:
+        v = min(v + 500 * dt, 30.0)
+        x += v * dt
+        xs.append(x)
+    moving_s = len(xs) * dt
+    xs += [xs[-1]] * 200  # 0.8 s dwell
+    while xs[-1] < 29.0:
+        xs.append(xs[-1] + 30 * dt)
+    spots = np.column_stack([xs, np.zeros(len(xs)), np.zeros(len(xs))])
+    elapsed = np.full(len(xs), dt)
+    prog = ToolpathProgress(tp)
+    nominal = prog.advance(spots, elapsed, dwell_speed_mm_s=1.0)
+    cruise_s = (len(xs) - 200 - int(round(moving_s / dt))) * dt
+    # slow motion (acceleration) counts in full; of the 0.8 s dwell at most one resampling
+    # step (0.1 mm) over the dwell speed (1 mm/s) is credited
+    assert moving_s + cruise_s - 2 * dt <= nominal.sum() <= moving_s + cruise_s + 0.1 + 2 * dt
+    assert nominal[int(round(moving_s / dt)) + 1:int(round(moving_s / dt)) + 200].sum() == 0.0
+    # the programmed clock would only count distance over 30 mm/s
+    prog2 = ToolpathProgress(tp)
+    assert prog2.advance(spots).sum() == pytest.approx((xs[-1] - xs[0]) / 30.0, abs=0.01)
