@@ -106,6 +106,31 @@ def _get_or_alloc(bx, by, bz, table_keys, table_slots, block_keys, touched, stat
         h = (h + 1) & mask
 
 
+@njit(cache=True, inline="always")
+def update_voxel(voxels, slot, vx, vy, vz, ox, oy, oz, dx, dy, dz, r, voxel_mm, truncation_mm,
+                 act, active_weight_cap, max_weight):
+    """One voxel's update along a ray (paper eqs 2-5): projective signed distance clamped to
+    +-truncation, weight ``w_A = 1`` in the active region and ``w_I`` (1 in front, falling
+    linearly behind the surface) elsewhere, the stored weight capped in the active region."""
+    cx = (vx + 0.5) * voxel_mm - ox
+    cy = (vy + 0.5) * voxel_mm - oy
+    cz = (vz + 0.5) * voxel_mm - oz
+    d = r - (cx * dx + cy * dy + cz * dz)
+    if d > truncation_mm:
+        d = truncation_mm
+    elif d < -truncation_mm:
+        d = -truncation_mm
+    w = 1.0 if (act or d >= 0.0) else 1.0 + d / truncation_mm
+    if w > 0.0:
+        li = (vx & 7) + 8 * ((vy & 7) + 8 * (vz & 7))
+        w_prev = voxels[slot, li, 1]
+        if act and w_prev > active_weight_cap:
+            w_prev = active_weight_cap
+        w_new = w_prev + w
+        voxels[slot, li, 0] = (w_prev * voxels[slot, li, 0] + w * d) / w_new
+        voxels[slot, li, 1] = min(w_new, max_weight)
+
+
 @njit(cache=True)
 def integrate_rays(origins_O, points_O, active, voxel_mm, truncation_mm, active_weight_cap,
                    max_weight, table_keys, table_slots, block_keys, voxels, touched, state,
@@ -231,23 +256,8 @@ def _fuse(register, origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, a
                     slot = _get_or_alloc(bx, by, bz, table_keys, table_slots, block_keys,
                                          touched, state)
                     last_bx, last_by, last_bz = bx, by, bz
-                cx = (vx + 0.5) * voxel_mm - ox
-                cy = (vy + 0.5) * voxel_mm - oy
-                cz = (vz + 0.5) * voxel_mm - oz
-                d = r - (cx * dx + cy * dy + cz * dz)
-                if d > truncation_mm:
-                    d = truncation_mm
-                elif d < -truncation_mm:
-                    d = -truncation_mm
-                w = 1.0 if (act or d >= 0.0) else 1.0 + d / truncation_mm
-                if w > 0.0:
-                    li = (vx & 7) + 8 * ((vy & 7) + 8 * (vz & 7))
-                    w_prev = voxels[slot, li, 1]
-                    if act and w_prev > active_weight_cap:
-                        w_prev = active_weight_cap
-                    w_new = w_prev + w
-                    voxels[slot, li, 0] = (w_prev * voxels[slot, li, 0] + w * d) / w_new
-                    voxels[slot, li, 1] = min(w_new, max_weight)
+                update_voxel(voxels, slot, vx, vy, vz, ox, oy, oz, dx, dy, dz, r, voxel_mm,
+                             truncation_mm, act, active_weight_cap, max_weight)
                 # step to the next voxel along the axis whose boundary comes first
                 if tmx < tmy:
                     if tmx < tmz:

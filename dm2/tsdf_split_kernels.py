@@ -22,7 +22,14 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from dm2.tsdf_kernels import BLOCK_SHIFT, EMPTY, MAX_NEW_BLOCKS_PER_RAY, _hash, pack_key
+from dm2.tsdf_kernels import (
+    BLOCK_SHIFT,
+    EMPTY,
+    MAX_NEW_BLOCKS_PER_RAY,
+    _hash,
+    pack_key,
+    update_voxel,
+)
 
 ACTIVE_FLAG = 4
 
@@ -234,23 +241,8 @@ def update_rays(tid, col_shift, ray_f, ray_flags, voxel_mm, truncation_mm, activ
                 if slot < 0:
                     missing += 1
                 else:
-                    cx = (vx + 0.5) * voxel_mm - ox
-                    cy = (vy + 0.5) * voxel_mm - oy
-                    cz = (vz + 0.5) * voxel_mm - oz
-                    d = r - (cx * dx + cy * dy + cz * dz)
-                    if d > truncation_mm:
-                        d = truncation_mm
-                    elif d < -truncation_mm:
-                        d = -truncation_mm
-                    w = 1.0 if (act or d >= 0.0) else 1.0 + d / truncation_mm
-                    if w > 0.0:
-                        li = (vx & 7) + 8 * ((vy & 7) + 8 * (vz & 7))
-                        w_prev = voxels[slot, li, 1]
-                        if act and w_prev > active_weight_cap:
-                            w_prev = active_weight_cap
-                        w_new = w_prev + w
-                        voxels[slot, li, 0] = (w_prev * voxels[slot, li, 0] + w * d) / w_new
-                        voxels[slot, li, 1] = min(w_new, max_weight)
+                    update_voxel(voxels, slot, vx, vy, vz, ox, oy, oz, dx, dy, dz, r, voxel_mm,
+                                 truncation_mm, act, active_weight_cap, max_weight)
             if tmx < tmy:
                 if tmx < tmz:
                     t = tmx
