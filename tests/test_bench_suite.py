@@ -31,7 +31,6 @@ def test_smoke_suite_detects_with_sign_onset_and_no_false_positive(tmp_path):
     for r in runs.values():
         assert r["expect_passed"] and r["false_positive_tracks"] == []
         assert 0.02 < r["reconstruction_rms_mm"] < 0.3  # against the true layer surfaces
-        assert r["realtime_factor"] > 1.0
     s = doc["summary"]
     assert s["f1"] == 1.0 and s["qualifying_defects"] == 2 and s["passed"]
     assert (tmp_path / "b" / "bump" / "truth" / "faults.json").exists()
