@@ -107,6 +107,41 @@ def _get_or_alloc(bx, by, bz, table_keys, table_slots, block_keys, touched, stat
 
 
 @njit(cache=True, inline="always")
+def dda_start(ox, oy, oz, dx, dy, dz, r, truncation_mm, inv_vox):
+    """First voxel and DDA state (Amanatides & Woo) of the band ``r +- truncation_mm``."""
+    t0 = r - truncation_mm
+    t1 = r + truncation_mm
+    sx0, sy0, sz0 = (ox + dx * t0) * inv_vox, (oy + dy * t0) * inv_vox, \
+        (oz + dz * t0) * inv_vox
+    vx, vy, vz = int(np.floor(sx0)), int(np.floor(sy0)), int(np.floor(sz0))
+    span = (t1 - t0) * inv_vox
+    stx = 1 if dx > 0 else -1
+    sty = 1 if dy > 0 else -1
+    stz = 1 if dz > 0 else -1
+    big = 1e30
+    tdx = abs(1.0 / dx) if dx != 0 else big
+    tdy = abs(1.0 / dy) if dy != 0 else big
+    tdz = abs(1.0 / dz) if dz != 0 else big
+    tmx = ((vx + 1 - sx0) if dx > 0 else (sx0 - vx)) * tdx if dx != 0 else big
+    tmy = ((vy + 1 - sy0) if dy > 0 else (sy0 - vy)) * tdy if dy != 0 else big
+    tmz = ((vz + 1 - sz0) if dz > 0 else (sz0 - vz)) * tdz if dz != 0 else big
+    return vx, vy, vz, span, stx, sty, stz, tdx, tdy, tdz, tmx, tmy, tmz
+
+
+@njit(cache=True, inline="always")
+def dda_step(vx, vy, vz, stx, sty, stz, tdx, tdy, tdz, tmx, tmy, tmz):
+    """Step to the next voxel along the axis whose boundary the ray crosses first; returns the
+    new ray parameter ``t`` (voxel units), voxel and crossing parameters."""
+    if tmx < tmy:
+        if tmx < tmz:
+            return tmx, vx + stx, vy, vz, tmx + tdx, tmy, tmz
+        return tmz, vx, vy, vz + stz, tmx, tmy, tmz + tdz
+    if tmy < tmz:
+        return tmy, vx, vy + sty, vz, tmx, tmy + tdy, tmz
+    return tmz, vx, vy, vz + stz, tmx, tmy, tmz + tdz
+
+
+@njit(cache=True, inline="always")
 def update_voxel(voxels, slot, vx, vy, vz, ox, oy, oz, dx, dy, dz, r, voxel_mm, truncation_mm,
                  act, active_weight_cap, max_weight):
     """One voxel's update along a ray (paper eqs 2-5): projective signed distance clamped to
@@ -231,23 +266,8 @@ def _fuse(register, origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, a
             dx /= r
             dy /= r
             dz /= r
-            t0 = r - truncation_mm
-            t1 = r + truncation_mm
-            # DDA (Amanatides & Woo) in voxel units from t0 to t1
-            sx0, sy0, sz0 = (ox + dx * t0) * inv_vox, (oy + dy * t0) * inv_vox, \
-                (oz + dz * t0) * inv_vox
-            vx, vy, vz = int(np.floor(sx0)), int(np.floor(sy0)), int(np.floor(sz0))
-            span = (t1 - t0) * inv_vox
-            stx = 1 if dx > 0 else -1
-            sty = 1 if dy > 0 else -1
-            stz = 1 if dz > 0 else -1
-            big = 1e30
-            tdx = abs(1.0 / dx) if dx != 0 else big
-            tdy = abs(1.0 / dy) if dy != 0 else big
-            tdz = abs(1.0 / dz) if dz != 0 else big
-            tmx = ((vx + 1 - sx0) if dx > 0 else (sx0 - vx)) * tdx if dx != 0 else big
-            tmy = ((vy + 1 - sy0) if dy > 0 else (sy0 - vy)) * tdy if dy != 0 else big
-            tmz = ((vz + 1 - sz0) if dz > 0 else (sz0 - vz)) * tdz if dz != 0 else big
+            vx, vy, vz, span, stx, sty, stz, tdx, tdy, tdz, tmx, tmy, tmz = dda_start(
+                ox, oy, oz, dx, dy, dz, r, truncation_mm, inv_vox)
             last_bx, last_by, last_bz, slot = 1 << 40, 0, 0, -1
             t = 0.0
             while t <= span:
@@ -258,24 +278,8 @@ def _fuse(register, origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, a
                     last_bx, last_by, last_bz = bx, by, bz
                 update_voxel(voxels, slot, vx, vy, vz, ox, oy, oz, dx, dy, dz, r, voxel_mm,
                              truncation_mm, act, active_weight_cap, max_weight)
-                # step to the next voxel along the axis whose boundary comes first
-                if tmx < tmy:
-                    if tmx < tmz:
-                        t = tmx
-                        vx += stx
-                        tmx += tdx
-                    else:
-                        t = tmz
-                        vz += stz
-                        tmz += tdz
-                elif tmy < tmz:
-                    t = tmy
-                    vy += sty
-                    tmy += tdy
-                else:
-                    t = tmz
-                    vz += stz
-                    tmz += tdz
+                t, vx, vy, vz, tmx, tmy, tmz = dda_step(vx, vy, vz, stx, sty, stz, tdx, tdy,
+                                                        tdz, tmx, tmy, tmz)
     return offsets[offsets.shape[0] - 1]
 
 

@@ -27,33 +27,13 @@ from dm2.tsdf_kernels import (
     EMPTY,
     MAX_NEW_BLOCKS_PER_RAY,
     _hash,
+    dda_start,
+    dda_step,
     pack_key,
     update_voxel,
 )
 
 ACTIVE_FLAG = 4
-
-
-@njit(cache=True, inline="always")
-def _dda_start(ox, oy, oz, dx, dy, dz, r, truncation_mm, inv_vox):
-    """First voxel and DDA state of the band ``r +- truncation_mm`` (serial kernel's bits)."""
-    t0 = r - truncation_mm
-    t1 = r + truncation_mm
-    sx0, sy0, sz0 = (ox + dx * t0) * inv_vox, (oy + dy * t0) * inv_vox, \
-        (oz + dz * t0) * inv_vox
-    vx, vy, vz = int(np.floor(sx0)), int(np.floor(sy0)), int(np.floor(sz0))
-    span = (t1 - t0) * inv_vox
-    stx = 1 if dx > 0 else -1
-    sty = 1 if dy > 0 else -1
-    stz = 1 if dz > 0 else -1
-    big = 1e30
-    tdx = abs(1.0 / dx) if dx != 0 else big
-    tdy = abs(1.0 / dy) if dy != 0 else big
-    tdz = abs(1.0 / dz) if dz != 0 else big
-    tmx = ((vx + 1 - sx0) if dx > 0 else (sx0 - vx)) * tdx if dx != 0 else big
-    tmy = ((vy + 1 - sy0) if dy > 0 else (sy0 - vy)) * tdy if dy != 0 else big
-    tmz = ((vz + 1 - sz0) if dz > 0 else (sz0 - vz)) * tdz if dz != 0 else big
-    return vx, vy, vz, span, stx, sty, stz, tdx, tdy, tdz, tmx, tmy, tmz
 
 
 @njit(cache=True, inline="always")
@@ -180,7 +160,7 @@ def plan_rays(register, origins_O, points_O, active, xz_S, offsets, T_O_S, spot_
                 kx0, ky0, kz0, kx1, ky1, kz1 = bx0, by0, bz0, bx1, by1, bz1
                 continue
             # walk the ray like the update does and allocate its blocks in order
-            vx, vy, vz, span, stx, sty, stz, tdx, tdy, tdz, tmx, tmy, tmz = _dda_start(
+            vx, vy, vz, span, stx, sty, stz, tdx, tdy, tdz, tmx, tmy, tmz = dda_start(
                 ox, oy, oz, dx, dy, dz, r, truncation_mm, inv_vox)
             last_bx, last_by, last_bz = 1 << 40, 0, 0
             t = 0.0
@@ -189,23 +169,8 @@ def plan_rays(register, origins_O, points_O, active, xz_S, offsets, T_O_S, spot_
                 if bx != last_bx or by != last_by or bz != last_bz:
                     _alloc(bx, by, bz, table_keys, table_slots, block_keys, state)
                     last_bx, last_by, last_bz = bx, by, bz
-                if tmx < tmy:
-                    if tmx < tmz:
-                        t = tmx
-                        vx += stx
-                        tmx += tdx
-                    else:
-                        t = tmz
-                        vz += stz
-                        tmz += tdz
-                elif tmy < tmz:
-                    t = tmy
-                    vy += sty
-                    tmy += tdy
-                else:
-                    t = tmz
-                    vz += stz
-                    tmz += tdz
+                t, vx, vy, vz, tmx, tmy, tmz = dda_step(vx, vy, vz, stx, sty, stz, tdx, tdy,
+                                                        tdz, tmx, tmy, tmz)
     return offsets[offsets.shape[0] - 1]
 
 
@@ -226,7 +191,7 @@ def update_rays(tid, col_shift, ray_f, ray_flags, voxel_mm, truncation_mm, activ
         act = (flags & ACTIVE_FLAG) != 0
         ox, oy, oz = ray_f[i, 0], ray_f[i, 1], ray_f[i, 2]
         dx, dy, dz, r = ray_f[i, 3], ray_f[i, 4], ray_f[i, 5], ray_f[i, 6]
-        vx, vy, vz, span, stx, sty, stz, tdx, tdy, tdz, tmx, tmy, tmz = _dda_start(
+        vx, vy, vz, span, stx, sty, stz, tdx, tdy, tdz, tmx, tmy, tmz = dda_start(
             ox, oy, oz, dx, dy, dz, r, truncation_mm, inv_vox)
         last_bx, last_by, last_bz, slot = 1 << 40, 0, 0, -1
         t = 0.0
@@ -243,21 +208,6 @@ def update_rays(tid, col_shift, ray_f, ray_flags, voxel_mm, truncation_mm, activ
                 else:
                     update_voxel(voxels, slot, vx, vy, vz, ox, oy, oz, dx, dy, dz, r, voxel_mm,
                                  truncation_mm, act, active_weight_cap, max_weight)
-            if tmx < tmy:
-                if tmx < tmz:
-                    t = tmx
-                    vx += stx
-                    tmx += tdx
-                else:
-                    t = tmz
-                    vz += stz
-                    tmz += tdz
-            elif tmy < tmz:
-                t = tmy
-                vy += sty
-                tmy += tdy
-            else:
-                t = tmz
-                vz += stz
-                tmz += tdz
+            t, vx, vy, vz, tmx, tmy, tmz = dda_step(vx, vy, vz, stx, sty, stz, tdx, tdy, tdz,
+                                                    tmx, tmy, tmz)
     return missing
