@@ -65,13 +65,7 @@ def compute_block_max(H, out):
     out[:, :] = -np.inf
     for k in range(ny):
         for m in range(nx):
-            h = H[k, m]
-            for pj in range(k, k + 2):
-                for pi in range(m, m + 2):
-                    bj = pj // BLOCK
-                    bi = pi // BLOCK
-                    if h > out[bj, bi]:
-                        out[bj, bi] = h
+            raise_block_max(out, k, m, H[k, m])
 
 
 @njit(cache=True)
