@@ -105,22 +105,28 @@ def _cylinder_hit_t(o, d, r2, length, out):
                                  length)
 
 
+@njit(cache=True)
+def cylinder_blocks_one(T_C_X, r2, length, start, d, reach):
+    """Whether the ray ``start (3,) + t d (3,)`` in frame X (posed by ``T_C_X (4, 4)`` in the
+    cylinder frame) enters the cylinder before ``reach`` [mm]."""
+    sx, sy, sz = start[0], start[1], start[2]
+    dx, dy, dz = d[0], d[1], d[2]
+    ox = T_C_X[0, 0] * sx + T_C_X[0, 1] * sy + T_C_X[0, 2] * sz + T_C_X[0, 3]
+    oy = T_C_X[1, 0] * sx + T_C_X[1, 1] * sy + T_C_X[1, 2] * sz + T_C_X[1, 3]
+    oz = T_C_X[2, 0] * sx + T_C_X[2, 1] * sy + T_C_X[2, 2] * sz + T_C_X[2, 3]
+    ex = T_C_X[0, 0] * dx + T_C_X[0, 1] * dy + T_C_X[0, 2] * dz
+    ey = T_C_X[1, 0] * dx + T_C_X[1, 1] * dy + T_C_X[1, 2] * dz
+    ez = T_C_X[2, 0] * dx + T_C_X[2, 1] * dy + T_C_X[2, 2] * dz
+    return _cylinder_entry(ox, oy, oz, ex, ey, ez, r2, length) < reach
+
+
 @njit(cache=True, nogil=True)
 def cylinder_blocks(T_C_X, r2, length, starts_X, dirs_X, reach, out):
     """Set ``out[k] = True`` where the ray ``starts_X[k] + t dirs_X[k]`` (frame X, posed by
     ``T_C_X (4, 4)`` in the cylinder frame) enters the cylinder before ``reach[k]`` [mm]."""
     for k in range(starts_X.shape[0]):
-        if out[k]:
-            continue
-        sx, sy, sz = starts_X[k, 0], starts_X[k, 1], starts_X[k, 2]
-        dx, dy, dz = dirs_X[k, 0], dirs_X[k, 1], dirs_X[k, 2]
-        ox = T_C_X[0, 0] * sx + T_C_X[0, 1] * sy + T_C_X[0, 2] * sz + T_C_X[0, 3]
-        oy = T_C_X[1, 0] * sx + T_C_X[1, 1] * sy + T_C_X[1, 2] * sz + T_C_X[1, 3]
-        oz = T_C_X[2, 0] * sx + T_C_X[2, 1] * sy + T_C_X[2, 2] * sz + T_C_X[2, 3]
-        ex = T_C_X[0, 0] * dx + T_C_X[0, 1] * dy + T_C_X[0, 2] * dz
-        ey = T_C_X[1, 0] * dx + T_C_X[1, 1] * dy + T_C_X[1, 2] * dz
-        ez = T_C_X[2, 0] * dx + T_C_X[2, 1] * dy + T_C_X[2, 2] * dz
-        out[k] = _cylinder_entry(ox, oy, oz, ex, ey, ez, r2, length) < reach[k]
+        if not out[k]:
+            out[k] = cylinder_blocks_one(T_C_X, r2, length, starts_X[k], dirs_X[k], reach[k])
 
 
 def nozzle_occluder(T_B_N: np.ndarray, cell: CellConfig) -> CylinderOccluder:

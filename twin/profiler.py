@@ -26,6 +26,7 @@ from dm2.config import NoiseConfig, SensorConfig
 from dm2.messages import COUNTER_MODULO, SENSOR_IDS, Profile
 from twin import profiler_kernels as PK
 from twin.heightfield import HeightField
+from twin.occluders import CylinderOccluder
 
 log = logging.getLogger(__name__)
 
@@ -103,6 +104,7 @@ class VirtualProfiler:
         self._dir_x = np.ascontiguousarray(self.dirs_S[:, 0])
         self._dir_z = np.ascontiguousarray(self.dirs_S[:, 2])
         self._occluder_cache = None
+        self._cylinder_cache = None
         half = int(np.ceil(3.0 * noise.speckle_length_points))
         kernel = np.exp(-0.5 * (np.arange(-half, half + 1) / noise.speckle_length_points) ** 2)
         self._speckle_kernel = kernel / np.sqrt(np.sum(kernel * kernel))
@@ -111,53 +113,48 @@ class VirtualProfiler:
     def trace(self, hf, T_B_O: np.ndarray, occluders: Sequence | None = None) -> ProfileTrace:
         """Cast the fan on the height field ``hf`` (in O, posed by ``T_B_O``); no noise.
 
-        A :class:`~twin.heightfield.HeightField` is cast by the numba kernels of
-        :mod:`twin.profiler_kernels`; any other surface object goes through
-        :meth:`trace_reference`. Both give the same bits.
+        A :class:`~twin.heightfield.HeightField` seen past capped-cylinder occluders is cast in
+        one call of :func:`twin.profiler_kernels.trace_pass`; any other surface object or
+        occluder goes through :meth:`trace_reference`. Both give the same bits.
         """
-        if not isinstance(hf, HeightField):
-            return self.trace_reference(hf, T_B_O, occluders)
         occluders = tuple(occluders or ())
+        cylinders = self._cylinders(occluders)
+        if not isinstance(hf, HeightField) or cylinders is None:
+            return self.trace_reference(hf, T_B_O, occluders)
         n = self.dirs_S.shape[0]
         T_O_S = _invert_trusted(T_B_O) @ self.T_B_S
         R_O_S, o_O = T_O_S[:3, :3], T_O_S[:3, 3]
         dirs_O = np.ascontiguousarray(self.dirs_S @ R_O_S.T)
+        camera_O = T_O_S[:3, :3] @ self.camera_S + T_O_S[:3, 3]
         t_occ = self._laser_occluder_t(occluders) if occluders else self._t_max
+        r2, length, T_C_B = cylinders
+        T_C_O = np.array([T @ T_B_O for T in T_C_B]) if r2.size else T_C_B
         t_hit = np.empty(n)
         reason = np.empty(n, dtype=np.int8)
+        cos_inc = np.empty(n)
         points_O = np.empty((n, 3))
-        normals_O = np.empty((n, 3))
-        n_cand = PK.laser_pass(hf._h, hf._bmax, hf.cell_mm, hf.thickness_mm, hf._zmax[0],
-                               hf.size_mm[0], hf.size_mm[1], _FACE_TOL_MM,
-                               np.ascontiguousarray(o_O), dirs_O, self._t_min, self._t_max,
-                               self._max_range_mm, t_occ, bool(occluders), t_hit, reason,
-                               points_O, normals_O)
-        cos_inc = np.clip(-np.einsum("ij,ij->i", normals_O, dirs_O), 0.0, 1.0)
-        if n_cand:
-            cand = np.flatnonzero(reason == VALID)
-            hits, normals = points_O[cand], normals_O[cand]
-            camera_O = T_O_S[:3, :3] @ self.camera_S + T_O_S[:3, 3]
-            u_cam, starts = np.empty((n_cand, 3)), np.empty((n_cand, 3))
-            u, remaining, t_cam = np.empty((n_cand, 3)), np.empty(n_cand), np.empty(n_cand)
-            PK.camera_pass(hf._h, hf._bmax, hf.cell_mm, hf.thickness_mm, hf._zmax[0],
-                           camera_O, _LIFT_MM, hits, normals, u_cam, starts, u, remaining, t_cam)
-            out = np.full(n_cand, VALID, dtype=np.int8)
-            facing = np.einsum("ij,ij->i", normals, u_cam) > 1e-9
-            out[~facing] = BACK_FACING
-            out[facing & (t_cam < remaining)] = CAMERA_SHADOW
-            if occluders:
-                if all(hasattr(o, "blocks") for o in occluders):  # one pass each, in O
-                    blocked = np.zeros(n_cand, dtype=bool)
-                    for occ in occluders:
-                        occ.blocks(T_B_O, starts, u, remaining, blocked)
-                else:
-                    starts_B = starts @ T_B_O[:3, :3].T + T_B_O[:3, 3]
-                    u_B = u @ T_B_O[:3, :3].T
-                    blocked = _first_occluder_hit(occluders, starts_B, u_B) < remaining
-                out[(out == VALID) & blocked] = CAMERA_BLOCKED
-            reason[cand] = out
-        reason[(reason == VALID) & (cos_inc < self.noise.min_intensity)] = TOO_DARK
+        PK.trace_pass(hf._h, hf._bmax, hf.cell_mm, hf.thickness_mm, hf._zmax[0], hf.size_mm[0],
+                      hf.size_mm[1], _FACE_TOL_MM, np.ascontiguousarray(o_O), dirs_O,
+                      self._t_min, self._t_max, self._max_range_mm, t_occ, bool(occluders),
+                      camera_O, _LIFT_MM, T_C_O, r2, length, self.noise.min_intensity, t_hit,
+                      reason, cos_inc, points_O)
         return ProfileTrace(t_hit, reason, cos_inc, points_O)
+
+    def _cylinders(self, occluders: tuple):
+        """``(r2 (k,), length (k,), T_C_B (k, 4, 4))`` of capped-cylinder occluders for
+        :func:`twin.profiler_kernels.trace_pass`, or None when another kind is among them."""
+        if not all(isinstance(o, CylinderOccluder) for o in occluders):
+            return None
+        key = tuple(id(o) for o in occluders)
+        cached = self._cylinder_cache
+        if cached is None or cached[0] != key:
+            k = len(occluders)
+            arrays = (np.array([o.radius_mm ** 2 for o in occluders], dtype=np.float64),
+                      np.array([o.length_mm for o in occluders], dtype=np.float64),
+                      np.ascontiguousarray(np.array([o._T_C_B for o in occluders],
+                                                    dtype=np.float64).reshape(k, 4, 4)))
+            cached = self._cylinder_cache = (key, occluders, arrays)
+        return cached[2]
 
     def trace_reference(self, hf, T_B_O: np.ndarray,
                         occluders: Sequence | None = None) -> ProfileTrace:

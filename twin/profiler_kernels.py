@@ -14,11 +14,16 @@ import numpy as np
 from numba import njit
 
 from twin.heightfield_kernels import bilinear_height, normal_at, ray_one
+from twin.occluders import cylinder_blocks_one as _cylinder_blocks_one
 
 # Reason codes, as in twin.profiler.
 VALID = 0
 NO_SURFACE = 1
 LASER_BLOCKED = 2
+CAMERA_SHADOW = 3
+CAMERA_BLOCKED = 4
+BACK_FACING = 5
+TOO_DARK = 6
 DROPOUT = 7
 
 
@@ -163,3 +168,58 @@ def apply_noise(range_mm, reason, cos_inc, gauss, speckle, u_drop, u_ghost, ghos
             out_xz[k, 0] = np.nan
             out_xz[k, 1] = np.nan
             out_intensity[k] = np.float32(0.0)
+
+
+@njit(cache=True, nogil=True)
+def trace_pass(H, bmax, cell, thickness, zmax, lx, ly, face_tol, origin, dirs, t_min, t_max,
+               max_range, t_occ, has_occ, camera, lift, occ_T_C_O, occ_r2, occ_length,
+               min_intensity, out_t, out_reason, out_cos, out_points):
+    """A whole noise-free scan in one call: :func:`laser_pass`, the cosine of incidence,
+    :func:`camera_pass` for the lit points, their camera verdicts (BACK_FACING, CAMERA_SHADOW,
+    CAMERA_BLOCKED by the capped cylinders ``occ_T_C_O (k, 4, 4)`` (O into each cylinder's
+    frame), ``occ_r2 (k,)`` [mm^2], ``occ_length (k,)`` [mm]) and TOO_DARK below
+    ``min_intensity``, in the order and operations of the numpy reference."""
+    n = dirs.shape[0]
+    normals = np.empty((n, 3))
+    n_cand = laser_pass(H, bmax, cell, thickness, zmax, lx, ly, face_tol, origin, dirs, t_min,
+                        t_max, max_range, t_occ, has_occ, out_t, out_reason, out_points,
+                        normals)
+    for k in range(n):
+        c = -(normals[k, 0] * dirs[k, 0] + normals[k, 1] * dirs[k, 1]
+              + normals[k, 2] * dirs[k, 2])
+        out_cos[k] = min(max(c, 0.0), 1.0)
+    if n_cand:
+        cand = np.empty(n_cand, dtype=np.int64)
+        m = 0
+        for k in range(n):
+            if out_reason[k] == VALID:
+                cand[m] = k
+                m += 1
+        hits = np.empty((m, 3))
+        nrm = np.empty((m, 3))
+        for q in range(m):
+            for c in range(3):
+                hits[q, c] = out_points[cand[q], c]
+                nrm[q, c] = normals[cand[q], c]
+        u_cam, starts = np.empty((m, 3)), np.empty((m, 3))
+        u, remaining, t_cam = np.empty((m, 3)), np.empty(m), np.empty(m)
+        camera_pass(H, bmax, cell, thickness, zmax, camera, lift, hits, nrm, u_cam, starts, u,
+                    remaining, t_cam)
+        for q in range(m):
+            facing = (nrm[q, 0] * u_cam[q, 0] + nrm[q, 1] * u_cam[q, 1]
+                      + nrm[q, 2] * u_cam[q, 2]) > 1e-9
+            why = VALID
+            if not facing:
+                why = BACK_FACING
+            elif t_cam[q] < remaining[q]:
+                why = CAMERA_SHADOW
+            if why == VALID:
+                for o in range(occ_r2.shape[0]):
+                    if _cylinder_blocks_one(occ_T_C_O[o], occ_r2[o], occ_length[o], starts[q],
+                                            u[q], remaining[q]):
+                        why = CAMERA_BLOCKED
+                        break
+            out_reason[cand[q]] = why
+    for k in range(n):
+        if out_reason[k] == VALID and out_cos[k] < min_intensity:
+            out_reason[k] = TOO_DARK

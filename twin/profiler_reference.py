@@ -50,7 +50,7 @@ def trace_reference(prof, hf, T_B_O: np.ndarray,
     points_O[hit] = o_O + t_hit[hit, None] * dirs_O[hit]
     normals_O = np.zeros((n, 3))
     normals_O[hit] = _solid_normals(hf, points_O[hit])
-    cos_inc = np.clip(-np.einsum("ij,ij->i", normals_O, dirs_O), 0.0, 1.0)
+    cos_inc = np.clip(-_dot_rows(normals_O, dirs_O), 0.0, 1.0)
 
     if occluders:
         reason[(reason == VALID) & (prof._laser_occluder_t(occluders) < t_hit)] = \
@@ -72,7 +72,7 @@ def _camera_visibility(prof, hf, T_B_O, T_O_S, hits_O, normals_O, occluders) -> 
     dist = np.linalg.norm(to_cam, axis=1)
     u = to_cam / dist[:, None]
     out = np.full(hits_O.shape[0], VALID, dtype=np.int8)
-    facing = np.einsum("ij,ij->i", normals_O, u) > 1e-9
+    facing = _dot_rows(normals_O, u) > 1e-9
     out[~facing] = BACK_FACING
     starts = hits_O + _LIFT_MM * normals_O
     remaining = np.linalg.norm(camera_O - starts, axis=1)
@@ -130,6 +130,12 @@ def _correlated_normal(rng: np.random.Generator, n: int, length_points: float) -
     k = np.exp(-0.5 * (np.arange(-half, half + 1) / length_points) ** 2)
     k /= np.sqrt(np.sum(k * k))
     return np.convolve(white, k, mode="valid")
+
+
+def _dot_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise dot products ``(m,)`` of ``(m, 3)`` arrays, summed x, y, then z (the kernels'
+    order; ``einsum`` may pick another at run time)."""
+    return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
 
 
 def _solid_normals(hf, points_O: np.ndarray) -> np.ndarray:
