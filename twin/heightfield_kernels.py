@@ -82,10 +82,17 @@ def raise_block_max(bmax, k, m, h):
 @njit(cache=True)
 def _patch_hit(H, pi, pj, U0, V0, z0, dU, dV, dz, ta, tb):
     """First ``t`` in ``[ta, tb]`` where the ray meets patch ``(pi, pj)`` from above, or inf."""
-    h00 = _node(H, pj - 1, pi - 1)
-    h10 = _node(H, pj - 1, pi)
-    h01 = _node(H, pj, pi - 1)
-    h11 = _node(H, pj, pi)
+    ny, nx = H.shape
+    if 0 < pi < nx and 0 < pj < ny:  # all four nodes inside: no clamping
+        h00 = H[pj - 1, pi - 1]
+        h10 = H[pj - 1, pi]
+        h01 = H[pj, pi - 1]
+        h11 = H[pj, pi]
+    else:
+        h00 = _node(H, pj - 1, pi - 1)
+        h10 = _node(H, pj - 1, pi)
+        h01 = _node(H, pj, pi - 1)
+        h11 = _node(H, pj, pi)
     za = z0 + dz * ta
     zb = z0 + dz * tb
     hmax = max(max(h00, h10), max(h01, h11))
@@ -179,7 +186,7 @@ def ray_one(H, bmax, cell, thickness, zmax, ox, oy, oz, dx, dy, dz, max_range):
         za = oz + dz * t
         zb = oz + dz * tb
         if not (za > bmax[bj, bi] and zb > bmax[bj, bi]):
-            hit = _walk_block(H, bi, bj, U0, V0, oz, dU, dV, dz, t, tb)
+            hit = _walk_block(H, bi, bj, U0, V0, oz, dU, dV, dz, t, tb, bmax[bj, bi])
             if hit < np.inf:
                 return hit
         if tb >= t1:
@@ -195,7 +202,9 @@ def ray_one(H, bmax, cell, thickness, zmax, ox, oy, oz, dx, dy, dz, max_range):
 
 
 @njit(cache=True)
-def _walk_block(H, bi, bj, U0, V0, z0, dU, dV, dz, ta, tb):
+def _walk_block(H, bi, bj, U0, V0, z0, dU, dV, dz, ta, tb, top):
+    """First hit in block ``(bi, bj)`` (height bound ``top``) between ``ta`` and ``tb``, patch
+    by patch; a ray that does not descend leaves as soon as it is above ``top``."""
     ny, nx = H.shape
     tm = ta + 1e-9 * (tb - ta) if tb > ta else ta
     lo_i = bi * BLOCK
@@ -225,6 +234,8 @@ def _walk_block(H, bi, bj, U0, V0, z0, dU, dV, dz, ta, tb):
         if te >= tb:
             return np.inf
         t = te
+        if dz >= 0.0 and z0 + dz * t > top:  # above every node of the block, and rising
+            return np.inf
         if tu <= tv:
             pi += 1 if dU > 0 else -1
         else:
