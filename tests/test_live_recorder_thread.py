@@ -51,3 +51,30 @@ def test_theil_sen_recovers_a_drifting_skew_despite_outliers():
     k[[3, 9]] += (0.4, -0.3)  # two late arrivals
     assert _theil_sen_at(t, k, 2.0) == pytest.approx(0.25 + 2e-3 * 2.0, abs=1e-12)
     assert _theil_sen_at(np.zeros(3), np.array([0.1, 0.2, 0.3]), 5.0) == pytest.approx(0.2)
+
+
+def _aligned(clock, stamp_s, skew_s=0.0):
+    """One profile of S1 arriving at ``stamp_s`` (host clock = robot clock), stamped with
+    ``skew_s`` added; the stamps released."""
+    p = Profile("S1", stamp_s + skew_s, 1, np.zeros((2, 2)), np.ones(2, bool), np.ones(2))
+    return [q.stamp_s for q in clock.profile(p, stamp_s)]
+
+
+def test_clock_releases_in_band_profiles_at_once_and_waits_out_of_band():
+    from dm2.live.clock import ClockAligner
+
+    clock = ClockAligner(tolerance_s=0.05, min_samples=3)
+    for k in range(100):
+        clock.pose(0.004 * k, 0.004 * k)
+    # a synchronised sensor: the first profile is released unchanged, not held for 3 samples
+    assert _aligned(clock, 0.1) == [0.1]
+    assert _aligned(clock, 0.2) == [0.2]
+    assert "S1" not in clock.engaged
+    # a sensor 3 s ahead waits for min_samples, then all are released corrected
+    clock = ClockAligner(tolerance_s=0.05, min_samples=3)
+    for k in range(100):
+        clock.pose(0.004 * k, 0.004 * k)
+    assert _aligned(clock, 0.1, 3.0) == []
+    assert _aligned(clock, 0.2, 3.0) == []
+    assert _aligned(clock, 0.3, 3.0) == pytest.approx([0.1, 0.2, 0.3])
+    assert clock.engaged == {"S1"}

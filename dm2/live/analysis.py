@@ -7,9 +7,10 @@ same layers and tracks), gives the fusion monitor the plate's box so points far 
 ``out_of_range``, notes sensors silent for longer than allowed (``sensor_dropout`` events) and,
 with an output folder, rewrites the report after every analysed layer. With ``live=True`` the
 session fuses first and catches up when asked (:meth:`LayerAnalysis.catch_up`, the live loop's
-idle moments) and analyses finished layers on its worker thread. Reports are written by
-a background thread from a snapshot of the results and tracks, so a slow report (plots) never
-holds up the fusion of the profiles arriving meanwhile; the final report is written in the
+idle moments) and analyses finished layers on its worker thread. Interim reports are written
+from a snapshot of the results and tracks by a child process (:mod:`dm2.live.report_process`,
+fed by a background thread), so a slow report (plots) never holds up the fusion of the profiles
+arriving meanwhile, not even through the interpreter lock; the final report is written in the
 caller's thread after the last one finished.
 """
 
@@ -76,6 +77,7 @@ class LayerAnalysis:
         self._snapshot = None
         self._wake = threading.Condition()
         self._writer: threading.Thread | None = None
+        self._child = None  # ReportProcess writing the interim reports
 
     @property
     def monitor(self):
@@ -129,9 +131,24 @@ class LayerAnalysis:
             if snap == "stop":
                 return
             try:
-                self._write(*snap)
+                self._write_interim(*snap)
             except Exception:  # noqa: BLE001 - a failed interim report must not end the run
                 log.exception("writing the interim report failed")
+
+    def _write_interim(self, results, tracks, dropped, timing, meta, maps) -> None:
+        """An interim report, written by the report child process (falls back to this
+        thread when the child cannot run)."""
+        if self._child is None:
+            from dm2.live.report_process import ReportProcess
+
+            self._child = ReportProcess()
+        try:
+            self.report_s += self._child.write(
+                self.out_dir, results, tracks, config_toml=self.config_toml, dropped=dropped,
+                timing=timing, map_layers=maps, meta=meta)
+        except OSError as exc:  # the child could not be started
+            log.warning("report process unavailable (%s): writing in this process", exc)
+            self._write(results, tracks, dropped, timing, meta, maps)
 
     def _take_snapshot(self):
         results = list(self.results)
@@ -185,6 +202,9 @@ class LayerAnalysis:
                         self._wake.notify()
                 self._writer.join(timeout=0.1)
             self._writer = None
+        if self._child is not None:
+            self._child.close()
+            self._child = None
 
     def finish(self) -> dict | None:
         """End of stream: analyse the last layer, end the tracks, write the final report."""

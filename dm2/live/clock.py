@@ -12,7 +12,10 @@ drifting clock without lag, shrugs off arrival jitter and is immune to any scali
 through bit for bit); once it leaves that band the sensor's stamps are corrected from then on.
 
 A profile arriving before its sensor has ``min_samples`` skew samples waits (at most
-``max_waiting`` per sensor; more count ``clock_unsynced``).
+``max_waiting`` per sensor; more count ``clock_unsynced``), unless every sample so far lies
+within the tolerance band: stamps inside the band pass unchanged anyway, so the first profiles
+of a synchronised cell are not held back (a later estimate outside the band still engages the
+correction from then on).
 """
 
 from __future__ import annotations
@@ -85,7 +88,9 @@ class ClockAligner:
         if ref is not None:
             samples.append((p.stamp_s, p.stamp_s - ref))
         waiting = self._waiting.setdefault(sid, [])
-        if len(samples) < self.min_samples:
+        if len(samples) < self.min_samples and (
+                not samples or sid in self.engaged
+                or any(abs(k) > self.tolerance_s for _, k in samples)):
             if len(waiting) >= self.max_waiting:
                 self.dropped["clock_unsynced"] = self.dropped.get("clock_unsynced", 0) + 1
             else:
@@ -127,7 +132,7 @@ class ClockAligner:
         return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _theil_sen_at(t, k, stamp_s):
     """Theil-Sen line through ``(t, k)`` (median pairwise slope over pairs more than 1 ns
     apart, 0 without any; then the median intercept) evaluated at ``stamp_s``."""
