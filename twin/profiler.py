@@ -25,6 +25,7 @@ import numpy as np
 from dm2.config import NoiseConfig, SensorConfig
 from dm2.messages import COUNTER_MODULO, SENSOR_IDS, Profile
 from twin import profiler_kernels as PK
+from twin import profiler_noise_kernels as PN
 from twin.heightfield import HeightField
 from twin.occluders import CylinderOccluder
 
@@ -203,32 +204,28 @@ class VirtualProfiler:
             raise ValueError(f"{self.sensor_id}: counter {counter} outside the 24-bit range")
         nz, sn = self.noise, self.sensors
         n = trace.range_mm.size
-        gauss, speckle, u_drop, u_ghost, ghost_mm = self._draws(counter, n)
         xz = np.empty((n, 2))
         valid = np.empty(n, dtype=bool)
         intensity = np.empty(n, dtype=np.float32)
-        PK.apply_noise(np.ascontiguousarray(trace.range_mm, dtype=np.float64),
-                       np.ascontiguousarray(trace.reason, dtype=np.int8),
-                       np.ascontiguousarray(trace.cos_incidence, dtype=np.float64),
-                       gauss, speckle, u_drop, u_ghost, ghost_mm, nz.range_sigma_mm,
-                       nz.speckle_sigma_mm, nz.outlier_prob, nz.dropout_prob,
-                       self._dir_x, self._dir_z, sn.z_start_mm,
-                       sn.z_end_mm, xz, valid, intensity)
+        PN.measure_pass(self.seed, self.sensor_index, counter, self._speckle_kernel,
+                        float(nz.outlier_offset_mm[0]), float(nz.outlier_offset_mm[1]),
+                        np.ascontiguousarray(trace.range_mm, dtype=np.float64),
+                        np.ascontiguousarray(trace.reason, dtype=np.int8),
+                        np.ascontiguousarray(trace.cos_incidence, dtype=np.float64),
+                        nz.range_sigma_mm, nz.speckle_sigma_mm, nz.outlier_prob,
+                        nz.dropout_prob, self._dir_x, self._dir_z, sn.z_start_mm,
+                        sn.z_end_mm, xz, valid, intensity)
         return Profile(self.sensor_id, stamp_s, counter, xz, valid, intensity)
 
     def _draws(self, counter: int, n: int):
-        """The profile's random draws from its ``(seed, sensor, counter)`` stream, in order:
-        range noise, speckle, dropout and ghost uniforms, ghost offsets."""
-        nz = self.noise
-        rng = np.random.default_rng([self.seed, self.sensor_index, counter])
-        gauss = rng.standard_normal(n)
-        half = (self._speckle_kernel.size - 1) // 2
-        speckle = np.convolve(rng.standard_normal(n + 2 * half), self._speckle_kernel,
-                              mode="valid")
-        u_drop = rng.random(n)
-        u_ghost = rng.random(n)
-        ghost_mm = rng.uniform(nz.outlier_offset_mm[0], nz.outlier_offset_mm[1], n)
-        return gauss, speckle, u_drop, u_ghost, ghost_mm
+        """The profile's random draws from its ``(seed, sensor, counter)`` stream
+        (:func:`twin.profiler_noise_kernels.noise_draws`), in order: range noise, speckle,
+        dropout and ghost uniforms, ghost offsets [mm], each ``(n,)``."""
+        lo, hi = self.noise.outlier_offset_mm
+        draws = tuple(np.empty(n) for _ in range(5))
+        PN.noise_draws(self.seed, self.sensor_index, int(counter), self._speckle_kernel,
+                       float(lo), float(hi), *draws)
+        return draws
 
     def measure_reference(self, trace: ProfileTrace, stamp_s: float, counter: int) -> Profile:
         """:meth:`measure` in plain numpy (:mod:`twin.profiler_reference`)."""

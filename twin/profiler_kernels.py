@@ -1,4 +1,5 @@
-"""Numba kernels for :class:`twin.profiler.VirtualProfiler`: one pass per scan stage.
+"""Numba kernels for :class:`twin.profiler.VirtualProfiler`'s geometry: one pass per scan stage
+(the sensor noise is in :mod:`twin.profiler_noise_kernels`).
 
 They do, ray by ray and in the same floating-point operations, what the profiler's numpy
 reference path (:meth:`twin.profiler.VirtualProfiler.trace_reference`) does with whole-array
@@ -24,7 +25,6 @@ CAMERA_SHADOW = 3
 CAMERA_BLOCKED = 4
 BACK_FACING = 5
 TOO_DARK = 6
-DROPOUT = 7
 
 
 @njit(cache=True, nogil=True)
@@ -136,38 +136,6 @@ def camera_pass(H, bmax, cell, thickness, zmax, camera, lift, hits, normals, out
     for k in range(m):
         out_t[k] = ray_one(H, bmax, cell, thickness, zmax, out_starts[k, 0], out_starts[k, 1],
                            out_starts[k, 2], out_u[k, 0], out_u[k, 1], out_u[k, 2], max_range)
-
-
-@njit(cache=True, nogil=True)
-def apply_noise(range_mm, reason, cos_inc, gauss, speckle, u_drop, u_ghost, ghost_mm,
-                range_sigma, speckle_sigma, outlier_prob, dropout_prob, dir_x, dir_z,
-                z_start, z_end, out_xz, out_valid, out_intensity):
-    """The sensor's noise and output format, from the profile's random draws: range noise and
-    speckle along each ray, ghosts beyond the surface at half intensity, dropouts, the
-    measuring range; invalid points get NaN coordinates and zero intensity."""
-    for k in range(range_mm.shape[0]):
-        r = range_mm[k] + range_sigma * gauss[k] + speckle_sigma * speckle[k]
-        why = reason[k]
-        cos = cos_inc[k]
-        inten = cos
-        if why == VALID and u_ghost[k] < outlier_prob:
-            r = r + ghost_mm[k]
-            inten = 0.5 * cos
-        if why == VALID and u_drop[k] < dropout_prob:
-            why = DROPOUT
-        z = r * dir_z[k]
-        if why == VALID and (z < z_start or z > z_end):
-            why = NO_SURFACE
-        if why == VALID:
-            out_valid[k] = True
-            out_xz[k, 0] = r * dir_x[k]
-            out_xz[k, 1] = z
-            out_intensity[k] = np.float32(inten)
-        else:
-            out_valid[k] = False
-            out_xz[k, 0] = np.nan
-            out_xz[k, 1] = np.nan
-            out_intensity[k] = np.float32(0.0)
 
 
 @njit(cache=True, nogil=True)

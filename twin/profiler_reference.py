@@ -107,13 +107,7 @@ def _noise(prof, trace: ProfileTrace, counter: int):
     """Noisy ranges, reasons and intensities; every draw is made whatever the settings."""
     nz = prof.noise
     n = trace.range_mm.size
-    rng = np.random.default_rng([prof.seed, prof.sensor_index, counter])
-    gauss = rng.standard_normal(n)
-    speckle = _correlated_normal(rng, n, nz.speckle_length_points)
-    u_drop = rng.random(n)
-    u_ghost = rng.random(n)
-    ghost_mm = rng.uniform(nz.outlier_offset_mm[0], nz.outlier_offset_mm[1], n)
-
+    gauss, speckle, u_drop, u_ghost, ghost_mm = prof._draws(counter, n)
     reason = trace.reason.copy()
     rng_mm = trace.range_mm + nz.range_sigma_mm * gauss + nz.speckle_sigma_mm * speckle
     ghost = (reason == VALID) & (u_ghost < nz.outlier_prob)
@@ -122,14 +116,6 @@ def _noise(prof, trace: ProfileTrace, counter: int):
     reason[(reason == VALID) & (u_drop < nz.dropout_prob)] = DROPOUT
     return rng_mm, reason, intensity
 
-
-def _correlated_normal(rng: np.random.Generator, n: int, length_points: float) -> np.ndarray:
-    """Unit-variance Gaussian noise ``(n,)`` correlated over ``length_points`` along the line."""
-    half = int(np.ceil(3.0 * length_points))
-    white = rng.standard_normal(n + 2 * half)
-    k = np.exp(-0.5 * (np.arange(-half, half + 1) / length_points) ** 2)
-    k /= np.sqrt(np.sum(k * k))
-    return np.convolve(white, k, mode="valid")
 
 
 def _dot_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
