@@ -6,6 +6,9 @@ profilers, deposition and robot states and prints the median rate over ``--runs`
 - stream: consuming ``Simulation.messages`` (what ``dm2 run`` does in process): the deposition
   runs on a worker thread while the calling thread yields states and scans a mirror of the
   height field (it gains only where the machine has a core to spare),
+- stream, 2 idle cores: the stream's critical path, the larger of the CPU seconds of the
+  calling thread and of the deposition thread (what two idle cores would take; the wall-clock
+  figures depend on what else shares the machine, so the load average is printed first),
 - one thread: the same stream with ``scan_thread=False`` (everything on the calling thread),
 - per-sample baseline: the same stream from the plain per-sample loop measured in the same
   process (one deposition call, one validated robot state per 250 Hz motion sample, and the
@@ -21,6 +24,7 @@ plus the one-off setup (part, toolpath, executed motion) that precedes the clock
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import sys
 import tempfile
@@ -53,13 +57,15 @@ def _same(a, b) -> bool:
     return True
 
 
-def _consume(stream) -> tuple[float, float, Counter]:
-    """Wall and CPU seconds to drain ``stream``, and its message counts."""
+def _consume(stream) -> tuple[float, float, Counter, float]:
+    """Wall and CPU seconds to drain ``stream``, its message counts, and the CPU seconds of
+    this (the calling) thread alone."""
     counts: Counter = Counter()
-    t0, c0 = time.perf_counter(), time.process_time()
+    t0, c0, th0 = time.perf_counter(), time.process_time(), time.thread_time()
     for msg in stream:
         counts[type(msg).__name__] += 1
-    return time.perf_counter() - t0, time.process_time() - c0, counts
+    return (time.perf_counter() - t0, time.process_time() - c0, counts,
+            time.thread_time() - th0)
 
 
 def _rates(name: str, process_s: float, runs: list[tuple[float, float]]) -> float:
@@ -96,10 +102,11 @@ def main() -> None:
                                                          strict=True))
     else:
         _consume(sim.messages())
-    streams, serials, baselines, counts = [], [], [], Counter()
+    streams, serials, baselines, counts, paths = [], [], [], Counter(), []
     for _ in range(args.runs):  # interleaved, so all see the same machine load
-        wall, cpu, counts = _consume(sim.messages())
+        wall, cpu, counts, calling = _consume(sim.messages())
         streams.append((wall, cpu))
+        paths.append((calling, sim.spray_cpu_s))
         serials.append(_consume(sim.messages(scan_thread=False))[:2])
         if not args.no_baseline:
             baselines.append(_consume(per_sample_messages(sim))[:2])
@@ -107,12 +114,19 @@ def main() -> None:
         records = [_record_once(sim, scenario, Path(tmp)) for _ in range(args.runs)]
         size_mb = (Path(tmp) / "bench.mcap").stat().st_size / 1e6
     process_s = sim.end_s
+    print(f"load average {' '.join(f'{x:.2f}' for x in os.getloadavg())} "
+          f"({os.cpu_count()} CPUs)")
     print(f"scenario {scenario.name}: {process_s:.1f} s of process, "
           f"{counts['Profile']} profiles, {counts['RobotState']} robot states, "
           f"{counts['LayerMark']} layer marks; setup {setup_s:.2f} s")
     stream_x = _rates("stream", process_s, streams)
     serial_x = _rates("one thread", process_s, serials)
     print(f"stream / one thread = {stream_x / serial_x:.2f} (wall)")
+    calling = statistics.median(c for c, _ in paths)
+    spray = statistics.median(w for _, w in paths)
+    print(f"{'stream, 2 idle cores':20s}: {process_s / max(calling, spray):7.1f} x real time "
+          f"(critical path: calling thread {calling:.2f} s CPU, deposition thread "
+          f"{spray:.2f} s CPU)")
     if baselines:
         base_x = _rates("per-sample baseline", process_s, baselines)
         print(f"stream / baseline = {stream_x / base_x:.2f} (wall); "

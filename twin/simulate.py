@@ -13,6 +13,7 @@ attached, so replaying a recording gives the pipeline exactly what an in-process
 from __future__ import annotations
 
 import logging
+import time
 from collections import Counter
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -65,6 +66,8 @@ class Simulation:
     motion : twin.motion.ExecutedMotion (sampled at ``cell.robot_state_hz``)
     true_calibration, calibration : the cell's true calibration and the one the pipeline gets
     end_s : float [s], last process time simulated (``scenario.duration_s`` cuts it short)
+    final_heightfield, spray_cpu_s : after a stream has run to its end, its true field and the
+        CPU seconds [s] its deposition took (on the worker thread where ``scan_thread``)
     """
 
     def __init__(self, scenario: Scenario):
@@ -154,6 +157,7 @@ class Simulation:
                 if scan_thread else _InlinePool())
         chunks = list(_chunks(t[:n], layers, trig_s))
         grown = [-1]  # the layer whose blobs the field holds
+        spray_cpu = [0.0]  # CPU seconds of the deposition kernel calls (on whichever thread)
 
         def start(c: int):
             """Ready the field for chunk ``c`` (truth, blobs) and start its deposition."""
@@ -164,8 +168,12 @@ class Simulation:
                     truth.layer(hf, grown[0])
                 faults.apply_blobs(hf, layer)  # a bump or dent appears as its layer starts
                 grown[0] = layer
-            return pool.submit(spray.deposit_plan, hf, plan, a, b) if spraying[a:b].any() \
-                else None
+            return pool.submit(deposit, a, b) if spraying[a:b].any() else None
+
+        def deposit(a: int, b: int) -> None:
+            c0 = time.thread_time()
+            spray.deposit_plan(hf, plan, a, b)
+            spray_cpu[0] += time.thread_time() - c0
 
         k = 0  # next trigger
         layer_prev = -1
@@ -209,6 +217,7 @@ class Simulation:
         if truth is not None and n:
             truth.finish(int(motion.segment[n - 1]))
         self.final_heightfield = hf
+        self.spray_cpu_s = spray_cpu[0]
 
     def nominal_layer_heights(self, last_segment: int, layers: list[int]) -> dict:
         """Heights (ny, nx) [mm] after each of ``layers`` of the fault-free run (same seed, no
