@@ -37,13 +37,11 @@ from __future__ import annotations
 
 import logging
 import os
-import time
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
 from dm2 import tsdf_kernels as K
-from dm2 import tsdf_split_kernels as SK
+from dm2.tsdf_split import SplitBuffers, fuse_split
 
 log = logging.getLogger(__name__)
 
@@ -51,16 +49,6 @@ MAX_WEIGHT = 1.0e4  # weight of inactive voxels saturates here (float32 stays ex
 _NO_BOUNDS = np.zeros(3)
 # Batches with fewer points are fused by the serial kernel (thread hand-off would dominate).
 MIN_SPLIT_POINTS = 4096
-# Block columns of 2**COL_SHIFT blocks are dealt to the two threads as a checkerboard in x, y.
-COL_SHIFT = 2
-_POOL: ThreadPoolExecutor | None = None
-
-
-def _pool() -> ThreadPoolExecutor:
-    global _POOL
-    if _POOL is None:
-        _POOL = ThreadPoolExecutor(max_workers=1, thread_name_prefix="tsdf-fuse")
-    return _POOL
 
 
 class SparseTSDF:
@@ -94,10 +82,10 @@ class SparseTSDF:
         if threads not in (1, 2):
             raise ValueError(f"SparseTSDF.threads: 1 or 2, got {threads}")
         self.threads = int(threads)
-        # CPU seconds of the two-thread path so far: serial plan, thread 0, thread 1
-        self.split_cpu_s = np.zeros(3)
-        self._ray_f = np.empty((0, 7))
-        self._ray_flags = np.empty(0, dtype=np.uint8)
+        # CPU seconds of the two-thread path so far: serial allocation, thread 0 (plan and
+        # update), thread 1, and the threaded phases' critical path (the slower thread of each)
+        self.split_cpu_s = np.zeros(4)
+        self._split_buffers = SplitBuffers()
         cap = max(64, int(initial_blocks))
         self.voxels = np.zeros((cap, K.BLOCK_VOXELS, 2), dtype=np.float32)
         self.block_keys = np.full(cap, K.EMPTY, dtype=np.int64)
@@ -154,8 +142,8 @@ class SparseTSDF:
         if self.threads == 2 and p.shape[0] >= MIN_SPLIT_POINTS:
             off = np.array([0, p.shape[0]], dtype=np.int64)
             none = np.zeros((0, 3))
-            self._fuse_split(False, o, p, a, p, off, np.zeros((0, 4, 4)), none, none, 0.0,
-                             _NO_BOUNDS, _NO_BOUNDS, False, np.zeros(2, dtype=np.int64))
+            fuse_split(self, False, o, p, a, p, off, np.zeros((0, 4, 4)), none, none, 0.0,
+                       _NO_BOUNDS, _NO_BOUNDS, False, np.zeros(2, dtype=np.int64), MAX_WEIGHT)
             return
         start = 0
         while start < p.shape[0]:
@@ -205,8 +193,8 @@ class SparseTSDF:
         start, n = 0, xz.shape[0]
         if self.threads == 2 and n >= MIN_SPLIT_POINTS:
             none = np.zeros((0, 3))
-            self._fuse_split(True, none, none, np.zeros(0, np.bool_), xz, off, T, spot, axis,
-                             r2, lo, hi, use_bounds, counts)
+            fuse_split(self, True, none, none, np.zeros(0, np.bool_), xz, off, T, spot, axis,
+                       r2, lo, hi, use_bounds, counts, MAX_WEIGHT)
             start = n
         while start < n:
             start = K.fuse_profiles(xz, off, T, spot, axis, r2, lo, hi, use_bounds, start,
@@ -217,36 +205,6 @@ class SparseTSDF:
             if start < n:
                 self._grow()
         return int(counts[1]), int(counts[0])
-
-    def _fuse_split(self, register, o, p, a, xz, off, T, spot, axis, r2, lo, hi, use_bounds,
-                    counts) -> None:
-        """Two-thread fusion (:mod:`dm2.tsdf_split_kernels`): plan and allocate serially, then
-        each thread updates the voxels of its block columns."""
-        n = xz.shape[0]
-        if self._ray_flags.shape[0] < n:
-            self._ray_f = np.empty((n, 7))
-            self._ray_flags = np.empty(n, dtype=np.uint8)
-        ray_f, flags = self._ray_f[:n], self._ray_flags[:n]
-        c0 = time.thread_time()
-        start = 0
-        while start < n:
-            start = SK.plan_rays(register, o, p, a, xz, off, T, spot, axis, r2, lo, hi,
-                                 use_bounds, start, self.voxel_mm, self.truncation_mm,
-                                 COL_SHIFT, self._table_keys, self._table_slots,
-                                 self.block_keys, self._state, counts, ray_f, flags)
-            if start < n:
-                self._grow()
-        args = (COL_SHIFT, ray_f, flags, self.voxel_mm, self.truncation_mm, self.weight_cap,
-                MAX_WEIGHT, self._table_keys, self._table_slots, self.voxels, self.touched)
-        c1 = time.thread_time()
-        other = _pool().submit(_timed_update, 1, args)
-        missing0, cpu0 = _timed_update(0, args)
-        missing1, cpu1 = other.result()
-        self.split_cpu_s += (c1 - c0, cpu0, cpu1)
-        missing = missing0 + missing1
-        if missing:
-            raise RuntimeError(f"SparseTSDF: {missing} voxel visits found no block "
-                               "(the allocation plan missed a block)")
 
     def _grow(self) -> None:
         n = self.n_blocks
@@ -286,13 +244,6 @@ class SparseTSDF:
             dd, ww = self.dense(vi, (1, 1, 1))
             d[i], w[i] = dd[0, 0, 0], ww[0, 0, 0]
         return d, w
-
-
-def _timed_update(tid: int, args: tuple) -> tuple[int, float]:
-    """``update_rays`` of thread ``tid`` and the CPU seconds it took on its thread."""
-    c = time.thread_time()
-    missing = SK.update_rays(tid, *args)
-    return missing, time.thread_time() - c
 
 
 def _pow2_at_least(n: int) -> int:

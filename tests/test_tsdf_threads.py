@@ -73,3 +73,28 @@ def test_small_batches_use_the_serial_kernel_and_threads_is_validated(monkeypatc
     _assert_same_field(serial, split)
     with pytest.raises(ValueError, match="threads"):
         SparseTSDF(threads=3)
+
+
+def test_full_block_lists_fall_back_to_walking_rays_in_order(monkeypatch):
+    """When a planning thread's list of missing blocks fills up, the rays from there on are
+    walked serially: still the serial kernel's blocks, slots and field."""
+    from dm2 import tsdf_split
+
+    rng = np.random.default_rng(11)
+    o, p, act = _wavy_rays(40_000, rng)
+    one = SparseTSDF(0.5, 1.5, 4.0, initial_blocks=64, threads=1)
+    one.integrate(o, p, act)
+    seen = []
+    real_alloc_rays = tsdf_split.PK.alloc_rays
+
+    def spy(*args):
+        seen.append(args[2:4])
+        return real_alloc_rays(*args)
+
+    monkeypatch.setattr(tsdf_split, "LIST_MARGIN", 5 - 20_000)  # 5 keys per thread
+    monkeypatch.setattr(tsdf_split.PK, "alloc_rays", spy)
+    two = SparseTSDF(0.5, 1.5, 4.0, initial_blocks=64, threads=2)
+    two.integrate(o, p, act)
+    assert seen and min(start for start, _ in seen) < 20_000  # thread 0's list overflowed
+    assert one.n_blocks > 100
+    _assert_same_field(one, two)
