@@ -1,5 +1,6 @@
-"""The profiler's numba scan gives the same bits as its numpy reference: on a rough deposit,
-at the plate's edge, behind an occluder and in the dark, with every noise term switched on."""
+"""The profiler's numba scan (trace, noise, and both in one call) gives the same bits as its
+numpy reference: on a rough deposit, at the plate's edge, behind an occluder and in the dark,
+with every noise term switched on."""
 
 from __future__ import annotations
 
@@ -86,6 +87,10 @@ def test_numba_scan_equals_numpy_reference(target, elevation, azimuth, flip):
             for name in ("xz_S", "valid", "intensity"):
                 np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
             assert a.intensity.dtype == np.float32 and 0 < a.valid.sum() < a.n_points
+            whole = prof.scan(hf, T_B_O, 1.5, counter, occluders)  # one kernel call
+            for name in ("xz_S", "valid", "intensity"):
+                np.testing.assert_array_equal(getattr(whole, name), getattr(b, name),
+                                              err_msg=name)
     assert VALID in seen and len(seen) >= 3
 
 

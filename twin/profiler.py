@@ -24,8 +24,8 @@ import numpy as np
 
 from dm2.config import NoiseConfig, SensorConfig
 from dm2.messages import COUNTER_MODULO, SENSOR_IDS, Profile
-from twin import profiler_kernels as PK
 from twin import profiler_noise_kernels as PN
+from twin import profiler_scan_kernels as PS
 from twin.heightfield import HeightField
 from twin.occluders import CylinderOccluder
 
@@ -105,7 +105,7 @@ class VirtualProfiler:
         self._dir_x = np.ascontiguousarray(self.dirs_S[:, 0])
         self._dir_z = np.ascontiguousarray(self.dirs_S[:, 2])
         self._occluder_cache = None
-        self._cylinder_cache = None
+        self._kernel_cache = None
         half = int(np.ceil(3.0 * noise.speckle_length_points))
         kernel = np.exp(-0.5 * (np.arange(-half, half + 1) / noise.speckle_length_points) ** 2)
         self._speckle_kernel = kernel / np.sqrt(np.sum(kernel * kernel))
@@ -115,47 +115,58 @@ class VirtualProfiler:
         """Cast the fan on the height field ``hf`` (in O, posed by ``T_B_O``); no noise.
 
         A :class:`~twin.heightfield.HeightField` seen past capped-cylinder occluders is cast in
-        one call of :func:`twin.profiler_kernels.trace_pass`; any other surface object or
+        one call of :func:`twin.profiler_scan_kernels.trace_posed`; any other surface object or
         occluder goes through :meth:`trace_reference`. Both give the same bits.
         """
         occluders = tuple(occluders or ())
-        cylinders = self._cylinders(occluders)
-        if not isinstance(hf, HeightField) or cylinders is None:
+        setup = self._kernel_setup(occluders)
+        if not isinstance(hf, HeightField) or setup is None:
             return self.trace_reference(hf, T_B_O, occluders)
-        n = self.dirs_S.shape[0]
-        T_O_S = _invert_trusted(T_B_O) @ self.T_B_S
-        R_O_S, o_O = T_O_S[:3, :3], T_O_S[:3, 3]
-        dirs_O = np.ascontiguousarray(self.dirs_S @ R_O_S.T)
-        camera_O = T_O_S[:3, :3] @ self.camera_S + T_O_S[:3, 3]
-        t_occ = self._laser_occluder_t(occluders) if occluders else self._t_max
-        r2, length, T_C_B = cylinders
-        T_C_O = np.array([T @ T_B_O for T in T_C_B]) if r2.size else T_C_B
+        rays, params, T_C_B, cylinders = setup
+        n = rays.shape[0]
         t_hit = np.empty(n)
         reason = np.empty(n, dtype=np.int8)
         cos_inc = np.empty(n)
         points_O = np.empty((n, 3))
-        PK.trace_pass(hf._h, hf._bmax, hf.cell_mm, hf.thickness_mm, hf._zmax[0], hf.size_mm[0],
-                      hf.size_mm[1], _FACE_TOL_MM, np.ascontiguousarray(o_O), dirs_O,
-                      self._t_min, self._t_max, self._max_range_mm, t_occ, bool(occluders),
-                      camera_O, _LIFT_MM, T_C_O, r2, length, self.noise.min_intensity, t_hit,
-                      reason, cos_inc, points_O)
+        PS.trace_posed(hf._h, hf._bmax, hf._zmax, hf.cell_mm, hf.thickness_mm, hf.size_mm[0],
+                       hf.size_mm[1], np.ascontiguousarray(T_B_O, dtype=np.float64), self.T_B_S,
+                       rays, self.camera_S, T_C_B, cylinders, params, t_hit, reason, cos_inc,
+                       points_O)
         return ProfileTrace(t_hit, reason, cos_inc, points_O)
 
-    def _cylinders(self, occluders: tuple):
-        """``(r2 (k,), length (k,), T_C_B (k, 4, 4))`` of capped-cylinder occluders for
-        :func:`twin.profiler_kernels.trace_pass`, or None when another kind is among them."""
-        if not all(isinstance(o, CylinderOccluder) for o in occluders):
-            return None
+    def _kernel_setup(self, occluders: tuple):
+        """The constant inputs of :mod:`twin.profiler_scan_kernels` for this occluder set:
+        ``rays (n, 6)``, ``params (N_PARAMS,)``, the cylinders' ``T_C_B (k, 4, 4)`` and
+        ``(k, 2)`` squared radius [mm^2] and length [mm]; None when an occluder is not a
+        :class:`~twin.occluders.CylinderOccluder`. Made once per occluder set."""
         key = tuple(id(o) for o in occluders)
-        cached = self._cylinder_cache
-        if cached is None or cached[0] != key:
+        cached = self._kernel_cache
+        if cached is not None and cached[0] == key:
+            return cached[2]
+        setup = None
+        if all(isinstance(o, CylinderOccluder) for o in occluders):
             k = len(occluders)
-            arrays = (np.array([o.radius_mm ** 2 for o in occluders], dtype=np.float64),
-                      np.array([o.length_mm for o in occluders], dtype=np.float64),
-                      np.ascontiguousarray(np.array([o._T_C_B for o in occluders],
-                                                    dtype=np.float64).reshape(k, 4, 4)))
-            cached = self._cylinder_cache = (key, occluders, arrays)
-        return cached[2]
+            t_occ = self._laser_occluder_t(occluders) if occluders else self._t_max
+            rays = np.ascontiguousarray(np.column_stack([self.dirs_S, self._t_min, self._t_max,
+                                                         t_occ]), dtype=np.float64)
+            nz, sn = self.noise, self.sensors
+            params = np.zeros(PS.N_PARAMS)
+            params[[PS.P_FACE_TOL, PS.P_LIFT, PS.P_MIN_INTENSITY, PS.P_MAX_RANGE,
+                    PS.P_RANGE_SIGMA, PS.P_SPECKLE_SIGMA, PS.P_OUTLIER_PROB, PS.P_DROPOUT_PROB,
+                    PS.P_Z_START, PS.P_Z_END, PS.P_GHOST_LO, PS.P_GHOST_HI, PS.P_HAS_OCC]] = (
+                _FACE_TOL_MM, _LIFT_MM, nz.min_intensity, self._max_range_mm,
+                nz.range_sigma_mm, nz.speckle_sigma_mm, nz.outlier_prob, nz.dropout_prob,
+                sn.z_start_mm, sn.z_end_mm, nz.outlier_offset_mm[0], nz.outlier_offset_mm[1],
+                1.0 if occluders else 0.0)
+            T_C_B = np.zeros((k, 4, 4))
+            cylinders = np.zeros((k, 2))
+            for i, o in enumerate(occluders):
+                T_C_B[i] = o._T_C_B
+                cylinders[i] = (o.radius_mm ** 2, o.length_mm)
+            setup = (rays, params, T_C_B, cylinders)
+        # the occluders are held so that their ids stay theirs while cached
+        self._kernel_cache = (key, occluders, setup)
+        return setup
 
     def trace_reference(self, hf, T_B_O: np.ndarray,
                         occluders: Sequence | None = None) -> ProfileTrace:
@@ -194,14 +205,31 @@ class VirtualProfiler:
         stamp_s : float [s]; counter : int, the 24-bit profile counter
         occluders : objects with ``hit_t(origins_B, dirs_B) -> t_mm`` (e.g. the nozzle body)
         """
-        trace = self.trace(hf, T_B_O, occluders)
-        return self.measure(trace, stamp_s, counter)
+        occluders = tuple(occluders or ())
+        setup = self._kernel_setup(occluders)
+        if not isinstance(hf, HeightField) or setup is None:
+            return self.measure(self.trace(hf, T_B_O, occluders), stamp_s, counter)
+        counter = self._check_counter(counter)
+        rays, params, T_C_B, cylinders = setup
+        n = rays.shape[0]
+        xz = np.empty((n, 2))
+        valid = np.empty(n, dtype=bool)
+        intensity = np.empty(n, dtype=np.float32)
+        PS.scan_pass(hf._h, hf._bmax, hf._zmax, hf.cell_mm, hf.thickness_mm, hf.size_mm[0],
+                     hf.size_mm[1], np.ascontiguousarray(T_B_O, dtype=np.float64), self.T_B_S,
+                     rays, self.camera_S, T_C_B, cylinders, params, self.seed, self.sensor_index,
+                     counter, self._speckle_kernel, xz, valid, intensity)
+        return Profile(self.sensor_id, stamp_s, counter, xz, valid, intensity)
 
-    def measure(self, trace: ProfileTrace, stamp_s: float, counter: int) -> Profile:
-        """Apply the sensor's noise to a trace and format it as a :class:`Profile`."""
+    def _check_counter(self, counter) -> int:
         counter = int(counter)
         if not 0 <= counter < COUNTER_MODULO:
             raise ValueError(f"{self.sensor_id}: counter {counter} outside the 24-bit range")
+        return counter
+
+    def measure(self, trace: ProfileTrace, stamp_s: float, counter: int) -> Profile:
+        """Apply the sensor's noise to a trace and format it as a :class:`Profile`."""
+        counter = self._check_counter(counter)
         nz, sn = self.noise, self.sensors
         n = trace.range_mm.size
         xz = np.empty((n, 2))
@@ -238,17 +266,6 @@ class VirtualProfiler:
         from twin.profiler_reference import _noise
 
         return _noise(self, trace, counter)
-
-
-def _invert_trusted(T_a_b: np.ndarray) -> np.ndarray:
-    """:func:`dm2.frames.invert` of one rigid (4, 4) pose, the same operations without its
-    input check (the scan poses come from the executed motion, already rigid)."""
-    Rt = T_a_b[:3, :3].T
-    out = np.zeros_like(T_a_b)
-    out[:3, :3] = Rt
-    out[:3, 3] = -np.einsum("...ij,...j->...i", Rt, T_a_b[:3, 3])
-    out[3, 3] = 1.0
-    return out
 
 
 def _first_occluder_hit(occluders, origins_B: np.ndarray, dirs_B: np.ndarray) -> np.ndarray:

@@ -4,8 +4,8 @@ noise and output format applied to a noise-free trace.
 Every profile draws from its own counter-based stream: SplitMix64 (as in
 :mod:`twin.deposition_kernels`) started from a key mixed from ``(seed, sensor, counter)``, so a
 profile's noise does not depend on the order in which profiles are generated and costs no
-generator object. Uniforms take the top 53 bits of a draw; normals come from the Box-Muller
-transform, both values of each pair in turn. The draws of a profile of ``n`` points, in order:
+generator object. Uniforms take the top 53 bits of a draw; normals come from Marsaglia's
+polar method, both values of each pair in turn. The draws of a profile of ``n`` points, in order:
 ``n`` range-noise normals, ``n + 2 * half`` white normals convolved with the speckle kernel
 (``2 * half + 1`` taps) into ``n`` correlated ones, ``n`` dropout uniforms, ``n`` ghost
 uniforms, ``n`` ghost offsets uniform in ``[lo, hi)`` [mm].
@@ -41,17 +41,19 @@ def stream_state(seed, sensor, counter):
 
 @njit(cache=True)
 def _fill_normal(state, out):
-    """Standard normals into ``out`` (Box-Muller, both values of each pair)."""
+    """Standard normals into ``out`` (Marsaglia's polar method, both values of each pair)."""
     m = out.shape[0]
     k = 0
     while k < m:
-        u1 = 1.0 - uniform(state)
-        u2 = uniform(state)
-        r = math.sqrt(-2.0 * math.log(u1))
-        a = 2.0 * math.pi * u2
-        out[k] = r * math.cos(a)
+        u = 2.0 * uniform(state) - 1.0
+        v = 2.0 * uniform(state) - 1.0
+        s = u * u + v * v
+        if s >= 1.0 or s == 0.0:
+            continue
+        f = math.sqrt(-2.0 * math.log(s) / s)
+        out[k] = u * f
         if k + 1 < m:
-            out[k + 1] = r * math.sin(a)
+            out[k + 1] = v * f
         k += 2
 
 

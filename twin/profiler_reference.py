@@ -12,7 +12,6 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from dm2.frames import invert
 from dm2.messages import Profile
 from twin.profiler import (
     _FACE_TOL_MM,
@@ -36,9 +35,8 @@ def trace_reference(prof, hf, T_B_O: np.ndarray,
     ``raycast``, ``normals_at``, ``height_at``, ``size_mm`` and ``thickness_mm``."""
     occluders = tuple(occluders or ())
     n = prof.dirs_S.shape[0]
-    T_O_S = invert(T_B_O) @ prof.T_B_S
-    R_O_S, o_O = T_O_S[:3, :3], T_O_S[:3, 3]
-    dirs_O = prof.dirs_S @ R_O_S.T
+    T_O_S, dirs_O, camera_O = scan_pose(prof, T_B_O)
+    o_O = T_O_S[:3, 3]
     origins_O = np.broadcast_to(o_O, (n, 3)).copy()
     t_hit = np.asarray(hf.raycast(origins_O, dirs_O, max_range_mm=float(prof._t_max.max())),
                        dtype=np.float64)
@@ -58,16 +56,36 @@ def trace_reference(prof, hf, T_B_O: np.ndarray,
 
     cand = np.flatnonzero(reason == VALID)
     if cand.size:
-        reason[cand] = _camera_visibility(prof, hf, T_B_O, T_O_S, points_O[cand],
-                                               normals_O[cand], occluders)
+        reason[cand] = _camera_visibility(hf, T_B_O, camera_O, points_O[cand],
+                                          normals_O[cand], occluders)
     dark = (reason == VALID) & (cos_inc < prof.noise.min_intensity)
     reason[dark] = TOO_DARK
     return ProfileTrace(t_hit, reason, cos_inc, points_O)
 
 
-def _camera_visibility(prof, hf, T_B_O, T_O_S, hits_O, normals_O, occluders) -> np.ndarray:
-    """Reason codes (VALID or a camera failure) for lit points ``hits_O (m, 3)``."""
-    camera_O = T_O_S[:3, :3] @ prof.camera_S + T_O_S[:3, 3]
+def scan_pose(prof, T_B_O: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``T_O_S (4, 4)``, the fan's unit directions ``dirs_O (n, 3)`` and the camera centre
+    ``camera_O (3,)`` of ``prof`` with the plate at ``T_B_O``, every product summed term by
+    term (x, y, z, then the translation) like :func:`twin.profiler_scan_kernels.scan_pose`."""
+    T_B_O = np.asarray(T_B_O, dtype=np.float64)
+    if T_B_O.shape != (4, 4) or not np.all(np.isfinite(T_B_O)):
+        raise ValueError(f"scan_pose: T_B_O must be a finite (4, 4) pose, got {T_B_O.shape}")
+    Rt, t = T_B_O[:3, :3].T, T_B_O[:3, 3]
+    T_O_B = np.zeros((4, 4))
+    T_O_B[:3, :3] = Rt
+    T_O_B[:3, 3] = -((Rt[:, 0] * t[0] + Rt[:, 1] * t[1]) + Rt[:, 2] * t[2])
+    T_O_B[3, 3] = 1.0
+    A, B = T_O_B, prof.T_B_S
+    T_O_S = ((A[:, 0:1] * B[0] + A[:, 1:2] * B[1]) + A[:, 2:3] * B[2]) + A[:, 3:4] * B[3]
+    R, d, c = T_O_S[:3, :3], prof.dirs_S, prof.camera_S
+    dirs_O = (d[:, 0:1] * R[:, 0] + d[:, 1:2] * R[:, 1]) + d[:, 2:3] * R[:, 2]
+    camera_O = ((R[:, 0] * c[0] + R[:, 1] * c[1]) + R[:, 2] * c[2]) + T_O_S[:3, 3]
+    return T_O_S, dirs_O, camera_O
+
+
+def _camera_visibility(hf, T_B_O, camera_O, hits_O, normals_O, occluders) -> np.ndarray:
+    """Reason codes (VALID or a camera failure) for lit points ``hits_O (m, 3)`` seen from the
+    camera centre ``camera_O (3,)``."""
     to_cam = camera_O - hits_O
     dist = np.linalg.norm(to_cam, axis=1)
     u = to_cam / dist[:, None]
