@@ -10,6 +10,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+_WAITING = 256  # poses that wait in a list before they are merged into the sorted arrays
+
 
 class PoseBuffer:
     """Time-sorted robot flange poses with bracketed SLERP interpolation.
@@ -28,7 +30,7 @@ class PoseBuffer:
         self._T = np.empty((capacity, 4, 4))
         self._n = 0
         self._new_t: list[float] = []  # waiting to be merged, poses in _new_T[:len(_new_t)]
-        self._new_T = np.empty((256, 4, 4))
+        self._new_T = np.empty((_WAITING, 4, 4))
         self._new_sorted = True  # the waiting stamps increase and follow the buffered ones
         self._known: set[float] = set()  # stamps buffered or waiting, for the duplicate test
         self._latest = -np.inf
@@ -47,17 +49,19 @@ class PoseBuffer:
 
     def add(self, stamp_s: float, T_B_F: np.ndarray) -> bool:
         """Insert a pose; False when a pose with the same stamp is already buffered."""
-        if stamp_s in self._known:
+        known = self._known
+        if stamp_s in known:
             return False
-        self._known.add(stamp_s)
+        known.add(stamp_s)
         if stamp_s > self._latest:
             self._latest = stamp_s
         else:
             self._new_sorted = False
-        m = len(self._new_t)
+        new_t = self._new_t
+        m = len(new_t)
         self._new_T[m] = T_B_F
-        self._new_t.append(stamp_s)
-        if m + 1 == len(self._new_T):
+        new_t.append(stamp_s)
+        if m + 1 == _WAITING:
             self._merge()
         return True
 
@@ -103,6 +107,14 @@ class PoseBuffer:
     def covers(self, stamp_s: float) -> bool:
         return self._latest >= stamp_s
 
+    def pose_at(self, stamp_s: float, max_gap_s: float) -> tuple[np.ndarray, bool]:
+        """Interpolated pose ``(4, 4)`` at one ``stamp_s`` and whether two poses at most
+        ``max_gap_s`` apart bracket it (the same bits as :meth:`poses_at`)."""
+        if self._new_t:
+            self._merge()
+        out = np.empty((4, 4))
+        return out, _pose_at(self._t, self._T, self._n, float(stamp_s), float(max_gap_s), out)
+
     def poses_at(self, stamps_s: np.ndarray, max_gap_s: float) -> tuple[np.ndarray, np.ndarray]:
         """Interpolated poses ``(k, 4, 4)`` at ``stamps_s (k,)`` and ``ok (k,) bool`` (False
         where no two poses at most ``max_gap_s`` apart bracket the stamp)."""
@@ -117,17 +129,23 @@ class PoseBuffer:
 @njit(cache=True)
 def _poses_at(t, T, n, q_s, max_gap_s, out, ok):
     for k in range(q_s.shape[0]):
-        out[k] = np.eye(4)
-        ok[k] = False
-        if n == 0:
-            continue
-        i1 = np.searchsorted(t[:n], q_s[k])
-        if i1 < n and t[i1] == q_s[k]:
-            out[k] = T[i1]
-            ok[k] = True
-        elif 0 < i1 < n and t[i1] - t[i1 - 1] <= max_gap_s:
-            _interp_pose(T, t, i1 - 1, i1, q_s[k], out[k])
-            ok[k] = True
+        ok[k] = _pose_at(t, T, n, q_s[k], max_gap_s, out[k])
+
+
+@njit(cache=True)
+def _pose_at(t, T, n, q_s, max_gap_s, out):
+    """Pose at ``q_s`` into ``out (4, 4)`` (identity when not bracketed); whether bracketed."""
+    out[:] = np.eye(4)
+    if n == 0:
+        return False
+    i1 = np.searchsorted(t[:n], q_s)
+    if i1 < n and t[i1] == q_s:
+        out[:] = T[i1]
+        return True
+    if 0 < i1 < n and t[i1] - t[i1 - 1] <= max_gap_s:
+        _interp_pose(T, t, i1 - 1, i1, q_s, out)
+        return True
+    return False
 
 
 @njit(cache=True)

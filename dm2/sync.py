@@ -87,11 +87,9 @@ class StreamSync:
                 return []
             if stamp > self.watermark_s:
                 self.watermark_s = stamp
-            heap = self._heap
-            if not heap or (heap[0][0] > self.poses.latest_s and heap[0][0] > self.watermark_s
-                            - self.reorder_window_s):
-                return []  # the first waiting item is neither covered nor due: nothing to do
-            return self._release(final=False)
+            if not self._heap:
+                return []
+            return self._release_if_ready()
         if isinstance(msg, Profile):
             if not self._accept_profile(msg):
                 return []
@@ -110,7 +108,7 @@ class StreamSync:
         heapq.heappush(self._heap, (msg.stamp_s, self._tie, msg))
         self._tie += 1
         self._advance(msg.stamp_s)
-        return self._release(final=False)
+        return self._release_if_ready()
 
     def flush(self) -> list:
         """Release everything still waiting (end of stream)."""
@@ -142,6 +140,12 @@ class StreamSync:
                 del seen[c]
         return True
 
+    def _release_if_ready(self) -> list:
+        first = self._heap[0][0]
+        if first > self.poses.latest_s and first > self.watermark_s - self.reorder_window_s:
+            return []  # the first waiting item is neither covered nor due: nothing to do
+        return self._release(final=False)
+
     def _release(self, final: bool) -> list:
         """Pop waiting messages in stamp order: a profile as soon as two poses within the gap
         bracket it, at the latest when the window has passed it (then possibly as pose_gap)."""
@@ -158,11 +162,11 @@ class StreamSync:
                 continue
             if not (due or self.poses.covers(stamp)):
                 break
-            T, ok = self.poses.poses_at(np.array([stamp]), self.max_pose_gap_s)
-            if not (ok[0] or due):
+            T, ok = self.poses.pose_at(stamp, self.max_pose_gap_s)
+            if not (ok or due):
                 break  # a missing robot state may still arrive within the window
             heapq.heappop(heap)
-            item = self._synced(msg, T[0], bool(ok[0]))
+            item = self._synced(msg, T, ok)
             if item is not None:
                 ready.append(item)
         return ready

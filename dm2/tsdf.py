@@ -251,6 +251,7 @@ def _pow2_at_least(n: int) -> int:
 
 
 def _resized(a: np.ndarray, rows: int, fill) -> np.ndarray:
-    out = np.full((rows,) + a.shape[1:], fill, dtype=a.dtype)
+    out = np.zeros((rows,) + a.shape[1:], dtype=a.dtype) if fill == 0 else \
+        np.full((rows,) + a.shape[1:], fill, dtype=a.dtype)
     out[: a.shape[0]] = a
     return out
