@@ -102,6 +102,12 @@ class VirtualProfiler:
         self._t_min = sensors.z_start_mm / self.dirs_S[:, 2]
         self._t_max = sensors.z_end_mm / self.dirs_S[:, 2]
         self._max_range_mm = float(self._t_max.max())
+        # lit points lie in the measuring trapezoid, so its farthest corner (plus the lift, with
+        # margin) bounds every camera ray: one reach per profiler, whatever rays a pass holds
+        ends = np.concatenate([self.dirs_S[[0, -1]] * self._t_min[[0, -1], None],
+                               self.dirs_S[[0, -1]] * self._t_max[[0, -1], None]])
+        self._camera_reach_mm = float(np.linalg.norm(ends - self.camera_S, axis=1).max()
+                                      + 2.0 * _LIFT_MM)
         self._dir_x = np.ascontiguousarray(self.dirs_S[:, 0])
         self._dir_z = np.ascontiguousarray(self.dirs_S[:, 2])
         self._occluder_cache = None
@@ -122,17 +128,29 @@ class VirtualProfiler:
         setup = self._kernel_setup(occluders)
         if not isinstance(hf, HeightField) or setup is None:
             return self.trace_reference(hf, T_B_O, occluders)
+        out = self.empty_trace()
+        self.trace_rays(hf, T_B_O, occluders, out, 0, out.range_mm.size)
+        return out
+
+    def empty_trace(self) -> ProfileTrace:
+        """A :class:`ProfileTrace` of uninitialised arrays for :meth:`trace_rays` to fill."""
+        n = self.dirs_S.shape[0]
+        return ProfileTrace(np.empty(n), np.empty(n, dtype=np.int8), np.empty(n),
+                            np.empty((n, 3)))
+
+    def trace_rays(self, hf: HeightField, T_B_O: np.ndarray, occluders: tuple,
+                   out: ProfileTrace, r0: int, r1: int) -> None:
+        """Fill the entries ``r0:r1`` of ``out`` (from :meth:`empty_trace`) with
+        :meth:`trace` of fan rays ``r0:r1`` (the same bits as one whole trace), so that parts
+        of a fan may be cast on different threads. Capped-cylinder occluders only."""
+        setup = self._kernel_setup(tuple(occluders))
+        if setup is None:
+            raise TypeError(f"{self.sensor_id}: trace_rays casts capped-cylinder occluders only")
         rays, params, T_C_B, cylinders = setup
-        n = rays.shape[0]
-        t_hit = np.empty(n)
-        reason = np.empty(n, dtype=np.int8)
-        cos_inc = np.empty(n)
-        points_O = np.empty((n, 3))
         PS.trace_posed(hf._h, hf._bmax, hf._zmax, hf.cell_mm, hf.thickness_mm, hf.size_mm[0],
                        hf.size_mm[1], np.ascontiguousarray(T_B_O, dtype=np.float64), self.T_B_S,
-                       rays, self.camera_S, T_C_B, cylinders, params, t_hit, reason, cos_inc,
-                       points_O)
-        return ProfileTrace(t_hit, reason, cos_inc, points_O)
+                       rays, self.camera_S, T_C_B, cylinders, params, int(r0), int(r1),
+                       out.range_mm, out.reason, out.cos_incidence, out.points_O)
 
     def _kernel_setup(self, occluders: tuple):
         """The constant inputs of :mod:`twin.profiler_scan_kernels` for this occluder set:
@@ -153,11 +171,12 @@ class VirtualProfiler:
             params = np.zeros(PS.N_PARAMS)
             params[[PS.P_FACE_TOL, PS.P_LIFT, PS.P_MIN_INTENSITY, PS.P_MAX_RANGE,
                     PS.P_RANGE_SIGMA, PS.P_SPECKLE_SIGMA, PS.P_OUTLIER_PROB, PS.P_DROPOUT_PROB,
-                    PS.P_Z_START, PS.P_Z_END, PS.P_GHOST_LO, PS.P_GHOST_HI, PS.P_HAS_OCC]] = (
+                    PS.P_Z_START, PS.P_Z_END, PS.P_GHOST_LO, PS.P_GHOST_HI, PS.P_HAS_OCC,
+                    PS.P_CAMERA_REACH]] = (
                 _FACE_TOL_MM, _LIFT_MM, nz.min_intensity, self._max_range_mm,
                 nz.range_sigma_mm, nz.speckle_sigma_mm, nz.outlier_prob, nz.dropout_prob,
                 sn.z_start_mm, sn.z_end_mm, nz.outlier_offset_mm[0], nz.outlier_offset_mm[1],
-                1.0 if occluders else 0.0)
+                1.0 if occluders else 0.0, self._camera_reach_mm)
             T_C_B = np.zeros((k, 4, 4))
             cylinders = np.zeros((k, 2))
             for i, o in enumerate(occluders):

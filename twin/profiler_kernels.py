@@ -101,14 +101,14 @@ def laser_pass(H, bmax, cell, thickness, zmax, lx, ly, face_tol, origin, dirs, t
 
 
 @njit(cache=True, nogil=True)
-def camera_pass(H, bmax, cell, thickness, zmax, camera, lift, hits, normals, out_u_cam,
+def camera_pass(H, bmax, cell, thickness, zmax, camera, lift, reach, hits, normals, out_u_cam,
                 out_starts, out_u, out_remaining, out_t):
     """Rays from the lit points ``hits (m, 3)`` (lifted by ``lift`` along ``normals``) to the
-    camera at ``camera (3,)``, cast on the height field: fills the unit direction to the camera
-    from the unlifted point, the lifted starts, their unit directions and distances to the
-    camera, and the distance to the first surface hit (inf: clear)."""
+    camera at ``camera (3,)``, cast on the height field up to ``reach`` [mm] (at least every
+    ray's distance to the camera): fills the unit direction to the camera from the unlifted
+    point, the lifted starts, their unit directions and distances to the camera, and the
+    distance to the first surface hit (inf: clear)."""
     m = hits.shape[0]
-    max_range = -np.inf
     for k in range(m):
         a0 = camera[0] - hits[k, 0]
         a1 = camera[1] - hits[k, 1]
@@ -131,22 +131,20 @@ def camera_pass(H, bmax, cell, thickness, zmax, camera, lift, hits, normals, out
         out_u[k, 0] = b0 / rem
         out_u[k, 1] = b1 / rem
         out_u[k, 2] = b2 / rem
-        if rem > max_range:
-            max_range = rem
-    for k in range(m):
-        out_t[k] = ray_one(H, bmax, cell, thickness, zmax, out_starts[k, 0], out_starts[k, 1],
-                           out_starts[k, 2], out_u[k, 0], out_u[k, 1], out_u[k, 2], max_range)
+        out_t[k] = ray_one(H, bmax, cell, thickness, zmax, s0, s1, s2, out_u[k, 0],
+                           out_u[k, 1], out_u[k, 2], reach)
 
 
 @njit(cache=True, nogil=True)
 def trace_pass(H, bmax, cell, thickness, zmax, lx, ly, face_tol, origin, dirs, t_min, t_max,
-               max_range, t_occ, has_occ, camera, lift, occ_T_C_O, occ_r2, occ_length,
-               min_intensity, out_t, out_reason, out_cos, out_points):
-    """A whole noise-free scan in one call: :func:`laser_pass`, the cosine of incidence,
-    :func:`camera_pass` for the lit points, their camera verdicts (BACK_FACING, CAMERA_SHADOW,
-    CAMERA_BLOCKED by the capped cylinders ``occ_T_C_O (k, 4, 4)`` (O into each cylinder's
-    frame), ``occ_r2 (k,)`` [mm^2], ``occ_length (k,)`` [mm]) and TOO_DARK below
-    ``min_intensity``, in the order and operations of the numpy reference."""
+               max_range, t_occ, has_occ, camera, lift, camera_reach, occ_T_C_O, occ_r2,
+               occ_length, min_intensity, out_t, out_reason, out_cos, out_points):
+    """A noise-free scan (or a part of its fan) in one call: :func:`laser_pass`, the cosine of
+    incidence, :func:`camera_pass` for the lit points (up to ``camera_reach`` [mm]), their
+    camera verdicts (BACK_FACING, CAMERA_SHADOW, CAMERA_BLOCKED by the capped cylinders
+    ``occ_T_C_O (k, 4, 4)`` (O into each cylinder's frame), ``occ_r2 (k,)`` [mm^2],
+    ``occ_length (k,)`` [mm]) and TOO_DARK below ``min_intensity``, in the order and operations
+    of the numpy reference."""
     n = dirs.shape[0]
     normals = np.empty((n, 3))
     n_cand = laser_pass(H, bmax, cell, thickness, zmax, lx, ly, face_tol, origin, dirs, t_min,
@@ -171,8 +169,8 @@ def trace_pass(H, bmax, cell, thickness, zmax, lx, ly, face_tol, origin, dirs, t
                 nrm[q, c] = normals[cand[q], c]
         u_cam, starts = np.empty((m, 3)), np.empty((m, 3))
         u, remaining, t_cam = np.empty((m, 3)), np.empty(m), np.empty(m)
-        camera_pass(H, bmax, cell, thickness, zmax, camera, lift, hits, nrm, u_cam, starts, u,
-                    remaining, t_cam)
+        camera_pass(H, bmax, cell, thickness, zmax, camera, lift, camera_reach, hits, nrm, u_cam,
+                    starts, u, remaining, t_cam)
         for q in range(m):
             facing = (nrm[q, 0] * u_cam[q, 0] + nrm[q, 1] * u_cam[q, 1]
                       + nrm[q, 2] * u_cam[q, 2]) > 1e-9

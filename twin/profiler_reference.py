@@ -56,8 +56,8 @@ def trace_reference(prof, hf, T_B_O: np.ndarray,
 
     cand = np.flatnonzero(reason == VALID)
     if cand.size:
-        reason[cand] = _camera_visibility(hf, T_B_O, camera_O, points_O[cand],
-                                          normals_O[cand], occluders)
+        reason[cand] = _camera_visibility(hf, T_B_O, camera_O, prof._camera_reach_mm,
+                                          points_O[cand], normals_O[cand], occluders)
     dark = (reason == VALID) & (cos_inc < prof.noise.min_intensity)
     reason[dark] = TOO_DARK
     return ProfileTrace(t_hit, reason, cos_inc, points_O)
@@ -83,9 +83,10 @@ def scan_pose(prof, T_B_O: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarr
     return T_O_S, dirs_O, camera_O
 
 
-def _camera_visibility(hf, T_B_O, camera_O, hits_O, normals_O, occluders) -> np.ndarray:
+def _camera_visibility(hf, T_B_O, camera_O, camera_reach_mm, hits_O, normals_O,
+                       occluders) -> np.ndarray:
     """Reason codes (VALID or a camera failure) for lit points ``hits_O (m, 3)`` seen from the
-    camera centre ``camera_O (3,)``."""
+    camera centre ``camera_O (3,)``, camera rays cast up to ``camera_reach_mm``."""
     to_cam = camera_O - hits_O
     dist = np.linalg.norm(to_cam, axis=1)
     u = to_cam / dist[:, None]
@@ -95,8 +96,7 @@ def _camera_visibility(hf, T_B_O, camera_O, hits_O, normals_O, occluders) -> np.
     starts = hits_O + _LIFT_MM * normals_O
     remaining = np.linalg.norm(camera_O - starts, axis=1)
     u = (camera_O - starts) / remaining[:, None]
-    t_hf = np.asarray(hf.raycast(starts, u, max_range_mm=float(remaining.max())),
-                      dtype=np.float64)
+    t_hf = np.asarray(hf.raycast(starts, u, max_range_mm=camera_reach_mm), dtype=np.float64)
     shadow = t_hf < remaining
     out[facing & shadow] = CAMERA_SHADOW
     if occluders:

@@ -10,7 +10,10 @@ A profiler's constant inputs travel in two arrays made once per profiler:
 
 - ``rays (n, 6)``: the fan's unit directions in S (x, y, z), ``t_min``, ``t_max`` [mm] of the
   measuring range along each ray, the distance to the first occluder [mm] (inf: none);
-- ``params (13,)``: see the ``P_*`` indices below.
+- ``params (N_PARAMS,)``: see the ``P_*`` indices below.
+
+Every ray is traced on its own (the camera rays up to a reach fixed per profiler), so a fan
+traced in parts, by :func:`trace_posed` on ray ranges, gives the same bits as in one call.
 """
 
 from __future__ import annotations
@@ -34,7 +37,8 @@ P_Z_END = 9  # [mm]
 P_GHOST_LO = 10  # [mm]
 P_GHOST_HI = 11  # [mm]
 P_HAS_OCC = 12  # 1.0 where the laser occluder distances apply
-N_PARAMS = 13
+P_CAMERA_REACH = 13  # [mm] at least the distance from the camera to any lifted lit point
+N_PARAMS = 14
 
 
 @njit(cache=True)
@@ -47,9 +51,9 @@ def _compose(A, B, out):
 
 
 @njit(cache=True)
-def scan_pose(T_B_O, T_B_S, rays, camera_S, T_C_B, T_O_S, dirs_O, camera_O, T_C_O):
-    """Fill ``T_O_S (4, 4)``, the fan's directions ``dirs_O (n, 3)``, the camera centre
-    ``camera_O (3,)`` and each cylinder's ``T_C_O = T_C_B @ T_B_O (k, 4, 4)``."""
+def scan_pose(T_B_O, T_B_S, rays, camera_S, T_C_B, r0, r1, T_O_S, dirs_O, camera_O, T_C_O):
+    """Fill ``T_O_S (4, 4)``, the directions ``dirs_O (r1 - r0, 3)`` of fan rays ``r0:r1``, the
+    camera centre ``camera_O (3,)`` and each cylinder's ``T_C_O = T_C_B @ T_B_O (k, 4, 4)``."""
     T_O_B = np.zeros((4, 4))
     for i in range(3):
         for j in range(3):
@@ -58,9 +62,9 @@ def scan_pose(T_B_O, T_B_S, rays, camera_S, T_C_B, T_O_S, dirs_O, camera_O, T_C_
                         + T_B_O[2, i] * T_B_O[2, 3])
     T_O_B[3, 3] = 1.0
     _compose(T_O_B, T_B_S, T_O_S)
-    for k in range(rays.shape[0]):
+    for k in range(r0, r1):
         for i in range(3):
-            dirs_O[k, i] = (rays[k, 0] * T_O_S[i, 0] + rays[k, 1] * T_O_S[i, 1]) \
+            dirs_O[k - r0, i] = (rays[k, 0] * T_O_S[i, 0] + rays[k, 1] * T_O_S[i, 1]) \
                 + rays[k, 2] * T_O_S[i, 2]
     for i in range(3):
         camera_O[i] = ((T_O_S[i, 0] * camera_S[0] + T_O_S[i, 1] * camera_S[1])
@@ -71,24 +75,24 @@ def scan_pose(T_B_O, T_B_S, rays, camera_S, T_C_B, T_O_S, dirs_O, camera_O, T_C_
 
 @njit(cache=True, nogil=True)
 def trace_posed(H, bmax, zmax, cell, thickness, lx, ly, T_B_O, T_B_S, rays, camera_S, T_C_B,
-                cylinders, params, out_t, out_reason, out_cos, out_points):
-    """:func:`scan_pose` then :func:`twin.profiler_kernels.trace_pass` on the height field
-    ``H`` with block bounds ``bmax`` and top ``zmax (1,)``; capped cylinders
-    ``cylinders (k, 2)`` hold the squared radius [mm^2] and the length [mm]."""
-    n = rays.shape[0]
+                cylinders, params, r0, r1, out_t, out_reason, out_cos, out_points):
+    """:func:`scan_pose` then :func:`twin.profiler_kernels.trace_pass` for fan rays ``r0:r1``
+    (their entries of the ``(n,)`` / ``(n, 3)`` outputs) on the height field ``H`` with block
+    bounds ``bmax`` and top ``zmax (1,)``; capped cylinders ``cylinders (k, 2)`` hold the
+    squared radius [mm^2] and the length [mm]."""
     T_O_S = np.empty((4, 4))
-    dirs_O = np.empty((n, 3))
+    dirs_O = np.empty((r1 - r0, 3))
     camera_O = np.empty(3)
     T_C_O = np.empty((T_C_B.shape[0], 4, 4))
-    scan_pose(T_B_O, T_B_S, rays, camera_S, T_C_B, T_O_S, dirs_O, camera_O, T_C_O)
+    scan_pose(T_B_O, T_B_S, rays, camera_S, T_C_B, r0, r1, T_O_S, dirs_O, camera_O, T_C_O)
     origin = np.empty(3)
     for i in range(3):
         origin[i] = T_O_S[i, 3]
     trace_pass(H, bmax, cell, thickness, zmax[0], lx, ly, params[P_FACE_TOL], origin, dirs_O,
-               rays[:, 3], rays[:, 4], params[P_MAX_RANGE], rays[:, 5],
-               params[P_HAS_OCC] != 0.0, camera_O, params[P_LIFT], T_C_O,
-               cylinders[:, 0], cylinders[:, 1], params[P_MIN_INTENSITY], out_t, out_reason,
-               out_cos, out_points)
+               rays[r0:r1, 3], rays[r0:r1, 4], params[P_MAX_RANGE], rays[r0:r1, 5],
+               params[P_HAS_OCC] != 0.0, camera_O, params[P_LIFT], params[P_CAMERA_REACH],
+               T_C_O, cylinders[:, 0], cylinders[:, 1], params[P_MIN_INTENSITY],
+               out_t[r0:r1], out_reason[r0:r1], out_cos[r0:r1], out_points[r0:r1])
 
 
 @njit(cache=True, nogil=True)
@@ -103,7 +107,7 @@ def scan_pass(H, bmax, zmax, cell, thickness, lx, ly, T_B_O, T_B_S, rays, camera
     cos_inc = np.empty(n)
     points = np.empty((n, 3))
     trace_posed(H, bmax, zmax, cell, thickness, lx, ly, T_B_O, T_B_S, rays, camera_S, T_C_B,
-                cylinders, params, t_hit, reason, cos_inc, points)
+                cylinders, params, 0, n, t_hit, reason, cos_inc, points)
     measure_pass(seed, sensor, counter, speckle_kernel, params[P_GHOST_LO], params[P_GHOST_HI],
                  t_hit, reason, cos_inc, params[P_RANGE_SIGMA], params[P_SPECKLE_SIGMA],
                  params[P_OUTLIER_PROB], params[P_DROPOUT_PROB], rays[:, 0], rays[:, 2],
