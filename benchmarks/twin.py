@@ -4,10 +4,11 @@ Runs the default seven-sided scenario for its first ``--process-s`` seconds with
 profilers, deposition and robot states and prints the median rate over ``--runs`` runs of:
 
 - stream: consuming ``Simulation.messages`` (what ``dm2 run`` does in process): the deposition
-  runs on a worker thread while the calling thread yields states and scans a mirror of the
-  height field (it gains only where the machine has a core to spare),
+  and a share of each profiler fan run on a worker thread while the calling thread yields
+  states and casts the rest of the fan on a mirror of the height field (it gains only where
+  the machine has a core to spare),
 - stream, 2 idle cores: the stream's critical path, the larger of the CPU seconds of the
-  calling thread and of the deposition thread (what two idle cores would take; the wall-clock
+  calling thread and of the worker thread (what two idle cores would take; the wall-clock
   figures depend on what else shares the machine, so the load average is printed first),
 - one thread: the same stream with ``scan_thread=False`` (everything on the calling thread),
 - per-sample baseline: the same stream from the plain per-sample loop measured in the same
@@ -106,7 +107,7 @@ def main() -> None:
     for _ in range(args.runs):  # interleaved, so all see the same machine load
         wall, cpu, counts, calling = _consume(sim.messages())
         streams.append((wall, cpu))
-        paths.append((calling, sim.spray_cpu_s))
+        paths.append((calling, sim.worker_cpu_s, sim.spray_cpu_s, sim.worker_fan_share))
         serials.append(_consume(sim.messages(scan_thread=False))[:2])
         if not args.no_baseline:
             baselines.append(_consume(per_sample_messages(sim))[:2])
@@ -122,11 +123,11 @@ def main() -> None:
     stream_x = _rates("stream", process_s, streams)
     serial_x = _rates("one thread", process_s, serials)
     print(f"stream / one thread = {stream_x / serial_x:.2f} (wall)")
-    calling = statistics.median(c for c, _ in paths)
-    spray = statistics.median(w for _, w in paths)
-    print(f"{'stream, 2 idle cores':20s}: {process_s / max(calling, spray):7.1f} x real time "
-          f"(critical path: calling thread {calling:.2f} s CPU, deposition thread "
-          f"{spray:.2f} s CPU)")
+    calling, worker, spray, share = (statistics.median(p[i] for p in paths) for i in range(4))
+    print(f"{'stream, 2 idle cores':20s}: {process_s / max(calling, worker):7.1f} x real time "
+          f"(critical path: calling thread {calling:.2f} s CPU, worker thread {worker:.2f} s "
+          f"CPU of which deposition {spray:.2f} s; worker's share of each fan at the end "
+          f"{share:.2f})")
     if baselines:
         base_x = _rates("per-sample baseline", process_s, baselines)
         print(f"stream / baseline = {stream_x / base_x:.2f} (wall); "

@@ -10,8 +10,9 @@ import pytest
 
 from dm2.config import parse_scenario
 from dm2.messages import LayerMark, Profile, RobotState
-from twin.simulate import HEIGHTFIELD_CELL_MM, Simulation, _chunks
+from twin.simulate import HEIGHTFIELD_CELL_MM, Simulation
 from twin.simulate_reference import per_sample_messages
+from twin.simulate_split import chunk_runs
 
 
 def _scenario():
@@ -80,7 +81,7 @@ def test_chunks_cut_at_triggers_and_layer_changes():
     t = np.arange(10) * 0.1
     layer = np.array([0, 0, 0, 0, 1, 1, 1, 1, 1, 1])
     trig = np.array([-0.05, 0.0, 0.25, 0.25, 0.65, 0.9])
-    runs = list(_chunks(t, layer, trig))
+    runs = list(chunk_runs(t, layer, trig))
     # triggers answered after samples 0, 0, 2, 2, 6, 9; layer 1 starts at sample 4
     assert runs == [(0, 1), (1, 3), (3, 4), (4, 7), (7, 10)]
-    assert list(_chunks(t[:1], layer[:1], np.array([0.0]))) == [(0, 1)]
+    assert list(chunk_runs(t[:1], layer[:1], np.array([0.0]))) == [(0, 1)]

@@ -1,6 +1,7 @@
-"""Scanning on a worker thread (over a mirror of the height field) changes no bit of the
-stream: the same messages as with everything on the calling thread, and as the per-sample
-reference loop, and the same final surface."""
+"""Sharing the work with a worker thread (deposition and part of each profiler fan on the true
+field, the rest of the fan over a mirror) changes no bit of the stream, whatever the share:
+the same messages as with everything on the calling thread, and as the per-sample reference
+loop, and the same final surface."""
 
 from __future__ import annotations
 
@@ -36,6 +37,11 @@ def test_threaded_scans_equal_single_thread_and_reference():
     }, "test"))
     threaded = list(sim.messages())
     h_threaded = sim.final_heightfield.heights_mm.copy()
+    assert sim.worker_cpu_s >= sim.spray_cpu_s > 0
+    for share in (0.0, 0.55, 1.0):  # the worker casts none, part or all of each fan
+        fixed = list(sim.messages(worker_fan_share=share))
+        assert sim.worker_fan_share == share
+        assert all(_same(a, b) for a, b in zip(threaded, fixed, strict=True))
     inline = list(sim.messages(scan_thread=False))
     reference = list(per_sample_messages(sim))
     assert len(threaded) == len(inline) == len(reference)

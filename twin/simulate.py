@@ -16,7 +16,7 @@ import logging
 import time
 from collections import Counter
 from collections.abc import Callable, Iterator
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,6 +25,7 @@ import numpy as np
 from dm2.config import Scenario, dump_toml
 from dm2.frames import PoseInterpolator
 from dm2.messages import SENSOR_IDS, Calibration, LayerMark, Profile, RobotState
+from twin.simulate_split import FanSplit, InlinePool, chunk_runs
 
 log = logging.getLogger(__name__)
 
@@ -66,8 +67,10 @@ class Simulation:
     motion : twin.motion.ExecutedMotion (sampled at ``cell.robot_state_hz``)
     true_calibration, calibration : the cell's true calibration and the one the pipeline gets
     end_s : float [s], last process time simulated (``scenario.duration_s`` cuts it short)
-    final_heightfield, spray_cpu_s : after a stream has run to its end, its true field and the
-        CPU seconds [s] its deposition took (on the worker thread where ``scan_thread``)
+    final_heightfield, spray_cpu_s, worker_cpu_s, worker_fan_share : after a stream has run to
+        its end, its true field, the CPU seconds [s] its deposition took and those of all the
+        worker thread's tasks (deposition and its share of the fans; both on the calling thread
+        without ``scan_thread``), and the share of each fan the worker cast at the end
     """
 
     def __init__(self, scenario: Scenario):
@@ -106,11 +109,15 @@ class Simulation:
                 "calibration.toml": calibration_to_toml(self.calibration).encode()}
 
     def messages(self, truth_dir: str | Path | None = None, progress: Progress | None = None,
-                 *, scan_thread: bool = True) -> Iterator[Profile | RobotState | LayerMark]:
+                 *, scan_thread: bool = True, worker_fan_share: float | None = None
+                 ) -> Iterator[Profile | RobotState | LayerMark]:
         """The message stream in stamp order (deterministic for the scenario's seed).
 
-        ``scan_thread`` deposits on a worker thread while this one scans and yields (the same
-        messages either way, bit for bit; False keeps everything on the calling thread).
+        ``scan_thread`` deposits on a worker thread, which also casts a share of each profiler
+        fan (balanced on the two threads' CPU seconds: :class:`twin.simulate_split.FanSplit`),
+        while this one casts the rest and yields (the same messages either way, bit for bit;
+        False keeps everything on the calling thread). ``worker_fan_share`` fixes the worker's
+        share of each fan instead.
         """
         from twin.deposition import SprayModel
         from twin.heightfield import HeightField
@@ -148,19 +155,26 @@ class Simulation:
                                   efficiency_factor=efficiency, standoff_delta_mm=standoff)
         trig_stamps, trig_sensor, trig_counter = (trig_s.tolist(), trig_j.tolist(),
                                                   trig_c.tolist())
-        # The true field grows on a worker thread (one GIL-free kernel call per chunk) while
-        # this thread yields the chunk's robot states and then scans a mirror of the field
-        # synced (changed cells only) at the chunk's triggers, with the next chunk's
-        # deposition already under way: same order, same bits as one thread.
+        # The true field grows on a worker thread (one GIL-free kernel call per chunk), which
+        # then casts its share of the chunk's profiler fans on it, while this thread yields the
+        # chunk's robot states and casts the rest of those fans on a mirror of the field synced
+        # (changed cells only) at the chunk's end, with the next chunk already under way on the
+        # worker: same order, same bits as one thread, whatever the share.
         mirror = hf.copy()
         pool = (ThreadPoolExecutor(max_workers=1, thread_name_prefix="twin-spray")
-                if scan_thread else _InlinePool())
-        chunks = list(_chunks(t[:n], layers, trig_s))
+                if scan_thread else InlinePool())
+        chunks = list(chunk_runs(t[:n], layers, trig_s))
+        trig_end = np.searchsorted(trig_s, [stamps[b] if b < n else np.inf for _, b in chunks],
+                                   side="left").tolist()  # chunk c ends with triggers up to here
+        split = (FanSplit(profilers[0].dirs_S.shape[0], threaded=scan_thread)
+                 if worker_fan_share is None else
+                 FanSplit(profilers[0].dirs_S.shape[0], scan_thread, worker_fan_share, 0))
+        parts: dict[int, tuple[int, object]] = {}  # trigger -> (rays cast by the worker, trace)
         grown = [-1]  # the layer whose blobs the field holds
-        spray_cpu = [0.0]  # CPU seconds of the deposition kernel calls (on whichever thread)
+        cpu = [0.0, 0.0]  # CPU seconds of the deposition calls, of all the worker's tasks
 
         def start(c: int):
-            """Ready the field for chunk ``c`` (truth, blobs) and start its deposition."""
+            """Ready the field for chunk ``c`` (truth, blobs) and start the worker on it."""
             a, b = chunks[c]
             layer = int(layers[a])
             if layer != grown[0]:
@@ -168,15 +182,30 @@ class Simulation:
                     truth.layer(hf, grown[0])
                 faults.apply_blobs(hf, layer)  # a bump or dent appears as its layer starts
                 grown[0] = layer
-            return pool.submit(deposit, a, b) if spraying[a:b].any() else None
+            k0 = trig_end[c - 1] if c else 0
+            if not spraying[a:b].any() and not (split.rays and trig_end[c] > k0):
+                return None
+            return pool.submit(work, a, b, k0, trig_end[c], split.rays)
 
-        def deposit(a: int, b: int) -> None:
+        def work(a: int, b: int, k0: int, k1: int, rays: int) -> float:
+            """Deposit samples ``a:b``, then cast rays ``0:rays`` of triggers ``k0:k1``."""
             c0 = time.thread_time()
-            spray.deposit_plan(hf, plan, a, b)
-            spray_cpu[0] += time.thread_time() - c0
+            if spraying[a:b].any():
+                spray.deposit_plan(hf, plan, a, b)
+            c1 = time.thread_time()
+            for q in range(k0, k1) if rays else ():
+                prof = profilers[trig_sensor[q]]
+                out = prof.empty_trace()
+                prof.trace_rays(hf, trig_T_B_O[q], occluders, out, 0, rays)
+                parts[q] = (rays, out)
+            c2 = time.thread_time()
+            cpu[0] += c1 - c0
+            cpu[1] += c2 - c0
+            return c2 - c0
 
         k = 0  # next trigger
         layer_prev = -1
+        c_main = time.thread_time()
         try:
             growing = start(0) if chunks else None
             for c, (a, b) in enumerate(chunks):
@@ -195,18 +224,24 @@ class Simulation:
                     yield RobotState.trusted(stamps[i], i, joints[i - a], T_B_F[i - a])
                     if progress is not None and (i % 250 == 0 or i == n - 1):
                         progress(stamps[i], self.end_s)
-                if growing is not None:
-                    growing.result()
-                t_next = stamps[b] if b < n else np.inf
-                k_end = k
-                while k_end < len(trig_stamps) and trig_stamps[k_end] < t_next:
-                    k_end += 1
+                worker_s = growing.result() if growing is not None else 0.0
+                now = time.thread_time()
+                split.balance(now - c_main, worker_s)
+                c_main = now
+                k_end = trig_end[c]
                 if k_end > k:
                     hf.copy_changes_to(mirror)
                 growing = start(c + 1) if c + 1 < len(chunks) else None
                 for q in range(k, k_end):
-                    yield profilers[trig_sensor[q]].scan(mirror, trig_T_B_O[q], trig_stamps[q],
-                                                         trig_counter[q], occluders)
+                    prof = profilers[trig_sensor[q]]
+                    rays, out = parts.pop(q, (0, None))
+                    if out is None:  # a whole fan in one call
+                        yield prof.scan(mirror, trig_T_B_O[q], trig_stamps[q], trig_counter[q],
+                                        occluders)
+                        continue
+                    prof.trace_rays(mirror, trig_T_B_O[q], occluders, out, rays,
+                                    out.range_mm.size)
+                    yield prof.measure(out, trig_stamps[q], trig_counter[q])
                 k = k_end
             if growing is not None:
                 growing.result()
@@ -217,7 +252,8 @@ class Simulation:
         if truth is not None and n:
             truth.finish(int(motion.segment[n - 1]))
         self.final_heightfield = hf
-        self.spray_cpu_s = spray_cpu[0]
+        self.spray_cpu_s, self.worker_cpu_s = cpu
+        self.worker_fan_share = split.rays / max(split.n_rays, 1)
 
     def nominal_layer_heights(self, last_segment: int, layers: list[int]) -> dict:
         """Heights (ny, nx) [mm] after each of ``layers`` of the fault-free run (same seed, no
@@ -271,36 +307,6 @@ class _TruthWriter:
         write_fault_truth(self.dir / "faults.json", sc.faults, self.faulty, nominal,
                           toolpath=self.sim.toolpath, cell_mm=HEIGHTFIELD_CELL_MM,
                           area_threshold_mm=sc.monitor.delta_global_mm)
-
-
-class _InlinePool:
-    """A pool that runs each task as it is submitted (``scan_thread=False``)."""
-
-    def submit(self, fn, *args) -> Future:
-        done: Future = Future()
-        done.set_result(fn(*args))
-        return done
-
-    def shutdown(self, wait: bool = True, cancel_futures: bool = False) -> None:
-        pass
-
-
-def _chunks(t_s: np.ndarray, layer: np.ndarray, trig_s: np.ndarray):
-    """Runs ``[a, b)`` of motion samples that share a layer and hold no profile trigger inside.
-
-    A trigger at ``trig_s`` is answered right after the last sample at or before it (the first
-    sample when it precedes them all), and a layer change starts a new run, so each run's
-    robot states, then its deposition, then the triggers it ends with, keep the stream's order
-    and every profile sees the surface exactly as it stands at its stamp.
-    """
-    n = t_s.size
-    after = np.maximum(np.searchsorted(t_s, trig_s, side="right") - 1, 0)
-    cuts = np.concatenate([after + 1, np.flatnonzero(np.diff(layer)) + 1, [n]])
-    cuts = np.unique(cuts[(cuts > 0) & (cuts <= n)])
-    a = 0
-    for b in cuts.tolist():
-        yield a, b
-        a = b
 
 
 def iter_messages(scenario: Scenario, truth_dir: str | Path | None = None,
