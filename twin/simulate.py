@@ -123,6 +123,7 @@ class Simulation:
         from twin.heightfield import HeightField
         from twin.occluders import nozzle_occluder
         from twin.profiler import VirtualProfiler, trigger_schedule
+        from twin.simulate_truth import TruthWriter
 
         sc, cell, motion, faults = self.scenario, self.cell, self.motion, self.faults
         plate = sc.cell.plate_size_mm
@@ -132,7 +133,7 @@ class Simulation:
         profilers = [VirtualProfiler(sid, cell.T_B_S[sid], sc.sensors, sc.noise, seed=sc.seed)
                      for sid in SENSOR_IDS]
         occluders = [nozzle_occluder(cell.T_B_N, sc.cell)]
-        truth = _TruthWriter(truth_dir, self) if truth_dir is not None else None
+        truth = TruthWriter(truth_dir, self) if truth_dir is not None else None
         robot_rng = np.random.default_rng([sc.seed, ROBOT_NOISE_SEED_OFFSET])
         robot_sigma = sc.noise.robot_repeatability_mm
 
@@ -258,55 +259,9 @@ class Simulation:
     def nominal_layer_heights(self, last_segment: int, layers: list[int]) -> dict:
         """Heights (ny, nx) [mm] after each of ``layers`` of the fault-free run (same seed, no
         corner dwell), which stops where the faulty run's toolpath move ``last_segment`` ends."""
-        from twin.deposition import SprayModel
-        from twin.heightfield import HeightField
-        from twin.motion import execute_toolpath
+        from twin.simulate_truth import nominal_layer_heights
 
-        motion = self.motion
-        if any(f.kind == "corner_dwell" for f in self.scenario.faults):
-            motion = execute_toolpath(self.toolpath, self.cell, rate_hz=self.cell.robot_state_hz,
-                                      accel_mm_s2=self.cell.accel_mm_s2)
-        plate = self.scenario.cell.plate_size_mm
-        hf = HeightField(size_mm=(plate[0], plate[1]), cell_mm=HEIGHTFIELD_CELL_MM,
-                         thickness_mm=plate[2])
-        spray = SprayModel(self.scenario.process, seed=self.scenario.seed)
-        n = int(np.searchsorted(motion.segment, last_segment, side="right"))
-        dt = 1.0 / self.cell.robot_state_hz
-        out, wanted = {}, set(layers)
-        for i in range(n):
-            if motion.spray_on[i]:
-                spray.deposit(hf, motion.position_O[i], motion.axis_O[i], dt)
-            layer = int(motion.layer[i])
-            if layer in wanted and (i + 1 == n or int(motion.layer[i + 1]) != layer):
-                out[layer] = hf.heights_mm.copy()
-        return out
-
-
-class _TruthWriter:
-    """Ground truth beside a run: the true top surface after each layer (PLY in O) and
-    ``faults.json``, each fault's effect measured against a fault-free run with the same seed."""
-
-    def __init__(self, truth_dir, sim: Simulation):
-        self.dir = Path(truth_dir)
-        self.dir.mkdir(parents=True, exist_ok=True)
-        self.sim = sim
-        self.faulty: dict[int, np.ndarray] = {}
-
-    def layer(self, hf, layer: int) -> None:
-        from twin.truth import write_layer_surface
-
-        write_layer_surface(hf, self.dir / f"layer_{layer:03d}.ply")
-        self.faulty[layer] = hf.heights_mm.copy()
-
-    def finish(self, last_segment: int) -> None:
-        from twin.truth import write_fault_truth
-
-        sc = self.sim.scenario
-        nominal = (self.sim.nominal_layer_heights(last_segment, sorted(self.faulty))
-                   if sc.faults else self.faulty)
-        write_fault_truth(self.dir / "faults.json", sc.faults, self.faulty, nominal,
-                          toolpath=self.sim.toolpath, cell_mm=HEIGHTFIELD_CELL_MM,
-                          area_threshold_mm=sc.monitor.delta_global_mm)
+        return nominal_layer_heights(self, last_segment, layers)
 
 
 def iter_messages(scenario: Scenario, truth_dir: str | Path | None = None,
