@@ -70,7 +70,7 @@ class FrameDeviation:
     alarms: tuple
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def _column_crossings(d, w, min_weight):
     """Fractional voxel index (nx, ny) of the topmost - to + crossing along z, NaN if none."""
     nx, ny, nz = d.shape

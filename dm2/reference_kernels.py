@@ -23,7 +23,7 @@ from numba import njit
 MARCH_REFINE_STEPS = 6  # bisections after the march brackets the surface (cell / 64)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def bilinear(h, cell, x, y):
     """Bilinear height of the cell-centred grid ``h`` at ``(x, y)``, clamped at the border."""
     ny, nx = h.shape
@@ -37,7 +37,7 @@ def bilinear(h, cell, x, y):
             + (1 - tx) * ty * h[j0 + 1, i0] + tx * ty * h[j0 + 1, i0 + 1])
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def efficiency(cos_t, zeta0, theta_c):
     """``zeta0 * cos^2(pi/2 * (theta / theta_c)^2)`` for ``theta = acos(cos_t) < theta_c``."""
     th = math.acos(min(max(cos_t, -1.0), 1.0)) / theta_c
@@ -52,7 +52,7 @@ def efficiency_table(zeta0: float, theta_c: float, n: int = 4097) -> np.ndarray:
     return np.array([efficiency(c, zeta0, theta_c) for c in np.linspace(0.0, 1.0, n)])
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def spots_from_poses(T_B_F, T_F_O, spot_B, axis_B, out_spot, out_axis):
     """Spot and unit spray axis in ``O`` of each flange pose ``T_B_F`` (m, 4, 4), written to
     ``out_spot`` / ``out_axis`` (at least (m, 3)): ``p_O = R^T (p_B - t)`` of
@@ -72,7 +72,7 @@ def spots_from_poses(T_B_F, T_F_O, spot_B, axis_B, out_spot, out_axis):
             out_axis[k, c] = R[0, c] * axis_B[0] + R[1, c] * axis_B[1] + R[2, c] * axis_B[2]
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def march_to_surface(h, cell, zmax, ox, oy, oz, ax, ay, az, t_max):
     """Distance along the unit axis from ``o`` to the first crossing of the height map, or
     ``-1.0`` when the ray stays above it up to ``t_max`` (or does not point down)."""
@@ -102,7 +102,7 @@ def march_to_surface(h, cell, zmax, ox, oy, oz, ax, ay, az, t_max):
     return -1.0
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def deposit_spot(h, cell, px, py, pz, ax, ay, az, dt, v_dot, zeta0, theta_c, sigma, n_sigma,
                  slope_cells, back_mm, zmax, scratch, lut):
     """Deposit ``dt`` seconds of spray aimed at ``p`` along ``a``; returns the volume [mm^3].
@@ -182,7 +182,7 @@ def deposit_spot(h, cell, px, py, pz, ax, ay, az, dt, v_dot, zeta0, theta_c, sig
     return total * cell * cell
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def flush_pending(h, cell, last, v_dot, zeta0, theta_c, sigma, n_sigma, slope_cells, back_mm,
                   zmax, scratch, lut):
     """Deposit the pending piece held in ``last[8:16]`` (if any) and clear it; returns volume."""
@@ -199,7 +199,7 @@ def flush_pending(h, cell, last, v_dot, zeta0, theta_c, sigma, n_sigma, slope_ce
     return vol
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def integrate_states(h, cell, stamps, T_B_F, on, T_F_O, spot_B, axis_B, last, buf_spot,
                      buf_axis, v_dot, zeta0, theta_c, sigma, n_sigma, slope_cells, back_mm,
                      max_gap_s, max_piece_s, zmax, scratch, lut):

@@ -132,7 +132,7 @@ class ClockAligner:
         return out
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def _theil_sen_at(t, k, stamp_s):
     """Theil-Sen line through ``(t, k)`` (median pairwise slope over pairs more than 1 ns
     apart, 0 without any; then the median intercept) evaluated at ``stamp_s``."""
