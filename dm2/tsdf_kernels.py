@@ -107,6 +107,18 @@ def _get_or_alloc(bx, by, bz, table_keys, table_slots, block_keys, touched, stat
 
 
 @njit(cache=True, inline="always")
+def recent_slot(bx, by, bz, a, b):
+    """Slot of block ``(bx, by, bz)`` when it is one of the two blocks looked up last (``a``,
+    ``b``: ``(bx, by, bz, slot)``), else -1. Consecutive rays mostly cross the same two blocks,
+    so most hash lookups are saved."""
+    if bx == a[0] and by == a[1] and bz == a[2]:
+        return a[3]
+    if bx == b[0] and by == b[1] and bz == b[2]:
+        return b[3]
+    return -1
+
+
+@njit(cache=True, inline="always")
 def dda_start(ox, oy, oz, dx, dy, dz, r, truncation_mm, inv_vox):
     """First voxel and DDA state (Amanatides & Woo) of the band ``r +- truncation_mm``."""
     t0 = r - truncation_mm
@@ -225,6 +237,7 @@ def _fuse(register, origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, a
     table_limit = table_keys.shape[0] // 2
     inv_vox = 1.0 / voxel_mm
     r00 = r10 = r20 = r02 = r12 = r22 = ox = oy = oz = sx = sy = sz = ax = ay = az = 0.0
+    ra = rb = (1 << 40, 0, 0, -1)  # the two blocks looked up last (bx, by, bz, slot)
     for k in range(offsets.shape[0] - 1):
         if offsets[k + 1] <= start:
             continue
@@ -273,8 +286,11 @@ def _fuse(register, origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, a
             while t <= span:
                 bx, by, bz = vx >> BLOCK_SHIFT, vy >> BLOCK_SHIFT, vz >> BLOCK_SHIFT
                 if bx != last_bx or by != last_by or bz != last_bz:
-                    slot = _get_or_alloc(bx, by, bz, table_keys, table_slots, block_keys,
-                                         touched, state)
+                    slot = recent_slot(bx, by, bz, ra, rb)
+                    if slot < 0:
+                        slot = _get_or_alloc(bx, by, bz, table_keys, table_slots, block_keys,
+                                             touched, state)
+                        ra, rb = (bx, by, bz, slot), ra
                     last_bx, last_by, last_bz = bx, by, bz
                 update_voxel(voxels, slot, vx, vy, vz, ox, oy, oz, dx, dy, dz, r, voxel_mm,
                              truncation_mm, act, active_weight_cap, max_weight)

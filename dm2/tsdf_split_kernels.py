@@ -12,7 +12,14 @@ from __future__ import annotations
 
 from numba import njit
 
-from dm2.tsdf_kernels import BLOCK_SHIFT, dda_start, dda_step, pack_key, update_voxel
+from dm2.tsdf_kernels import (
+    BLOCK_SHIFT,
+    dda_start,
+    dda_step,
+    pack_key,
+    recent_slot,
+    update_voxel,
+)
 from dm2.tsdf_plan_kernels import ACTIVE_FLAG, _find
 
 
@@ -26,6 +33,7 @@ def update_rays(tid, col_shift, ray_f, ray_flags, voxel_mm, truncation_mm, activ
     cs = BLOCK_SHIFT + col_shift
     bit = 1 << tid
     missing = 0
+    ra = rb = (1 << 40, 0, 0, -1)  # the two blocks looked up last (bx, by, bz, slot)
     for i in range(ray_flags.shape[0]):
         flags = ray_flags[i]
         if not flags & bit:
@@ -42,9 +50,12 @@ def update_rays(tid, col_shift, ray_f, ray_flags, voxel_mm, truncation_mm, activ
             if mine or ((vx >> cs) + (vy >> cs)) & 1 == tid:
                 bx, by, bz = vx >> BLOCK_SHIFT, vy >> BLOCK_SHIFT, vz >> BLOCK_SHIFT
                 if bx != last_bx or by != last_by or bz != last_bz:
-                    slot = _find(table_keys, table_slots, pack_key(bx, by, bz))
-                    if slot >= 0:
-                        touched[slot] = True
+                    slot = recent_slot(bx, by, bz, ra, rb)
+                    if slot < 0:
+                        slot = _find(table_keys, table_slots, pack_key(bx, by, bz))
+                        if slot >= 0:
+                            touched[slot] = True
+                        ra, rb = (bx, by, bz, slot), ra
                     last_bx, last_by, last_bz = bx, by, bz
                 if slot < 0:
                     missing += 1
