@@ -148,3 +148,25 @@ def test_feed_factor_and_residence_time_scale_the_deposit():
     assert vols[2] / vols[0] == pytest.approx(2.0, rel=0.03)
     with pytest.raises(ValueError, match="non-negative"):
         SprayModel(p).deposit(HeightField((10.0, 10.0), 0.5), [5, 5, 0], [0, 0, -1], -1.0)
+
+
+def test_unrolled_splat_equals_general_path_bit_for_bit():
+    from twin import deposition_kernels as DK
+
+    rng = np.random.default_rng(4)
+    h0 = rng.uniform(0.0, 0.3, (32, 40))
+    xy = rng.uniform([0.6, 0.6], [9.4, 7.4], (400, 2))  # every splat's 5 x 5 cells on the grid
+    vols = rng.uniform(1e-4, 1e-2, 400)
+    w = np.empty(2 * (2 * DK.SPLAT_RADIUS_CELLS + 1))
+    grown = []
+    for unrolled in (True, False):
+        hf = HeightField((10.0, 8.0), 0.25, 6.0)
+        hf.heights_mm = h0
+        for (x, y), vol in zip(xy, vols, strict=True):
+            DK._splat(hf._h, hf._bmax, hf._zmax, hf._dirty, hf.cell_mm, x, y, vol, w, unrolled)
+        grown.append(hf)
+    for name in ("_h", "_bmax", "_zmax", "_dirty"):
+        np.testing.assert_array_equal(getattr(grown[0], name), getattr(grown[1], name),
+                                      err_msg=name)
+    added_mm3 = (grown[0]._h - h0).sum() * 0.25 ** 2
+    assert math.isclose(added_mm3, vols.sum(), rel_tol=1e-9)

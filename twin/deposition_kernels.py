@@ -100,8 +100,44 @@ _SPLAT_G = np.exp(-np.arange(SPLAT_RADIUS_CELLS + 1.0) ** 2
                   / (2.0 * SPLAT_SIGMA_CELLS * SPLAT_SIGMA_CELLS))
 
 
+@njit(cache=True, inline="always")
+def _splat_row(H, j, i, wy, d0, d1, d2, d3, d4, top):
+    """Add ``dk * wy`` to cell ``(j, i + k)``, k = 0..4; returns the highest height so far."""
+    h = H[j, i] + d0 * wy
+    H[j, i] = h
+    top = max(top, h)
+    h = H[j, i + 1] + d1 * wy
+    H[j, i + 1] = h
+    top = max(top, h)
+    h = H[j, i + 2] + d2 * wy
+    H[j, i + 2] = h
+    top = max(top, h)
+    h = H[j, i + 3] + d3 * wy
+    H[j, i + 3] = h
+    top = max(top, h)
+    h = H[j, i + 4] + d4 * wy
+    H[j, i + 4] = h
+    return max(top, h)
+
+
 @njit(cache=True)
-def _splat(H, bmax, zmax, dirty, cell, x, y, vol, w):
+def _raise_bounds(bmax, zmax, dirty, j_lo, j_hi, i_lo, i_hi, top):
+    """Raise the bounds of the blocks holding nodes ``j_lo..j_hi x i_lo..i_hi`` (and the
+    field's top) to ``top``, and add the nodes to the changed-cell box ``dirty``."""
+    for bj in range(j_lo // BLOCK, (j_hi + 1) // BLOCK + 1):
+        for bi in range(i_lo // BLOCK, (i_hi + 1) // BLOCK + 1):
+            if top > bmax[bj, bi]:
+                bmax[bj, bi] = top
+    if top > zmax[0]:
+        zmax[0] = top
+    dirty[0] = min(dirty[0], j_lo)
+    dirty[1] = max(dirty[1], j_hi)
+    dirty[2] = min(dirty[2], i_lo)
+    dirty[3] = max(dirty[3], i_hi)
+
+
+@njit(cache=True)
+def _splat(H, bmax, zmax, dirty, cell, x, y, vol, w, unrolled=True):
     """Add ``vol`` [mm^3] at ``(x, y)`` as a small Gaussian splat (sigma one cell, 5 x 5 cells).
 
     A packet stands for many particles that flatten on impact; spreading it over a few cells
@@ -112,7 +148,9 @@ def _splat(H, bmax, zmax, dirty, cell, x, y, vol, w):
     y weights. Normalised weights only need ``exp(-(d - f)^2 / 2s^2)`` up to a common factor,
     i.e. ``exp(-d^2 / 2s^2) * exp(f / s^2)^d`` for offset ``d`` from the nearest centre and
     sub-cell offset ``f``: two exponentials per axis instead of five. The cells written are
-    added to the changed-cell box ``dirty`` ([j_min, j_max, i_min, i_max]).
+    added to the changed-cell box ``dirty`` ([j_min, j_max, i_min, i_max]). A splat with all
+    its cells on the grid takes an unrolled path of the same operations (the same bits; False
+    ``unrolled`` keeps the general path).
     """
     ny, nx = H.shape
     u = x / cell - 0.5
@@ -126,6 +164,23 @@ def _splat(H, bmax, zmax, dirty, cell, x, y, vol, w):
     ey = math.exp(2.0 * (v - jc) * inv2s2)
     exi = 1.0 / ex
     eyi = 1.0 / ey
+    if unrolled and r == 2 and 2 <= ic < nx - 2 and 2 <= jc < ny - 2:  # all 25 on the grid
+        g1 = _SPLAT_G[1]
+        g2 = _SPLAT_G[2]
+        x0, x1, x3, x4 = g2 * (exi * exi), g1 * exi, g1 * ex, g2 * (ex * ex)
+        y0, y1, y3, y4 = g2 * (eyi * eyi), g1 * eyi, g1 * ey, g2 * (ey * ey)
+        sx = (((x0 + x1) + 1.0) + x3) + x4
+        sy = (((y0 + y1) + 1.0) + y3) + y4
+        dh = vol / (cell * cell * sx * sy)
+        d0, d1, d3, d4 = dh * x0, dh * x1, dh * x3, dh * x4  # (dh * wx) * wy, as below
+        top = -np.inf
+        top = _splat_row(H, jc - 2, ic - 2, y0, d0, d1, dh, d3, d4, top)
+        top = _splat_row(H, jc - 1, ic - 2, y1, d0, d1, dh, d3, d4, top)
+        top = _splat_row(H, jc, ic - 2, 1.0, d0, d1, dh, d3, d4, top)
+        top = _splat_row(H, jc + 1, ic - 2, y3, d0, d1, dh, d3, d4, top)
+        top = _splat_row(H, jc + 2, ic - 2, y4, d0, d1, dh, d3, d4, top)
+        _raise_bounds(bmax, zmax, dirty, jc - 2, jc + 2, ic - 2, ic + 2, top)
+        return
     # w[:m] holds x, w[m:2m] holds y; centre first, then outwards in both directions
     w[r] = 1.0 if 0 <= ic < nx else 0.0
     w[m + r] = 1.0 if 0 <= jc < ny else 0.0
@@ -168,20 +223,8 @@ def _splat(H, bmax, zmax, dirty, cell, x, y, vol, w):
                 top = h
     # the splat's highest node bounds every block its nodes touch (a valid, slightly looser
     # bound than node by node, for a fraction of the work)
-    j_lo = max(jc - r, 0)
-    j_hi = min(jc + r, ny - 1)
-    i_lo = max(ic - r, 0)
-    i_hi = min(ic + r, nx - 1)
-    for bj in range(j_lo // BLOCK, (j_hi + 1) // BLOCK + 1):
-        for bi in range(i_lo // BLOCK, (i_hi + 1) // BLOCK + 1):
-            if top > bmax[bj, bi]:
-                bmax[bj, bi] = top
-    if top > zmax[0]:
-        zmax[0] = top
-    dirty[0] = min(dirty[0], j_lo)
-    dirty[1] = max(dirty[1], j_hi)
-    dirty[2] = min(dirty[2], i_lo)
-    dirty[3] = max(dirty[3], i_hi)
+    _raise_bounds(bmax, zmax, dirty, max(jc - r, 0), min(jc + r, ny - 1), max(ic - r, 0),
+                  min(ic + r, nx - 1), top)
 
 
 @njit(cache=True, nogil=True)
