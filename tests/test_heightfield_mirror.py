@@ -33,5 +33,17 @@ def test_mirror_follows_deposition_and_whole_field_edits():
     hf.add_heights(np.full(hf.shape, 0.5))  # whole-field edit marks every cell
     hf.copy_changes_to(mirror)
     assert _same(hf, mirror)
+    # changes taken now and applied later, in order, on another copy
+    late = hf.copy()
+    spray.deposit(hf, np.array([10.0, 10.0, 0.0]), down, 0.05)
+    first = hf.take_changes()
+    spray.deposit(hf, np.array([11.0, 10.0, 0.0]), down, 0.05)
+    second = hf.take_changes()
+    assert not _same(hf, late)
+    late.apply_changes(first)
+    late.apply_changes(second)
+    assert _same(hf, late)
+    late.apply_changes(hf.take_changes())  # nothing changed since
+    assert _same(hf, late)
     with pytest.raises(ValueError, match="mirror shape"):
         hf.copy_changes_to(HeightField((20.0, 30.0), 0.25, 6.0))

@@ -5,6 +5,8 @@ loop, and the same final surface."""
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 
 from dm2.config import parse_scenario
@@ -50,3 +52,17 @@ def test_threaded_scans_equal_single_thread_and_reference():
     assert all(_same(a, b) for a, b in zip(threaded, reference, strict=True))
     np.testing.assert_array_equal(h_threaded, sim.final_heightfield.heights_mm)
     assert h_threaded.max() > 0.5  # the pad grew (and the bump appeared)
+
+
+def test_a_stream_stopped_early_stops_its_worker():
+    sim = Simulation(parse_scenario({
+        "name": "stop_early", "seed": 2, "duration_s": 2.0,
+        "part": {"generator": "pad", "params": {"width_mm": 6.0, "depth_mm": 4.0,
+                                                "height_mm": 0.8}},
+        "toolpath": {"max_layers": 1, "layer_mm": 0.8},
+    }, "test"))
+    stream = sim.messages()
+    first = [next(stream) for _ in range(50)]  # the worker runs chunks ahead meanwhile
+    assert len(first) == 50
+    stream.close()
+    assert not any(t.name == "twin-spray" for t in threading.enumerate())

@@ -103,20 +103,36 @@ class HeightField:
 
         Only the cells changed since the previous call (and their acceleration blocks) are
         copied, so keeping a mirror for a reader on another thread costs little; a field keeps
-        track of changes for one mirror.
+        track of changes for one mirror (this or :meth:`take_changes`).
         """
         if mirror._h.shape != self._h.shape:
             raise ValueError(f"HeightField.copy_changes_to: mirror shape {mirror._h.shape} "
                              f"differs from {self._h.shape}")
+        mirror.apply_changes(self.take_changes())
+
+    def take_changes(self) -> tuple:
+        """The cells changed since the previous take (or :meth:`copy_changes_to`), copied, for
+        :meth:`apply_changes` on a mirror, possibly later or on another thread:
+        ``(j0, i0, heights (h, w), bj0, bi0, bounds (bh, bw), zmax)``, heights None when no
+        cell changed."""
         j0, j1, i0, i1 = self._dirty.tolist()
-        if j0 <= j1 and i0 <= i1:
-            mirror._h[j0:j1 + 1, i0:i1 + 1] = self._h[j0:j1 + 1, i0:i1 + 1]
-            b = K.BLOCK  # node (k, m) bounds the blocks of patches k..k+1, m..m+1
-            bj, bi = slice(j0 // b, (j1 + 1) // b + 1), slice(i0 // b, (i1 + 1) // b + 1)
-            mirror._bmax[bj, bi] = self._bmax[bj, bi]
-        mirror._zmax[0] = self._zmax[0]
         ny, nx = self._h.shape
         self._dirty[:] = (ny, -1, nx, -1)  # empty
+        zmax = float(self._zmax[0])
+        if j0 > j1 or i0 > i1:
+            return (0, 0, None, 0, 0, None, zmax)
+        b = K.BLOCK  # node (k, m) bounds the blocks of patches k..k+1, m..m+1
+        bj0, bj1, bi0, bi1 = j0 // b, (j1 + 1) // b + 1, i0 // b, (i1 + 1) // b + 1
+        return (j0, i0, self._h[j0:j1 + 1, i0:i1 + 1].copy(), bj0, bi0,
+                self._bmax[bj0:bj1, bi0:bi1].copy(), zmax)
+
+    def apply_changes(self, changes: tuple) -> None:
+        """Apply :meth:`take_changes` of the field this one mirrors (same shape)."""
+        j0, i0, heights, bj0, bi0, bounds, zmax = changes
+        if heights is not None:
+            self._h[j0:j0 + heights.shape[0], i0:i0 + heights.shape[1]] = heights
+            self._bmax[bj0:bj0 + bounds.shape[0], bi0:bi0 + bounds.shape[1]] = bounds
+        self._zmax[0] = zmax
 
     def centres_mm(self) -> tuple[np.ndarray, np.ndarray]:
         """Cell-centre coordinates ``x (nx,)``, ``y (ny,)`` [mm] in O."""

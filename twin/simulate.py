@@ -16,7 +16,6 @@ import logging
 import time
 from collections import Counter
 from collections.abc import Callable, Iterator
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,7 +24,7 @@ import numpy as np
 from dm2.config import Scenario, dump_toml
 from dm2.frames import PoseInterpolator
 from dm2.messages import SENSOR_IDS, Calibration, LayerMark, Profile, RobotState
-from twin.simulate_split import FanSplit, InlinePool, chunk_runs
+from twin.simulate_split import ChunkWorker, FanSplit, chunk_runs
 
 log = logging.getLogger(__name__)
 
@@ -156,26 +155,25 @@ class Simulation:
                                   efficiency_factor=efficiency, standoff_delta_mm=standoff)
         trig_stamps, trig_sensor, trig_counter = (trig_s.tolist(), trig_j.tolist(),
                                                   trig_c.tolist())
-        # The true field grows on a worker thread (one GIL-free kernel call per chunk), which
-        # then casts its share of the chunk's profiler fans on it, while this thread yields the
-        # chunk's robot states and casts the rest of those fans on a mirror of the field synced
-        # (changed cells only) at the chunk's end, with the next chunk already under way on the
-        # worker: same order, same bits as one thread, whatever the share.
-        mirror = hf.copy()
-        pool = (ThreadPoolExecutor(max_workers=1, thread_name_prefix="twin-spray")
-                if scan_thread else InlinePool())
+        # The true field grows on a worker thread, a few chunks ahead: it deposits a chunk
+        # (one GIL-free kernel call), casts its share of the chunk's profiler fans on the field
+        # and hands over the cells the chunk changed, while this thread yields the chunk's
+        # robot states, brings its mirror of the field to the chunk's end and casts the rest
+        # of those fans there: same order, same bits as one thread, whatever the share.
+        mirror = hf.copy() if scan_thread else None  # (one thread: whole fans on hf)
         chunks = list(chunk_runs(t[:n], layers, trig_s))
         trig_end = np.searchsorted(trig_s, [stamps[b] if b < n else np.inf for _, b in chunks],
                                    side="left").tolist()  # chunk c ends with triggers up to here
-        split = (FanSplit(profilers[0].dirs_S.shape[0], threaded=scan_thread)
-                 if worker_fan_share is None else
-                 FanSplit(profilers[0].dirs_S.shape[0], scan_thread, worker_fan_share, 0))
-        parts: dict[int, tuple[int, object]] = {}  # trigger -> (rays cast by the worker, trace)
+        n_rays = profilers[0].dirs_S.shape[0]
+        split = (FanSplit(n_rays, threaded=scan_thread) if worker_fan_share is None else
+                 FanSplit(n_rays, scan_thread, worker_fan_share, step_rays=0))
         grown = [-1]  # the layer whose blobs the field holds
-        cpu = [0.0, 0.0]  # CPU seconds of the deposition calls, of all the worker's tasks
+        cpu = [0.0, 0.0]  # CPU seconds of the deposition calls, of all the worker's work
 
-        def start(c: int):
-            """Ready the field for chunk ``c`` (truth, blobs) and start the worker on it."""
+        def produce(c: int):
+            """Chunk ``c`` on the true field: truth and blobs at a new layer, deposition, rays
+            ``0:rays`` of its fans; returns (rays, traces, changed cells or None, CPU s)."""
+            c0 = time.thread_time()
             a, b = chunks[c]
             layer = int(layers[a])
             if layer != grown[0]:
@@ -183,32 +181,27 @@ class Simulation:
                     truth.layer(hf, grown[0])
                 faults.apply_blobs(hf, layer)  # a bump or dent appears as its layer starts
                 grown[0] = layer
-            k0 = trig_end[c - 1] if c else 0
-            if not spraying[a:b].any() and not (split.rays and trig_end[c] > k0):
-                return None
-            return pool.submit(work, a, b, k0, trig_end[c], split.rays)
-
-        def work(a: int, b: int, k0: int, k1: int, rays: int) -> float:
-            """Deposit samples ``a:b``, then cast rays ``0:rays`` of triggers ``k0:k1``."""
-            c0 = time.thread_time()
             if spraying[a:b].any():
                 spray.deposit_plan(hf, plan, a, b)
             c1 = time.thread_time()
-            for q in range(k0, k1) if rays else ():
+            rays, traces = split.rays, []
+            k0 = trig_end[c - 1] if c else 0
+            for q in range(k0, trig_end[c]) if rays else ():
                 prof = profilers[trig_sensor[q]]
                 out = prof.empty_trace()
                 prof.trace_rays(hf, trig_T_B_O[q], occluders, out, 0, rays)
-                parts[q] = (rays, out)
+                traces.append(out)
+            changes = hf.take_changes() if trig_end[c] > k0 and rays < n_rays else None
             c2 = time.thread_time()
             cpu[0] += c1 - c0
             cpu[1] += c2 - c0
-            return c2 - c0
+            return rays, traces, changes, c2 - c0
 
+        worker = ChunkWorker(produce, len(chunks), threaded=scan_thread, name="twin-spray")
         k = 0  # next trigger
         layer_prev = -1
         c_main = time.thread_time()
         try:
-            growing = start(0) if chunks else None
             for c, (a, b) in enumerate(chunks):
                 layer = int(layers[a])
                 if layer != layer_prev:
@@ -225,30 +218,26 @@ class Simulation:
                     yield RobotState.trusted(stamps[i], i, joints[i - a], T_B_F[i - a])
                     if progress is not None and (i % 250 == 0 or i == n - 1):
                         progress(stamps[i], self.end_s)
-                worker_s = growing.result() if growing is not None else 0.0
+                rays, traces, changes, worker_s = worker.result(c)
                 now = time.thread_time()
                 split.balance(now - c_main, worker_s)
                 c_main = now
-                k_end = trig_end[c]
-                if k_end > k:
-                    hf.copy_changes_to(mirror)
-                growing = start(c + 1) if c + 1 < len(chunks) else None
-                for q in range(k, k_end):
+                if changes is not None:
+                    mirror.apply_changes(changes)
+                for q in range(k, trig_end[c]):
                     prof = profilers[trig_sensor[q]]
-                    rays, out = parts.pop(q, (0, None))
-                    if out is None:  # a whole fan in one call
+                    if rays == 0:  # a whole fan in one call
                         yield prof.scan(mirror, trig_T_B_O[q], trig_stamps[q], trig_counter[q],
                                         occluders)
                         continue
-                    prof.trace_rays(mirror, trig_T_B_O[q], occluders, out, rays,
-                                    out.range_mm.size)
+                    out = traces[q - k]
+                    if rays < n_rays:
+                        prof.trace_rays(mirror, trig_T_B_O[q], occluders, out, rays, n_rays)
                     yield prof.measure(out, trig_stamps[q], trig_counter[q])
-                k = k_end
-            if growing is not None:
-                growing.result()
+                k = trig_end[c]
         finally:
-            pool.shutdown(wait=True, cancel_futures=True)
-        if grown[0] >= 0 and truth is not None:  # (if stopped early: as it stands)
+            worker.close()
+        if grown[0] >= 0 and truth is not None:  # (stopped early: as the worker left it)
             truth.layer(hf, grown[0])
         if truth is not None and n:
             truth.finish(int(motion.segment[n - 1]))

@@ -1,18 +1,20 @@
 """How :meth:`twin.simulate.Simulation.messages` shares its work between two threads.
 
 The stream is cut into chunks (:func:`chunk_runs`): motion samples that share a layer and hold
-no profile trigger inside. The worker thread deposits a chunk and then casts rays ``0:rays`` of
-the profiler fans that end it on the true field; the calling thread yields the chunk's robot
-states and casts the remaining rays on a synced mirror. Every ray is cast on its own, so the
-messages do not depend on ``rays``: :class:`FanSplit` moves it, chunk by chunk, towards equal
-CPU seconds on both threads (the calling thread also does whatever the stream's consumer does
-between messages). Without a worker thread (:class:`InlinePool`) the whole fan stays on the
-calling thread.
+no profile trigger inside. The worker thread (:class:`ChunkWorker`) runs a few chunks ahead:
+it deposits a chunk, casts rays ``0:rays`` of the profiler fans that end it on the true field
+and hands over the cells the chunk changed; the calling thread yields the chunk's robot states,
+applies the changes to its mirror of the field and casts the remaining rays there. Every ray is
+cast on its own, so the messages do not depend on ``rays``: :class:`FanSplit` moves it, chunk
+by chunk, towards equal CPU seconds on both threads (the calling thread also does whatever the
+stream's consumer does between messages). Without a worker thread, the chunks are produced on
+the calling thread when it needs them, which then casts every whole fan on the true field.
 """
 
 from __future__ import annotations
 
-from concurrent.futures import Future
+import queue
+import threading
 
 import numpy as np
 
@@ -23,7 +25,8 @@ class FanSplit:
     Parameters
     ----------
     n_rays : int, rays per fan
-    threaded : bool, whether a worker thread exists (else ``rays`` stays 0)
+    threaded : bool, whether a worker thread exists (else ``rays`` stays ``n_rays``: the
+        chunks are produced on the calling thread, which casts whole fans)
     share : float, the worker's starting share of a fan
     step_rays : int, rays moved per chunk towards balance (0: the share stays)
     """
@@ -33,7 +36,7 @@ class FanSplit:
             raise ValueError(f"FanSplit: share must lie in [0, 1], got {share}")
         self.n_rays = int(n_rays)
         self.threaded = bool(threaded)
-        self.rays = int(round(share * self.n_rays)) if threaded else 0
+        self.rays = int(round(share * self.n_rays)) if threaded else self.n_rays
         self.step_rays = int(step_rays)
         self._calling_s = 0.0
         self._worker_s = 0.0
@@ -51,16 +54,61 @@ class FanSplit:
             self.rays = max(self.rays - self.step_rays, 0)
 
 
-class InlinePool:
-    """A pool that runs each task as it is submitted (``scan_thread=False``)."""
+class ChunkWorker:
+    """Runs ``produce(c)`` for chunks ``c = 0 .. n - 1`` in order, on a worker thread that
+    keeps up to ``depth`` results ahead of the consumer (``threaded``), or on the calling
+    thread when :meth:`result` asks for them.
 
-    def submit(self, fn, *args) -> Future:
-        done: Future = Future()
-        done.set_result(fn(*args))
-        return done
+    :meth:`result` must be asked for ``c = 0, 1, 2, ...`` in turn; it re-raises the worker's
+    exception. :meth:`close` stops the worker (after the chunk it is producing) and waits for
+    it.
+    """
 
-    def shutdown(self, wait: bool = True, cancel_futures: bool = False) -> None:
-        pass
+    def __init__(self, produce, n: int, threaded: bool, depth: int = 8,
+                 name: str = "twin-worker"):
+        self.produce = produce
+        self.n = int(n)
+        self.threaded = bool(threaded)
+        self._next = 0
+        if self.threaded:
+            self._queue: queue.Queue = queue.Queue(maxsize=max(int(depth), 1))
+            self._stop = threading.Event()
+            self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+            self._thread.start()
+
+    def _run(self) -> None:
+        try:
+            for c in range(self.n):
+                if self._stop.is_set() or not self._put((True, self.produce(c))):
+                    return
+        except BaseException as exc:  # handed to the consumer, which re-raises it
+            self._put((False, exc))
+
+    def _put(self, item) -> bool:
+        while not self._stop.is_set():
+            try:
+                self._queue.put(item, timeout=0.05)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def result(self, c: int):
+        """The result of chunk ``c`` (the next one not yet taken)."""
+        if c != self._next:
+            raise ValueError(f"ChunkWorker: chunk {c} asked for, {self._next} is next")
+        self._next += 1
+        if not self.threaded:
+            return self.produce(c)
+        ok, value = self._queue.get()
+        if not ok:
+            raise value
+        return value
+
+    def close(self) -> None:
+        if self.threaded:
+            self._stop.set()
+            self._thread.join()
 
 
 def chunk_runs(t_s: np.ndarray, layer: np.ndarray, trig_s: np.ndarray):
