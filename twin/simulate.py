@@ -160,7 +160,7 @@ class Simulation:
         # and hands over the cells the chunk changed, while this thread yields the chunk's
         # robot states, brings its mirror of the field to the chunk's end and casts the rest
         # of those fans there: same order, same bits as one thread, whatever the share.
-        mirror = hf.copy() if scan_thread else None  # (one thread: whole fans on hf)
+        mirror = hf.copy() if scan_thread else hf  # (one thread: chunk by chunk, on hf)
         chunks = list(chunk_runs(t[:n], layers, trig_s))
         trig_end = np.searchsorted(trig_s, [stamps[b] if b < n else np.inf for _, b in chunks],
                                    side="left").tolist()  # chunk c ends with triggers up to here
@@ -191,7 +191,8 @@ class Simulation:
                 out = prof.empty_trace()
                 prof.trace_rays(hf, trig_T_B_O[q], occluders, out, 0, rays)
                 traces.append(out)
-            changes = hf.take_changes() if trig_end[c] > k0 and rays < n_rays else None
+            changes = (hf.take_changes() if mirror is not hf and trig_end[c] > k0
+                       and rays < n_rays else None)
             c2 = time.thread_time()
             cpu[0] += c1 - c0
             cpu[1] += c2 - c0

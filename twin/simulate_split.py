@@ -7,8 +7,8 @@ and hands over the cells the chunk changed; the calling thread yields the chunk'
 applies the changes to its mirror of the field and casts the remaining rays there. Every ray is
 cast on its own, so the messages do not depend on ``rays``: :class:`FanSplit` moves it, chunk
 by chunk, towards equal CPU seconds on both threads (the calling thread also does whatever the
-stream's consumer does between messages). Without a worker thread, the chunks are produced on
-the calling thread when it needs them, which then casts every whole fan on the true field.
+stream's consumer does between messages). Without a worker thread, the calling thread
+produces each chunk when it needs it and casts whole fans on the true field itself.
 """
 
 from __future__ import annotations
@@ -25,8 +25,8 @@ class FanSplit:
     Parameters
     ----------
     n_rays : int, rays per fan
-    threaded : bool, whether a worker thread exists (else ``rays`` stays ``n_rays``: the
-        chunks are produced on the calling thread, which casts whole fans)
+    threaded : bool, whether a worker thread exists (else ``rays`` stays 0: the calling
+        thread casts whole fans)
     share : float, the worker's starting share of a fan
     step_rays : int, rays moved per chunk towards balance (0: the share stays)
     """
@@ -36,7 +36,7 @@ class FanSplit:
             raise ValueError(f"FanSplit: share must lie in [0, 1], got {share}")
         self.n_rays = int(n_rays)
         self.threaded = bool(threaded)
-        self.rays = int(round(share * self.n_rays)) if threaded else self.n_rays
+        self.rays = int(round(share * self.n_rays)) if threaded else 0
         self.step_rays = int(step_rays)
         self._calling_s = 0.0
         self._worker_s = 0.0
