@@ -16,8 +16,9 @@ _WAITING = 256  # poses that wait in a list before they are merged into the sort
 class PoseBuffer:
     """Time-sorted robot flange poses with bracketed SLERP interpolation.
 
-    New poses wait in a short Python list (an append, no array copy per robot state) and are
-    merged into the sorted arrays in one step when poses are next queried.
+    A pose newer than all others (the usual case) is appended to the sorted arrays in place; a
+    late one waits in a short list (with any pose after it) and is merged into the sorted arrays
+    in one step when poses are next queried.
 
     Parameters
     ----------
@@ -53,11 +54,20 @@ class PoseBuffer:
         if stamp_s in known:
             return False
         known.add(stamp_s)
+        new_t = self._new_t
         if stamp_s > self._latest:
             self._latest = stamp_s
+            if not new_t:  # in order: straight into the sorted arrays
+                n = self._n
+                if n == self._t.shape[0]:
+                    self._compact(np.array([stamp_s]))
+                    n = self._n
+                self._t[n] = stamp_s
+                self._T[n] = T_B_F
+                self._n = n + 1
+                return True
         else:
             self._new_sorted = False
-        new_t = self._new_t
         m = len(new_t)
         self._new_T[m] = T_B_F
         new_t.append(stamp_s)

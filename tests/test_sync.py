@@ -35,6 +35,37 @@ def test_pose_buffer_matches_slerp_and_respects_the_gap():
     assert ok.tolist() == [False, False, False]
 
 
+
+def test_pose_buffer_in_order_appends_late_arrivals_and_pruning_keep_slerp_exact():
+    """In-order poses go straight into the sorted arrays, late ones wait and are merged; queries
+    in between, growth past the capacity and pruning past the horizon keep every pose."""
+    rng = np.random.default_rng(9)
+    stamps = np.cumsum(rng.uniform(0.002, 0.006, 700))
+    poses = np.stack([from_euler_deg(rng.uniform(-500, 500, 3), rng.uniform(-170, 170, 3))
+                      for _ in stamps])
+    order = np.arange(len(stamps))
+    for a in range(5, len(order) - 3, 37):  # every 37th pose arrives three places late
+        order[a: a + 4] = order[[a + 1, a + 2, a + 3, a]]
+    buf = PoseBuffer(horizon_s=0.5, capacity=64)
+    interp = PoseInterpolator(stamps, poses)
+    for j, i in enumerate(order):
+        assert buf.add(stamps[i], poses[i])
+        if j % 11 == 10:  # query the newest fully received stretch now and then
+            arrived, pending = stamps[order[: j + 1]], stamps[order[j + 1:]]
+            if pending.size:  # below the newest pose that has every earlier one beside it
+                arrived = arrived[arrived < pending.min()]
+            q = arrived.max() - 0.05 * rng.random()
+            got, ok = buf.pose_at(q, max_gap_s=1.0)
+            dt, dr = pose_error(got, interp(np.array([q]))[0])
+            assert ok and dt < 1e-9 and dr < 1e-9
+    assert not buf.add(stamps[-2], poses[-2])  # still known: a duplicate
+    kept = buf.stamps_s
+    assert np.all(np.diff(kept) > 0) and kept[-1] == stamps[-1]
+    assert kept[0] >= stamps[-1] - 0.5 - 0.02 and len(kept) < len(stamps)
+    got, ok = buf.poses_at(stamps[-100:], max_gap_s=1.0)
+    assert ok.all() and np.array_equal(got, poses[-100:])
+
+
 def _profile(sid, stamp, counter, xz, valid=None):
     xz = np.asarray(xz, float).reshape(-1, 2)
     valid = np.ones(len(xz), bool) if valid is None else valid
