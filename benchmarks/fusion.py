@@ -6,7 +6,9 @@ The batched replay (``batch_profiles=REPLAY_BATCH_PROFILES``) is compared in the
 with one kernel call per frame set (``batch_profiles=3``, the default for live and sessions), and
 the two-thread TSDF update (``SparseTSDF(threads=2)``, bit-identical) with the one-thread kernel.
 The load average is printed first: on a shared machine the second thread only helps when a
-second core is idle.
+second core is idle. The CPU-time line is load-independent: the replay's CPU seconds outside the
+two threads plus, for each threaded phase of each batch (plan, update), the slower thread's
+seconds, i.e. the replay's critical path on two idle cores.
 
 Three profilers (640 points each) look at a growing 60 x 60 mm block while the spot rasters over
 its top, which rises 100 mm over the run. Profiles are cast analytically before timing starts.
