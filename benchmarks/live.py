@@ -10,13 +10,18 @@ profiles fused while the stream runs have a latency; the count line says how man
 only when the run ended (the last few: no robot state after their stamp) and what was dropped
 by reason (``empty_profile``: no valid point; the twin's pad stream has a few).
 
-Besides the percentiles it prints the pipeline load (seconds the live loop spent handling
-messages and catching up per second of stream: above 1 the pipeline cannot keep up with the
-arrival rate and latency grows with the backlog) and the longest single step (a layer end
-copies the boxes of the surface chunks touched in the last fraction of a second, which the
-session's worker meshes along with the layer analysis; the reference, real-time comparison
-and pre-meshing of the other chunks run when the inbox is empty). Prints the median over runs, after
-one full warm-up run so numba's cached kernels are loaded before anything is timed.
+Besides the percentiles it prints where the slowest 1% of profiles spent their time (in the
+inbox, i.e. behind the loop's other work or the loop waiting for the interpreter lock, or after
+it: waiting for the robot state after their stamp, for their batch, fusion), the load average
+of the machine (figures are only comparable at similar loads: the machine is shared), the
+pipeline load (seconds the live loop spent handling messages and catching up per second of
+stream: above 1 the pipeline cannot keep up with the arrival rate and latency grows with the
+backlog) and the longest single step (a layer end copies the boxes of the surface chunks
+touched in the last fraction of a second, which the session's worker meshes along with the
+layer analysis; the reference, real-time comparison and pre-meshing of the other chunks run
+when the inbox is empty; interim reports are written by a child process). Prints the median
+over runs, after one full warm-up run so numba's cached kernels are loaded before anything is
+timed.
 
 Run: .venv/bin/python benchmarks/live.py [--runs 3] [--seconds 10] [--speeds 10[,3,1]]
 """
@@ -24,6 +29,7 @@ Run: .venv/bin/python benchmarks/live.py [--runs 3] [--seconds 10] [--speeds 10[
 from __future__ import annotations
 
 import argparse
+import os
 import socket
 import sys
 import tempfile
@@ -89,7 +95,8 @@ def one_run(cell, wire, speed: float, folder: Path) -> dict:
     runner.run(idle_stop_s=0.5, max_duration_s=600)
     th.join()
     drops = {k: v for k, v in runner.analysis.dropped.items() if k != "out_of_range"}
-    return {"lat_ms": np.array(runner.latencies_s) * 1e3, "load": runner.busy_s / span["s"],
+    return {"lat_ms": np.array(runner.latencies_s) * 1e3,
+            "inbox_ms": np.array(runner.inbox_waits_s) * 1e3, "load": runner.busy_s / span["s"],
             "max_step_ms": runner.max_step_s * 1e3, "at_end": runner.fused_at_end,
             "drops": drops}
 
@@ -101,6 +108,9 @@ def main() -> None:
     ap.add_argument("--speeds", default="10", help="comma-separated multiples of the rig rate")
     args = ap.parse_args()
     speeds = [float(v) for v in args.speeds.split(",")]
+    load = " ".join(f"{v:.2f}" for v in os.getloadavg())
+    print(f"load average before the runs (1, 5, 15 min): {load} on {os.cpu_count()} cores",
+          flush=True)
     from twin.serve import write_cell_files
     from twin.simulate import Simulation
 
@@ -121,17 +131,32 @@ def main() -> None:
                     for k in range(args.runs)]
             p50 = median([np.percentile(r["lat_ms"], 50) for r in runs])
             p99 = median([np.percentile(r["lat_ms"], 99) for r in runs])
-            print(f"live latency, socket -> fused, pad stream at {speed:g}x "
+            print(f"live latency, socket -> fused, pad stream at {speed:g}x, load average "
+                  f"{os.getloadavg()[0]:.2f} "
                   f"({n_prof / args.seconds * speed:.0f} profiles/s, "
                   f"{median([len(r['lat_ms']) for r in runs]):.0f} fused per run): "
                   f"p50 {p50:.2f} ms, p99 {p99:.2f} ms; pipeline load "
                   f"{median([r['load'] for r in runs]):.2f} s per s of stream, longest step "
                   f"{median([r['max_step_ms'] for r in runs]):.0f} ms (median of {args.runs} "
                   f"runs; goal p99 <= 20 ms at 10x)", flush=True)
+            tail = [tail_split(r) for r in runs]
+            print(f"  the slowest 1% per run: {median([t[0] for t in tail]):.1f} ms on average, "
+                  f"of which {median([t[1] for t in tail]):.1f} ms in the inbox (the loop busy "
+                  f"with earlier messages or deferred work, or waiting for the interpreter "
+                  f"lock) and {median([t[2] for t in tail]):.1f} ms from "
+                  f"leaving it to fused (waiting for a robot state after the profile's stamp, "
+                  f"for the batch, fusion)", flush=True)
             print(f"  of {n_prof} profiles sent: fused while streaming "
                   f"{[len(r['lat_ms']) for r in runs]}, fused at the end of the stream (no "
                   f"robot state after them) {[r['at_end'] for r in runs]}, dropped "
                   f"{[r['drops'] for r in runs]}", flush=True)
+
+
+def tail_split(run: dict) -> tuple[float, float, float]:
+    """Mean latency, inbox wait and the rest [ms] of the profiles at or above the p99."""
+    lat, inbox = run["lat_ms"], run["inbox_ms"]
+    slow = lat >= np.percentile(lat, 99)
+    return float(lat[slow].mean()), float(inbox[slow].mean()), float((lat - inbox)[slow].mean())
 
 
 def median(v) -> float:

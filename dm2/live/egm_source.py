@@ -10,6 +10,9 @@ header ``tm``. A RAPID program may report the current layer index in
 ``RAPIDfromRobot.digVal[0]``; a change of that value becomes a :class:`~dm2.messages.LayerMark`
 stamped like the state that carries it (emitted just before it).
 
+The listener takes every datagram queued after the one it waited for in a single call
+(:mod:`dm2.live.udp_batch`), so a busy monitoring process does not fall behind the controller.
+
 Transport-level drop reasons (counted in the shared :class:`~dm2.live.inbox.Inbox`):
 ``oversized_datagram``, ``foreign_sender``, ``malformed_egm``, ``queue_full``.
 """
@@ -28,6 +31,7 @@ from google.protobuf.message import DecodeError
 from dm2.frames import to_quat_abb
 from dm2.live import egm_pb2
 from dm2.live.inbox import Inbox
+from dm2.live.udp_batch import DatagramBatch
 from dm2.messages import LayerMark, MessageError, RobotState
 
 log = logging.getLogger(__name__)
@@ -217,6 +221,7 @@ class EgmSource:
 
     def _run(self) -> None:
         buf = bytearray(self.max_bytes + 1)
+        batch = DatagramBatch(self._sock, self.max_bytes + 1)
         while not self._stop.is_set():
             try:
                 n, addr = self._sock.recvfrom_into(buf)
@@ -227,6 +232,11 @@ class EgmSource:
                     break
                 raise
             self.handle_datagram(bytes(buf[:n]), addr[0], time.monotonic())
+            # whatever queued up meanwhile, in one call that keeps the interpreter lock
+            while queued := batch.take_queued():
+                arrival = time.monotonic()
+                for data, sender_ip in queued:
+                    self.handle_datagram(data, sender_ip, arrival)
 
     def start(self) -> EgmSource:
         self._thread = threading.Thread(target=self._run, name="egm-source", daemon=True)

@@ -20,6 +20,8 @@ from dm2.recording import RecordingWriter, stamp_to_ns
 
 log = logging.getLogger(__name__)
 
+YIELD_EVERY_S = 0.0005  # [s] the recorder thread offers the interpreter lock this often
+
 
 class LiveRecorder(RecordingWriter):
     """RecordingWriter with a wall-clock bound on the unflushed data.
@@ -68,7 +70,9 @@ class RecorderThread:
     """A :class:`LiveRecorder` fed from a bounded queue by a background thread.
 
     Encoding and writing the recording (ROS 2 CDR, MCAP chunks) then happens off the live
-    loop's hot path, in the time the loop waits for the next message. :meth:`write` checks
+    loop's hot path, in the time the loop waits for the next message; while writing a backlog
+    the thread offers the interpreter lock every ``YIELD_EVERY_S``, so the loop never waits a
+    whole switch interval (5 ms) for it behind the recorder. :meth:`write` checks
     what would make a message unrecordable (a negative stamp, a sequence number beyond 32
     bits) at once, so the caller still learns of it, and queues the message; the thread wakes
     at least every ``max_wait_s`` and writes everything queued, so a SIGKILL loses at most the
@@ -120,6 +124,7 @@ class RecorderThread:
                     self._wake.wait(self.max_wait_s)
                 stop = self._stop
             try:
+                slice_end = time.perf_counter() + YIELD_EVERY_S
                 while q:
                     msg = q.popleft()
                     try:
@@ -127,6 +132,9 @@ class RecorderThread:
                         self.written += 1
                     except MessageError as exc:  # checked in write(); kept for safety
                         log.warning("recording: %s", exc)
+                    if time.perf_counter() >= slice_end:
+                        time.sleep(0)  # hand the interpreter lock to a waiting thread
+                        slice_end = time.perf_counter() + YIELD_EVERY_S
                 rec.flush_if_due()
             except BaseException as exc:  # noqa: BLE001 - reported by close()
                 self._error = exc

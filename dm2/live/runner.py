@@ -18,7 +18,10 @@ the session's worker thread. While the loop is caught up, profiles ready for fus
 at the next message (at the latest one robot state, 4 ms, later); while it is behind, the
 monitor's batch delay lets fusion run in larger, cheaper batches until it has caught up.
 :attr:`LiveRunner.latencies_s` holds socket-arrival to fused for every profile fused while the
-stream runs (matched by sensor and stamp, so dropped profiles never count);
+stream runs (matched by sensor and stamp, so dropped profiles never count), and
+:attr:`LiveRunner.inbox_waits_s` the part of it spent in the inbox (the loop busy with other
+messages or deferred work; the rest is waiting for a robot state after the profile's stamp or
+for its batch, and fusion);
 :attr:`LiveRunner.fused_at_end` counts those fused only when the run ended (the last profiles
 of a stream wait for a robot state after their stamp, which never comes),
 :attr:`LiveRunner.busy_s` the time spent handling messages and catching up.
@@ -93,8 +96,11 @@ class LiveRunner:
             self.analysis.drop_sources.append(lambda: self.recorder.dropped)
         self.sources: list = []
         self.latencies_s: list[float] = []  # socket arrival -> fused, per fused profile
+        # of which socket arrival -> taken from the inbox and released by the clock aligner
+        self.inbox_waits_s: list[float] = []
         self.fused_at_end = 0  # profiles fused only by finish()
-        self._arrivals: OrderedDict = OrderedDict()  # (sensor_id, stamp_s) -> arrival_s
+        # (sensor_id, stamp_s) -> (arrival_s, released by the clock aligner [s, monotonic])
+        self._arrivals: OrderedDict = OrderedDict()
         self.analysis.monitor.fused_log = deque()
         self.messages_in = 0
         self.busy_s = 0.0  # [s] the loop spent handling messages (vs waiting for them)
@@ -156,8 +162,9 @@ class LiveRunner:
             self.aligner.pose(msg.stamp_s, arrival_s)
             self._deliver(msg)
         elif isinstance(msg, Profile):
+            taken = time.monotonic()
             for p in self.aligner.profile(msg, arrival_s):
-                self._arrivals[(p.sensor_id, p.stamp_s)] = arrival_s
+                self._arrivals[(p.sensor_id, p.stamp_s)] = (arrival_s, taken)
                 if len(self._arrivals) > MAX_UNFUSED:  # dropped ones are never fused
                     self._arrivals.popitem(last=False)
                 self._deliver(p)
@@ -181,9 +188,10 @@ class LiveRunner:
         now = time.monotonic()
         log_ = self.analysis.monitor.fused_log
         while log_:
-            arrival = self._arrivals.pop(log_.popleft(), None)
-            if arrival is not None:
-                self.latencies_s.append(now - arrival)
+            times = self._arrivals.pop(log_.popleft(), None)
+            if times is not None:
+                self.latencies_s.append(now - times[0])
+                self.inbox_waits_s.append(times[1] - times[0])
 
     def run(self, stop: threading.Event | None = None, max_duration_s: float | None = None,
             idle_stop_s: float | None = None) -> dict | None:
