@@ -3,10 +3,10 @@
 Runs the default seven-sided scenario for its first ``--process-s`` seconds with all three
 profilers, deposition and robot states and prints the median rate over ``--runs`` runs of:
 
-- stream: consuming ``Simulation.messages`` (what ``dm2 run`` does in process): the deposition
-  and a share of each profiler fan run on a worker thread while the calling thread yields
-  states and casts the rest of the fan on a mirror of the height field (it gains only where
-  the machine has a core to spare),
+- stream: consuming ``Simulation.messages`` (what ``dm2 run`` does in process): a worker
+  thread runs a few chunks ahead, depositing and casting a balanced share of each profiler
+  fan, while the calling thread yields states and casts the rest of the fan on a mirror of the
+  height field (it gains only where the machine has a core to spare),
 - stream, 2 idle cores: the stream's critical path, the larger of the CPU seconds of the
   calling thread and of the worker thread (what two idle cores would take; the wall-clock
   figures depend on what else shares the machine, so the load average is printed first),

@@ -8,6 +8,7 @@ from __future__ import annotations
 import threading
 
 import numpy as np
+import pytest
 
 from dm2.config import parse_scenario
 from twin.simulate import Simulation
@@ -66,3 +67,23 @@ def test_a_stream_stopped_early_stops_its_worker():
     assert len(first) == 50
     stream.close()
     assert not any(t.name == "twin-spray" for t in threading.enumerate())
+
+
+def test_chunk_worker_hands_results_in_order_and_its_error_to_the_consumer():
+    from twin.simulate_split import ChunkWorker
+
+    def produce(c):
+        if c == 5:
+            raise RuntimeError("chunk 5 failed")
+        return c * c
+
+    for threaded in (True, False):
+        worker = ChunkWorker(produce, 8, threaded=threaded, depth=2)
+        try:
+            assert [worker.result(c) for c in range(5)] == [0, 1, 4, 9, 16]
+            with pytest.raises(ValueError, match="chunk 7 asked for, 5 is next"):
+                worker.result(7)
+            with pytest.raises(RuntimeError, match="chunk 5 failed"):
+                worker.result(5)
+        finally:
+            worker.close()
