@@ -59,7 +59,7 @@ class HeightField:
         self._h = np.zeros((ny, nx), dtype=np.float64)
         self._bmax = np.zeros((ny // K.BLOCK + 1, nx // K.BLOCK + 1), dtype=np.float64)
         self._zmax = np.zeros(1, dtype=np.float64)
-        # cells changed since the last copy_changes_to: [j_min, j_max, i_min, i_max] (inclusive)
+        # cells changed since the last take_changes: [j_min, j_max, i_min, i_max] (inclusive)
         self._dirty = np.zeros(4, dtype=np.int64)
         self._refresh()
 

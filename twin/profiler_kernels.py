@@ -3,8 +3,9 @@
 
 They do, ray by ray and in the same floating-point operations, what the profiler's numpy
 reference path (:meth:`twin.profiler.VirtualProfiler.trace_reference`) does with whole-array
-operations, so both give the same bits. Reductions whose summation order numpy chooses at run
-time (``einsum``, ``convolve``) and the small matrix products (BLAS) stay in numpy.
+operations, so both give the same bits: the reference writes its small dot and matrix
+products out term by term (x, y, z) rather than leave the summation order to ``einsum`` or
+BLAS.
 """
 
 from __future__ import annotations
