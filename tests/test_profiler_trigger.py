@@ -7,7 +7,7 @@ import pytest
 
 from dm2.config import SensorConfig
 from dm2.messages import COUNTER_MODULO
-from twin.profiler import trigger_schedule
+from twin.profiler_trigger import trigger_schedule
 
 
 def test_cascade_stamps_are_exact():

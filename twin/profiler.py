@@ -1,4 +1,5 @@
-"""Virtual laser-line profilers modelled on a scanCONTROL 29xx, and their trigger schedule.
+"""Virtual laser-line profilers modelled on a scanCONTROL 29xx (their trigger schedule is in
+:mod:`twin.profiler_trigger`).
 
 A profiler emits a fan of ``sensors.points`` rays from the origin of its frame ``S``, in the
 x_S-z_S plane, spaced evenly in x at ``z = z_end_mm`` so that the fan is ``x_width_end_mm`` wide
@@ -292,34 +293,3 @@ def _first_occluder_hit(occluders, origins_B: np.ndarray, dirs_B: np.ndarray) ->
     for occ in occluders:
         t = np.minimum(t, occ.hit_t(origins_B, dirs_B))
     return t
-
-
-def trigger_schedule(t_end_s: float, sensors: SensorConfig, t0_s: float = 0.0,
-                     start_counter: int | Sequence[int] = 0
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Profile stamps of the cascaded trigger box from ``t0_s`` up to ``t_end_s`` inclusive.
-
-    Trigger ``k`` fires sensor ``j`` at ``t0_s + k / rate_hz + j * cascade_s``; each sensor's
-    24-bit counter is ``(start_counter[j] + k) mod 2**24``.
-
-    Returns
-    -------
-    stamps_s : (m,) float64 [s], ascending
-    sensor_index : (m,) int64, index into ``SENSOR_IDS``
-    counter : (m,) int64
-    """
-    n_sensors = len(SENSOR_IDS)
-    starts = np.broadcast_to(np.asarray(start_counter, dtype=np.int64), (n_sensors,))
-    if np.any(starts < 0):
-        raise ValueError(f"trigger_schedule: start_counter must be >= 0, got {start_counter}")
-    if not np.isfinite(t_end_s) or t_end_s < t0_s:
-        return np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-    n_trig = int(np.floor((t_end_s - t0_s) * sensors.rate_hz)) + 2
-    k = np.repeat(np.arange(n_trig, dtype=np.int64), n_sensors)
-    j = np.tile(np.arange(n_sensors, dtype=np.int64), n_trig)
-    stamps = t0_s + k / sensors.rate_hz + j * sensors.cascade_s
-    keep = stamps <= t_end_s
-    stamps, k, j = stamps[keep], k[keep], j[keep]
-    order = np.argsort(stamps, kind="stable")
-    counter = (starts[j] + k) % COUNTER_MODULO
-    return stamps[order], j[order], counter[order]

@@ -121,7 +121,8 @@ class Simulation:
         from twin.deposition import SprayModel
         from twin.heightfield import HeightField
         from twin.occluders import nozzle_occluder
-        from twin.profiler import VirtualProfiler, trigger_schedule
+        from twin.profiler import VirtualProfiler
+        from twin.profiler_trigger import trigger_schedule
         from twin.simulate_truth import TruthWriter
 
         sc, cell, motion, faults = self.scenario, self.cell, self.motion, self.faults

@@ -26,7 +26,8 @@ def per_sample_messages(sim, hf=None) -> Iterator[Profile | RobotState | LayerMa
     from twin.deposition import SprayModel
     from twin.heightfield import HeightField
     from twin.occluders import nozzle_occluder
-    from twin.profiler import VirtualProfiler, trigger_schedule
+    from twin.profiler import VirtualProfiler
+    from twin.profiler_trigger import trigger_schedule
     from twin.simulate import HEIGHTFIELD_CELL_MM, ROBOT_NOISE_SEED_OFFSET
 
     sc, cell, motion, faults = sim.scenario, sim.cell, sim.motion, sim.faults
