@@ -41,6 +41,7 @@ import os
 import numpy as np
 
 from dm2 import tsdf_kernels as K
+from dm2.tsdf_dense import gather_dense
 from dm2.tsdf_split import SplitBuffers, fuse_split
 
 log = logging.getLogger(__name__)
@@ -230,9 +231,9 @@ class SparseTSDF:
     def dense(self, origin_voxel: np.ndarray, shape) -> tuple[np.ndarray, np.ndarray]:
         """Dense sub-volume from voxel index ``origin_voxel (3,)``: ``(tsdf_mm, weight)`` of
         ``shape (nx, ny, nz)`` float32; unobserved voxels hold ``+truncation_mm`` and weight 0."""
-        return K.gather_dense(self._table_keys, self._table_slots, self.voxels,
-                              np.asarray(origin_voxel, dtype=np.int64),
-                              np.asarray(shape, dtype=np.int64), np.float32(self.truncation_mm))
+        return gather_dense(self._table_keys, self._table_slots, self.voxels,
+                            np.asarray(origin_voxel, dtype=np.int64),
+                            np.asarray(shape, dtype=np.int64), np.float32(self.truncation_mm))
 
     def sample(self, points_O: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Nearest-voxel ``(tsdf_mm (n,), weight (n,))`` at ``points_O (n, 3)`` [mm]."""

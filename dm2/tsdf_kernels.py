@@ -1,4 +1,5 @@
-"""Numba kernels of the sparse TSDF: block hash, ray integration and dense gathering.
+"""Numba kernels of the sparse TSDF: block hash and ray integration (dense gathering:
+:mod:`dm2.tsdf_dense`).
 
 Storage layout (see :mod:`dm2.tsdf`): voxels live in blocks of ``BLOCK**3`` voxels. A block's
 integer coordinates ``(bx, by, bz)`` are packed into one non-negative int64 key and found through
@@ -297,40 +298,3 @@ def _fuse(register, origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, a
                 t, vx, vy, vz, tmx, tmy, tmz = dda_step(vx, vy, vz, stx, sty, stz, tdx, tdy,
                                                         tdz, tmx, tmy, tmz)
     return offsets[offsets.shape[0] - 1]
-
-
-@njit(cache=True)
-def gather_dense(table_keys, table_slots, voxels, origin_voxel, shape, fill_mm):
-    """Dense ``tsdf (shape)`` and ``weight (shape)`` sub-volumes starting at voxel index
-    ``origin_voxel (3,)``; voxels of unallocated blocks get ``fill_mm`` and weight 0."""
-    nx, ny, nz = shape[0], shape[1], shape[2]
-    out_d = np.full((nx, ny, nz), fill_mm, dtype=np.float32)
-    out_w = np.zeros((nx, ny, nz), dtype=np.float32)
-    ox, oy, oz = origin_voxel[0], origin_voxel[1], origin_voxel[2]
-    # iterate block by block
-    bx0, by0, bz0 = ox >> BLOCK_SHIFT, oy >> BLOCK_SHIFT, oz >> BLOCK_SHIFT
-    bx1 = (ox + nx - 1) >> BLOCK_SHIFT
-    by1 = (oy + ny - 1) >> BLOCK_SHIFT
-    bz1 = (oz + nz - 1) >> BLOCK_SHIFT
-    for bx in range(bx0, bx1 + 1):
-        for by in range(by0, by1 + 1):
-            for bz in range(bz0, bz1 + 1):
-                s = hash_find(table_keys, table_slots, pack_key(bx, by, bz))
-                if s < 0:
-                    continue
-                for lz in range(BLOCK):
-                    gz = bz * BLOCK + lz - oz
-                    if gz < 0 or gz >= nz:
-                        continue
-                    for ly in range(BLOCK):
-                        gy = by * BLOCK + ly - oy
-                        if gy < 0 or gy >= ny:
-                            continue
-                        for lx in range(BLOCK):
-                            gx = bx * BLOCK + lx - ox
-                            if gx < 0 or gx >= nx:
-                                continue
-                            li = lx + BLOCK * (ly + BLOCK * lz)
-                            out_d[gx, gy, gz] = voxels[s, li, 0]
-                            out_w[gx, gy, gz] = voxels[s, li, 1]
-    return out_d, out_w
