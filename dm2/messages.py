@@ -83,6 +83,29 @@ class Profile:
         object.__setattr__(self, "valid", valid)
         object.__setattr__(self, "intensity", inten)
 
+    @classmethod
+    def trusted(cls, sensor_id: str, stamp_s: float, counter: int, xz_S: np.ndarray,
+                valid: np.ndarray, intensity: np.ndarray) -> Profile:
+        """A profile from a producer that already holds valid arrays, without re-validating.
+
+        Only for producers that build the arrays themselves (the twin's profilers): the caller
+        guarantees ``sensor_id`` in ``SENSOR_IDS``, a finite ``stamp_s``, ``counter`` in the
+        24-bit range, ``xz_S`` a C-contiguous (n, 2) float64, ``valid`` a (n,) bool and
+        ``intensity`` a (n,) float32 array that nobody writes afterwards. The result equals
+        ``Profile(...)`` of the same arguments (the arrays are made read-only in place).
+        Anything read from outside goes through the constructor.
+        """
+        self = object.__new__(cls)
+        for arr in (xz_S, valid, intensity):
+            arr.flags.writeable = False
+        object.__setattr__(self, "sensor_id", sensor_id)
+        object.__setattr__(self, "stamp_s", float(stamp_s))
+        object.__setattr__(self, "counter", int(counter))
+        object.__setattr__(self, "xz_S", xz_S)
+        object.__setattr__(self, "valid", valid)
+        object.__setattr__(self, "intensity", intensity)
+        return self
+
     @property
     def n_points(self) -> int:
         return int(self.xz_S.shape[0])
@@ -127,13 +150,17 @@ class RobotState:
         caller guarantees a finite ``stamp_s``, ``joints_rad`` a finite C-contiguous (6,)
         float64 and ``T_B_F`` a finite C-contiguous (4, 4) float64 rigid transform. The result
         equals ``RobotState(stamp_s, seq, joints_rad, T_B_F)`` (read-only views of the arrays,
-        ``float`` stamp, ``int`` seq). Anything read from outside goes through the constructor.
+        ``float`` stamp, ``int`` seq; arrays that are already read-only are taken as they are).
+        Anything read from outside goes through the constructor.
         """
         self = object.__new__(cls)
-        j = joints_rad.view()
-        j.setflags(write=False)
-        T = T_B_F.view()
-        T.setflags(write=False)
+        j, T = joints_rad, T_B_F
+        if j.flags.writeable:
+            j = j.view()
+            j.flags.writeable = False
+        if T.flags.writeable:
+            T = T.view()
+            T.flags.writeable = False
         object.__setattr__(self, "stamp_s", float(stamp_s))
         object.__setattr__(self, "seq", int(seq))
         object.__setattr__(self, "joints_rad", j)

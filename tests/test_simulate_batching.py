@@ -75,6 +75,24 @@ def test_trusted_robot_state_equals_validated(sim):
         a = RobotState(float(m.t_s[i]), i, m.joints_rad[i], m.T_B_F[i])
         b = RobotState.trusted(np.float64(m.t_s[i]), np.int64(i), m.joints_rad[i], m.T_B_F[i])
         _assert_same_message(a, b)
+    joints, T = m.joints_rad[:3].copy(), m.T_B_F[:3].copy()
+    joints.flags.writeable = T.flags.writeable = False  # rows taken as they are
+    b = RobotState.trusted(1.5, 2, joints[2], T[2])
+    _assert_same_message(RobotState(1.5, 2, joints[2], T[2]), b)
+    assert b.T_B_F.base is T
+
+
+def test_trusted_profile_equals_validated():
+    rng = np.random.default_rng(3)
+    xz = rng.normal(size=(640, 2))
+    valid = rng.random(640) > 0.2
+    xz[~valid] = np.nan
+    intensity = rng.random(640).astype(np.float32)
+    a = Profile("S2", 0.52, (1 << 24) - 1, xz.copy(), valid.copy(), intensity.copy())
+    b = Profile.trusted("S2", np.float64(0.52), np.int64((1 << 24) - 1), xz, valid, intensity)
+    assert np.isnan(b.xz_S[~valid]).all()
+    _assert_same_message(a, b)
+    assert b.xz_S is xz  # no copy: the producer's array, now read-only
 
 
 def test_chunks_cut_at_triggers_and_layer_changes():

@@ -239,7 +239,7 @@ class VirtualProfiler:
                      hf.size_mm[1], np.ascontiguousarray(T_B_O, dtype=np.float64), self.T_B_S,
                      rays, self.camera_S, T_C_B, cylinders, params, self.seed, self.sensor_index,
                      counter, self._speckle_kernel, xz, valid, intensity)
-        return Profile(self.sensor_id, stamp_s, counter, xz, valid, intensity)
+        return Profile.trusted(self.sensor_id, float(stamp_s), counter, xz, valid, intensity)
 
     def _check_counter(self, counter) -> int:
         counter = int(counter)
@@ -263,7 +263,7 @@ class VirtualProfiler:
                         nz.range_sigma_mm, nz.speckle_sigma_mm, nz.outlier_prob,
                         nz.dropout_prob, self._dir_x, self._dir_z, sn.z_start_mm,
                         sn.z_end_mm, xz, valid, intensity)
-        return Profile(self.sensor_id, stamp_s, counter, xz, valid, intensity)
+        return Profile.trusted(self.sensor_id, float(stamp_s), counter, xz, valid, intensity)
 
     def _draws(self, counter: int, n: int):
         """The profile's random draws from its ``(seed, sensor, counter)`` stream

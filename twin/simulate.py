@@ -216,6 +216,8 @@ class Simulation:
                     T_B_F = T_B_F.copy()
                     T_B_F[:, :3, 3] += robot_rng.normal(0.0, robot_sigma, (b - a, 3))
                 joints = np.ascontiguousarray(motion.joints_rad[a:b], dtype=np.float64)
+                T_B_F.flags.writeable = False  # views of this chunk, so each state's rows are
+                joints.flags.writeable = False  # read-only without a view per state
                 for i in range(a, b):
                     yield RobotState.trusted(stamps[i], i, joints[i - a], T_B_F[i - a])
                     if progress is not None and (i % 250 == 0 or i == n - 1):
