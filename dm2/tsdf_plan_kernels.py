@@ -4,8 +4,8 @@
    (eq 1), decides each point's active region, stores every ray's origin, unit direction and
    range, deals the ray to the threads' block columns and lists, in the order the serial kernel
    first reaches them, the blocks its rays reach that are not allocated. The hash table is only
-   read; a ray whose block box lies inside a box known to be allocated (or listed) needs no
-   walk, others are walked with the update's DDA.
+   read; a ray whose block box lies inside one of the last two boxes known to be allocated (or
+   listed) needs no lookup, one whose box is not complete is walked with the update's DDA.
 2. :func:`alloc_listed` and :func:`alloc_rays` (serial): allocate the listed blocks, thread 0's
    list before thread 1's, so block slots, keys and the hash match the serial kernel (a block
    missing before the batch is first reached by a listed ray). Should a list fill up, the rays
@@ -141,6 +141,7 @@ def plan_rays(register, origins_O, points_O, active, xz_S, offsets, T_O_S, spot_
     cs = BLOCK_SHIFT + col_shift
     # a box of blocks known to be allocated: rays inside it need no lookup
     kx0, ky0, kz0, kx1, ky1, kz1 = 1, 1, 1, 0, 0, 0
+    jx0, jy0, jz0, jx1, jy1, jz1 = 1, 1, 1, 0, 0, 0  # the box known before it
     new_state[0] = 0
     new_state[1] = i1
     listing = True
@@ -198,8 +199,11 @@ def plan_rays(register, origins_O, points_O, active, xz_S, offsets, T_O_S, spot_
             bx0, by0, bz0 = vx0 >> BLOCK_SHIFT, vy0 >> BLOCK_SHIFT, vz0 >> BLOCK_SHIFT
             bx1, by1, bz1 = vx1 >> BLOCK_SHIFT, vy1 >> BLOCK_SHIFT, vz1 >> BLOCK_SHIFT
             if not (kx0 <= bx0 and bx1 <= kx1 and ky0 <= by0 and by1 <= ky1 and
-                    kz0 <= bz0 and bz1 <= kz1):
+                    kz0 <= bz0 and bz1 <= kz1) and \
+                    not (jx0 <= bx0 and bx1 <= jx1 and jy0 <= by0 and by1 <= jy1 and
+                         jz0 <= bz0 and bz1 <= jz1):
                 if _all_allocated(bx0, by0, bz0, bx1, by1, bz1, table_keys, table_slots, recent):
+                    jx0, jy0, jz0, jx1, jy1, jz1 = kx0, ky0, kz0, kx1, ky1, kz1
                     kx0, ky0, kz0, kx1, ky1, kz1 = bx0, by0, bz0, bx1, by1, bz1
                 elif listing:
                     listed = _list_missing_blocks(ox, oy, oz, dx, dy, dz, r, truncation_mm,
