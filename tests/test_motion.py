@@ -164,3 +164,28 @@ def test_unreachable_point_raises_reach_error_naming_index_and_layer(cell):
     with pytest.raises(kin.ReachError, match=r"toolpath index 4 \(layer 1\)") as info:
         execute_toolpath(tp, cell, check_joint_speed=False)
     assert info.value.index == 4 and info.value.layer == 1
+
+
+def test_points_closer_than_the_path_resolution_are_one_point(cell):
+    # a straight 40 mm line sampled every 0.7 mm, each sample doubled 0.2 um further on with a
+    # sub-degree axis jitter (what sliced contours carry): the controller sees one straight move
+    xs = np.arange(20.0, 60.0 + 1e-9, 0.7)
+    pts = np.repeat(np.c_[xs, np.full(xs.size, 60.0), np.zeros(xs.size)], 2, axis=0)
+    pts[1::2, 0] += 2e-4
+    pts[1::2, 1] += 1e-4
+    tilt = np.deg2rad(np.where(np.arange(pts.shape[0]) % 2 == 1, 0.5, 0.0))
+    axes = np.c_[np.sin(tilt), np.zeros_like(tilt), -np.cos(tilt)]
+    em = execute_toolpath(make_toolpath(pts, axes), cell)
+    clean = execute_toolpath(make_toolpath(pts[::2]), cell)
+    length = pts[-2, 0] - pts[0, 0]
+    # accelerate to V, cruise, brake: one trapezoid, exactly as the clean line
+    assert clean.duration_s == pytest.approx(length / V + V / ACCEL, abs=clean.dt_s)
+    assert em.duration_s == pytest.approx(clean.duration_s, abs=em.dt_s)
+    assert em.speed_mm_s.max() == pytest.approx(V, rel=1e-9)
+    cruise = (em.arc_mm > V * V / (2 * ACCEL) + 0.01) & (em.arc_mm < em.arc_mm[-1] - 1.0)
+    np.testing.assert_allclose(em.speed_mm_s[cruise], V, rtol=1e-9)
+    # an exact repeat with a new axis is still a reorientation on the spot
+    turn = make_toolpath([(20, 60, 0), (40, 60, 0), (40, 60, 0), (60, 60, 0)],
+                         axes=[(0, 0, -1.0), (0, 0, -1.0), (np.sin(0.2), 0, -np.cos(0.2)),
+                               (np.sin(0.2), 0, -np.cos(0.2))])
+    assert execute_toolpath(turn, cell).duration_s > clean.duration_s + 0.1
