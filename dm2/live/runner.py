@@ -14,9 +14,10 @@ Latency policy: fusion comes first. The session only fuses as messages arrive; t
 reference, the real-time comparison (at the newest fused profile: frame sets that arrived
 while the loop was busy are compared once, together) and surface pre-meshing run when the
 inbox is empty, in slices that give way as soon as a message arrives; layer analysis runs on
-the session's worker thread. While the loop is caught up, profiles ready for fusion are fused
-at the next message (at the latest one robot state, 4 ms, later); while it is behind, the
-monitor's batch delay lets fusion run in larger, cheaper batches until it has caught up.
+the session's worker thread. While the loop is caught up, a profile is fused as soon as the
+robot state after its stamp has arrived (batches of one, so it never waits for its frame set
+while the loop catches up); while it is behind, full batches and the monitor's batch delay let
+fusion run in larger, cheaper batches until it has caught up.
 :attr:`LiveRunner.latencies_s` holds socket-arrival to fused for every profile fused while the
 stream runs (matched by sensor and stamp, so dropped profiles never count), and
 :attr:`LiveRunner.inbox_waits_s` the part of it spent in the inbox (the loop busy with other
@@ -201,7 +202,7 @@ class LiveRunner:
         max_duration_s = live.max_duration_s if max_duration_s is None else max_duration_s
         idle_stop_s = live.idle_stop_s if idle_stop_s is None else idle_stop_s
         monitor = self.analysis.monitor
-        batch_delay_s = monitor.max_delay_s
+        batch_delay_s, batch_profiles = monitor.max_delay_s, monitor.batch_profiles
         t0 = time.monotonic()
         pending = False  # deferred session work left by the last catch-up
 
@@ -225,9 +226,12 @@ class LiveRunner:
                 if item is None:
                     continue
                 self._last_data = time.monotonic()
-                # caught up: profiles ready for fusion are fused at this message; behind: they
-                # wait up to the monitor's batch delay so fusion runs in efficient batches
-                monitor.max_delay_s = batch_delay_s if self.inbox.qsize() else 0.0
+                # caught up: a profile is fused as soon as it is ready (not held for its batch
+                # while the loop catches up next); behind: profiles wait for a full batch or the
+                # monitor's batch delay so fusion runs in efficient batches
+                behind = self.inbox.qsize() > 0
+                monitor.max_delay_s = batch_delay_s if behind else 0.0
+                monitor.batch_profiles = batch_profiles if behind else 1
                 self.process(*item)
                 step = time.monotonic() - self._last_data
                 self.busy_s += step
