@@ -17,8 +17,9 @@ within 3 mm of its planned footprint, i.e. without the overspray on the plate), 
 against the programmed time of each move kind, and the wall time of each stage.
 
 ``--jet-at-wall`` is a what-if for the toolpath: it reverses the horizontal component of every
-edge contour's spray axis, so the tilted jet comes from outside and meets the wall (the
-generator tilts it outward, away from the wall); it changes nothing else.
+tilted spray axis (the edge contours and the skips that arrive with their axis), so the tilted
+jet comes from outside and meets the wall (the generator tilts it outward, away from the wall);
+it changes nothing else.
 
     .venv/bin/python benchmarks/tower_scale.py [--scenario twisted_tower] [--layers N]
         [--band 8] [--set process.feed_g_min=30] [--jet-at-wall]
@@ -101,9 +102,8 @@ def main() -> None:
     sim = Simulation(sc)
     tp, motion = sim.toolpath, sim.motion
     if args.jet_at_wall:
-        axis = tp.axis_O.copy()
-        edge = tp.kind == KIND_CODE["edge"]
-        axis[edge, :2] *= -1.0
+        axis = tp.axis_O.copy()  # every tilted axis: edge moves and the skips into them
+        axis[:, :2] *= -1.0
         tp = dataclasses.replace(tp, axis_O=axis)
         motion = execute_toolpath(tp, sim.cell, rate_hz=sim.cell.robot_state_hz)
     t_setup = time.perf_counter() - t0
