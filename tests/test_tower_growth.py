@@ -54,6 +54,7 @@ def test_rough_surface_deposits_with_the_efficiency_of_its_mean_slope(slope_deg)
     assert vol.sum() / model.fed_volume_mm3 == pytest.approx(expected, rel=0.02)
 
 
+@pytest.mark.slow  # 30 passes of a 32 x 32 mm raster: about 9 minutes of process
 def test_flat_raster_grows_its_nominal_layer_for_thirty_passes():
     # 26 g/min of CP-Ti at 30 mm/s and 2 mm spacing, 50 % efficiency: 0.80 mm per pass
     p = ProcessConfig(feed_g_min=26.0)
