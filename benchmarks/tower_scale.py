@@ -2,8 +2,8 @@
 
 Runs the scenario's toolpath and executed motion, then grows the true part with the twin's
 deposition only (no profilers, no recording: the same ``SprayModel.plan_samples`` /
-``deposit_plan`` calls as :class:`twin.simulate.Simulation`, so the surface is the twin's own),
-and prints per layer band:
+``deposit_plan`` calls as :class:`twin.simulate.Simulation`, so the surface is the twin's own;
+the scenario's faults are not applied), and prints per layer band:
 
 - planned top ``z`` of the band's last layer and the true height there: at the part's centre
   (mean over a 4 mm disc), the median over the layer's planned region, the median over its
