@@ -86,6 +86,8 @@ class LayerAnalysis:
         self._wake = threading.Condition()
         self._writer: threading.Thread | None = None
         self._child = None  # ReportProcess writing the interim reports
+        if self.live and self.out_dir is not None:
+            self._start_report_process()
 
     @property
     def monitor(self):
@@ -142,6 +144,16 @@ class LayerAnalysis:
                 self._write_interim(*snap)
             except Exception:  # noqa: BLE001 - a failed interim report must not end the run
                 log.exception("writing the interim report failed")
+
+    def _start_report_process(self) -> None:
+        """Start the report child (before the stream: its imports take about a second)."""
+        from dm2.live.report_process import ReportProcess, ReportProcessError
+
+        self._child = ReportProcess()
+        try:
+            self._child.start()
+        except (OSError, ReportProcessError) as exc:  # retried at the first interim report
+            log.warning("report process could not be started now: %s", exc)
 
     def _write_interim(self, results, tracks, dropped, timing, meta, maps) -> None:
         """An interim report, written by the report child process (falls back to this
@@ -213,6 +225,10 @@ class LayerAnalysis:
         if self._child is not None:
             self._child.close()
             self._child = None
+
+    def close(self) -> None:
+        """Stop the interim report writer and its child process without a final report."""
+        self._stop_writer()
 
     def finish(self) -> dict | None:
         """End of stream: analyse the last layer, end the tracks, write the final report."""

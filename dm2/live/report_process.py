@@ -4,11 +4,13 @@ A live run rewrites its report folder after every analysed layer. Writing it (PL
 plots, HTML) is a few hundred milliseconds of mostly pure-Python work; on a thread of the
 monitoring process it holds the interpreter lock for most of that time, and the fusion loop and
 the socket threads stall behind it. :class:`ReportProcess` hands each snapshot to one child
-Python process (``python -m dm2.live.report_process``, started on first use, lower CPU priority)
-over a pipe: a request is a length-prefixed pickle of ``(out_dir, results, tracks, kwargs)``
-for :func:`dm2.report.write_report`, the answer a pickle of ``("ok", seconds)`` or
-``("error", text)``. Requests are answered in order, one at a time, so two writes never touch the
-folder together. The pipe only ever carries our own objects between our own processes.
+Python process (``python -m dm2.live.report_process``, lower CPU priority; a live run starts it
+before the stream, else it starts on first use) over a pipe. The child first answers
+``("ready", None)`` once it has loaded the report code; then each request is a length-prefixed
+pickle of ``(out_dir, results, tracks, kwargs)`` for :func:`dm2.report.write_report`, and its
+answer a pickle of ``("ok", seconds)`` or ``("error", text)``. Requests are answered in order,
+one at a time, so two writes never touch the folder together. The pipe only ever carries our
+own objects between our own processes.
 """
 
 from __future__ import annotations
@@ -39,6 +41,13 @@ class ReportProcess:
     def __init__(self):
         self._proc: subprocess.Popen | None = None
 
+    def start(self) -> ReportProcess:
+        """Start the child now and wait until it has loaded the report code (about a second
+        of CPU), so that cost is paid before a stream starts rather than at its first layer."""
+        if self._proc is None or self._proc.poll() is not None:
+            self._start()
+        return self
+
     def _start(self) -> subprocess.Popen:
         root = str(Path(__file__).resolve().parents[2])
         env = dict(os.environ)
@@ -47,9 +56,18 @@ class ReportProcess:
                     "NUMBA_NUM_THREADS"):
             env[var] = "1"
         env.setdefault("MPLBACKEND", "Agg")
-        self._proc = subprocess.Popen([sys.executable, "-m", "dm2.live.report_process"],
-                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env)
-        return self._proc
+        proc = subprocess.Popen([sys.executable, "-m", "dm2.live.report_process"],
+                                stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env)
+        try:
+            status, value = pickle.loads(_read_frame(proc.stdout))
+        except (OSError, EOFError) as exc:
+            proc.kill()
+            proc.wait()
+            raise ReportProcessError(f"report process did not start: {exc}") from None
+        if status != "ready":
+            raise ReportProcessError(f"report process did not start: {value}")
+        self._proc = proc
+        return proc
 
     def write(self, out_dir: str | Path, results, tracks, **kwargs) -> float:
         """Write one report (blocks until the child is done); the child's seconds.
@@ -104,6 +122,7 @@ def serve(stdin, stdout) -> None:
     """The child's loop: write a report per request until stdin closes."""
     from dm2.report import write_report
 
+    _answer(stdout, ("ready", None))
     while True:
         try:
             request = _read_frame(stdin)
@@ -116,9 +135,13 @@ def serve(stdin, stdout) -> None:
             answer = ("ok", time.perf_counter() - t0)
         except Exception as exc:  # noqa: BLE001 - reported to the parent, which logs it
             answer = ("error", f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}")
-        data = pickle.dumps(answer)
-        stdout.write(_LEN.pack(len(data)) + data)
-        stdout.flush()
+        _answer(stdout, answer)
+
+
+def _answer(stdout, answer) -> None:
+    data = pickle.dumps(answer)
+    stdout.write(_LEN.pack(len(data)) + data)
+    stdout.flush()
 
 
 if __name__ == "__main__":

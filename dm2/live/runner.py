@@ -272,6 +272,8 @@ class LiveRunner:
         """Release sockets and files without a final report (error paths)."""
         for s in self.sources:
             s.close()
-        if self.recorder is not None and not self._finished:
-            self.recorder.close(keep_part=True)
+        if not self._finished:
+            self.analysis.close()
+            if self.recorder is not None:
+                self.recorder.close(keep_part=True)
         self._finished = True
