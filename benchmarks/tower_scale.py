@@ -16,19 +16,16 @@ cells every layer's planned region covers, max) in mm, the mass in g (all of it,
 within 3 mm of its planned footprint, i.e. without the overspray on the plate), the executed
 against the programmed time of each move kind, and the wall time of each stage.
 
-``--jet-at-wall`` is a what-if for the toolpath: it reverses the horizontal component of every
-tilted spray axis (the edge contours and the skips that arrive with their axis), so the tilted
-jet comes from outside and meets the wall (the generator tilts it outward, away from the wall);
-it changes nothing else.
+The edge jet comes from the scenario (``toolpath.contour_jet``); ``--set
+toolpath.contour_jet=away_from_wall`` shows the tower with the jet pointing away from the wall.
 
     .venv/bin/python benchmarks/tower_scale.py [--scenario twisted_tower] [--layers N]
-        [--band 8] [--set process.feed_g_min=30] [--jet-at-wall]
+        [--band 8] [--set process.feed_g_min=30]
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import os
 import sys
 import time
@@ -86,26 +83,18 @@ def main() -> None:
     ap.add_argument("--layers", type=int, default=None, help="build only the first N layers")
     ap.add_argument("--band", type=int, default=8, help="layers per printed band")
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")
-    ap.add_argument("--jet-at-wall", action="store_true",
-                    help="what-if: edge contours' tilted jet aimed at the wall from outside")
     args = ap.parse_args()
     print(f"load average: {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
 
     from dm2.toolpath.slicing import slice_mesh
     from twin.deposition import SprayModel
     from twin.heightfield import HeightField
-    from twin.motion import execute_toolpath
     from twin.simulate import HEIGHTFIELD_CELL_MM, Simulation
 
     sc = _scenario(args.scenario, args.layers, args.set)
     t0 = time.perf_counter()
     sim = Simulation(sc)
     tp, motion = sim.toolpath, sim.motion
-    if args.jet_at_wall:
-        axis = tp.axis_O.copy()  # every tilted axis: edge moves and the skips into them
-        axis[:, :2] *= -1.0
-        tp = dataclasses.replace(tp, axis_O=axis)
-        motion = execute_toolpath(tp, sim.cell, rate_hz=sim.cell.robot_state_hz)
     t_setup = time.perf_counter() - t0
     sliced = slice_mesh(sim.part_mesh_O, sc.toolpath.layer_mm, sc.toolpath.max_layers)
     z_plan = sliced.layer_z_mm() + sc.toolpath.layer_mm  # top of each layer

@@ -50,6 +50,9 @@ class ToolpathConfig(_Model):
     line_spacing_mm: float = Field(2.0, gt=0)
     strategy: Literal["double", "single"] = "double"
     contour_angle_deg: float = Field(35.0, ge=0, lt=80)
+    # where the tilted edge jet points: "toward_wall" (nozzle leaning out, the jet meets the
+    # wall from outside and straightens it, as the paper tilts it) or "away_from_wall"
+    contour_jet: Literal["away_from_wall", "toward_wall"] = "away_from_wall"
     contour_inset_mm: float | None = Field(None, ge=0)  # default: half a bead = spacing / 2
     zone_mm: float = Field(1.0, ge=0)
     speed_mm_s: SpeedConfig = SpeedConfig()

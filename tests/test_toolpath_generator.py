@@ -111,9 +111,11 @@ def test_speeds_match_kinds(seven):
     assert np.all(tp2.speed_mm_s[tp2.kind == SKIP] == 80.0)
 
 
-def test_edges_tilted_35_degrees_outward(seven):
-    mesh, tps = seven
-    tp = tps["single"]  # single: layer k's contour comes from slice k
+@pytest.mark.parametrize("jet", ["away_from_wall", "toward_wall"])
+def test_edge_jets_tilted_35_degrees(seven, jet):
+    mesh, _ = seven
+    tp = generate_toolpath(mesh, ToolpathConfig(strategy="single", contour_jet=jet))
+    # single: layer k's contour comes from slice k
     regions = slice_mesh(mesh, 0.8).regions
     edge = np.flatnonzero(tp.kind == EDGE)
     assert edge.size > 100
@@ -122,21 +124,26 @@ def test_edges_tilted_35_degrees_outward(seven):
     np.testing.assert_allclose(tilt, 35.0, atol=1e-9)
     h = a[:, :2] / np.linalg.norm(a[:, :2], axis=1)[:, None]
     p = tp.position_O[edge, :2]
+    toward = 1.0 if jet == "away_from_wall" else -1.0  # sign of h . (direction to the outline)
     for k in np.unique(tp.layer[edge]):
         sel = tp.layer[edge] == k
-        # the horizontal component points at the nearest outline (out of the material) ...
+        # the jet's horizontal component points at the nearest outline (away from the wall,
+        # out of the material) or away from it (from outside, into the wall) ...
         near = shapely.get_coordinates(shapely.shortest_line(shapely.points(p[sel]),
                                                              regions[k].boundary))
         to_outline = near[1::2] - near[0::2]
-        assert np.all(np.einsum("ij,ij->i", h[sel], to_outline) > 0)
-        # ... and the material lies on the other side
-        inn = p[sel] - 0.5 * h[sel]
+        assert np.all(toward * np.einsum("ij,ij->i", h[sel], to_outline) > 0)
+        # ... and the material lies on the other side of the outline
+        inn = p[sel] - toward * 0.5 * h[sel]
         assert shapely.contains_xy(regions[k], inn[:, 0], inn[:, 1]).all()
-    box = generate_toolpath(_box(20, 10, 4), ToolpathConfig(strategy="single"))
+    box = generate_toolpath(_box(20, 10, 4), ToolpathConfig(strategy="single",
+                                                             contour_jet=jet))
     e = box.kind == EDGE
-    out = box.position_O[e, :2] + 2.0 * box.axis_O[e, :2] / np.sin(np.radians(35.0))
+    out = box.position_O[e, :2] + toward * 2.0 * box.axis_O[e, :2] / np.sin(np.radians(35.0))
     assert not shapely.contains_xy(shapely.box(50, 55, 70, 65), out[:, 0], out[:, 1]).any()
     assert np.all(tp.axis_O[tp.kind == INFILL] == [0.0, 0.0, -1.0])
+    assert np.array_equal(tp.axis_O[tp.kind == EDGE][:, 2], -np.cos(np.radians(35.0))
+                          * np.ones(edge.size))
 
 
 def test_contour_angle_follows_config():

@@ -6,9 +6,14 @@ layer's mid-height):
 * **infill** - raster lines at ``line_spacing_mm`` clipped to the region, linked boustrophedon
   into chains; raster direction ``infill_angle_deg`` + 90 degrees on every other layer
   (``single``) or every other double layer (``double``); spray axis straight down;
-* **edge** - the region's rings inset by ``contour_inset_mm`` (default half a spacing), spray
-  axis tilted outward by ``contour_angle_deg``:
-  ``a_O = normalize(-cos(alpha) e_z + sin(alpha) n_out)``;
+* **edge** - the region's rings inset by ``contour_inset_mm`` (default half a spacing), the
+  spray axis tilted by ``contour_angle_deg``. With ``contour_jet = "toward_wall"`` the nozzle
+  leans outward and the jet meets the wall from outside,
+  ``a_O = normalize(-cos(alpha) e_z - sin(alpha) n_out)``: a wall sloping at ``beta`` takes it
+  at ``beta - alpha`` and is built up straight, as the paper tilts the nozzle "to minimize
+  tapering". With ``"away_from_wall"`` (the default, which the shipped small scenarios and the
+  near-net reference are tuned to) ``a_O = normalize(-cos(alpha) e_z + sin(alpha) n_out)``:
+  the wall takes the jet at ``beta + alpha``, most of it rebounds and tall parts taper;
 * **overhang** - infill and edge moves whose outline lies more than ``overhang_min_mm`` beyond
   the layer below; slower speed, spray axis straight down;
 * **skip** - fast moves joining pieces that cannot be linked inside the region (powder keeps
@@ -54,6 +59,7 @@ class _Planner:
         self.inset = cfg.contour_inset_mm if cfg.contour_inset_mm is not None \
             else cfg.line_spacing_mm / 2
         self.alpha = np.radians(cfg.contour_angle_deg)
+        self.jet_out = -1.0 if cfg.contour_jet == "toward_wall" else 1.0  # sign on n_out
         self.loops = [contour_loops(r, self.inset) for r in sliced.regions]
         self.regions = [Region(r, lp) for r, lp in zip(sliced.regions, self.loops, strict=True)]
         self.overhang = overhang_regions(sliced.regions, cfg.overhang_min_mm)
@@ -84,8 +90,8 @@ class _Planner:
             rounded, src = fillet(loop, zone)
             xy, seg_end = densify(rounded, self.spacing)
             n_out = right_normals_closed(xy)
-            axis = np.column_stack([np.sin(self.alpha) * n_out, np.full(len(xy), -np.cos(
-                self.alpha))])
+            axis = np.column_stack([self.jet_out * np.sin(self.alpha) * n_out,
+                                    np.full(len(xy), -np.cos(self.alpha))])
             mid_normal = n_out[1:] + n_out[:-1]
             mid_normal /= np.maximum(np.linalg.norm(mid_normal, axis=1), 1e-12)[:, None]
             kind = np.full(len(xy) - 1, KIND_CODE["edge"], dtype=np.int8)
