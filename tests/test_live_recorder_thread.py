@@ -78,3 +78,52 @@ def test_clock_releases_in_band_profiles_at_once_and_waits_out_of_band():
     assert _aligned(clock, 0.2, 3.0) == []
     assert _aligned(clock, 0.3, 3.0) == pytest.approx([0.1, 0.2, 0.3])
     assert clock.engaged == {"S1"}
+
+
+def _replay(clock, events):
+    """Feed ``(arrival, kind, stamp, skew)`` events in arrival order (poses first on ties);
+    ``(arrival, released stamps)`` of the profiles."""
+    out = []
+    for arrival, kind, stamp, skew in sorted(events, key=lambda e: (e[0], e[1] != "pose")):
+        if kind == "pose":
+            clock.pose(stamp, arrival)
+        else:
+            out.append((arrival, _aligned_at(clock, stamp, arrival, skew)))
+    return out
+
+
+def _aligned_at(clock, stamp_s, arrival_s, skew_s):
+    p = Profile("S1", stamp_s + skew_s, 1, np.zeros((2, 2)), np.ones(2, bool), np.ones(2))
+    return [q.stamp_s for q in clock.profile(p, arrival_s)]
+
+
+def test_clock_ignores_a_stalled_pose_socket_but_follows_a_lasting_offset():
+    from dm2.live.clock import ClockAligner
+
+    # a 10x rehearsal: host time = robot time / 10; the pose socket is not read for 150 ms
+    # (host; all states stamped 3.0-4.5 s arrive at once at 0.45 s): the pose clock looks up to
+    # 1.5 s behind, the estimate leaves the 0.5 s band, but the profiler's clock is fine
+    poses = [(k * 0.0004, "pose", k * 0.004, 0.0) for k in range(2500)]
+    poses = [(0.45 if 3.0 <= s < 4.5 else a, kind, s, k) for a, kind, s, k in poses]
+    profiles = [(k * 0.01, "profile", k * 0.1, 0.0) for k in range(1, 100)]
+    released = _replay(ClockAligner(tolerance_s=0.5), poses + profiles)
+    assert [s for _, r in released for s in r] == [k * 0.1 for k in range(1, 100)]
+    eager = ClockAligner(tolerance_s=0.5, confirm_s=0.0)  # without the confirmation it engages
+    _replay(eager, poses + profiles)
+    assert eager.engaged == {"S1"}
+
+    # real time; the profiler's clock jumps 2 s ahead at 5 s and stays there: passed through
+    # unchanged for at least confirm_s (1 s; counted from when the running estimate leaves the
+    # band, a few samples after the jump), corrected from then on
+    clock = ClockAligner(tolerance_s=0.05)
+    poses = [(k * 0.004, "pose", k * 0.004, 0.0) for k in range(2500)]
+    profiles = [(k * 0.1, "profile", k * 0.1, 2.0 if k >= 50 else 0.0) for k in range(1, 95)]
+    for arrival, stamps in _replay(clock, poses + profiles):
+        if arrival < 5.0:
+            assert stamps == [pytest.approx(arrival)]
+        elif arrival < 6.0:
+            assert stamps == [pytest.approx(arrival + 2.0)]
+        elif arrival > 7.5:
+            assert stamps == [pytest.approx(arrival, abs=1e-6)]
+    assert clock.engaged == {"S1"}
+    assert clock.correction_s["S1"] == pytest.approx(2.0)

@@ -14,8 +14,15 @@ through bit for bit); once it leaves that band the sensor's stamps are corrected
 A profile arriving before its sensor has ``min_samples`` skew samples waits (at most
 ``max_waiting`` per sensor; more count ``clock_unsynced``), unless every sample so far lies
 within the tolerance band: stamps inside the band pass unchanged anyway, so the first profiles
-of a synchronised cell are not held back (a later estimate outside the band still engages the
-correction from then on).
+of a synchronised cell are not held back (a later estimate outside the band: see below).
+
+An overloaded host reads one socket late while the other keeps up: the pose clock at a
+profile's arrival then looks behind or ahead by the lag (times the speed-up of a rehearsal),
+which is no skew of the sensor's clock. So once a sensor's stamps have been passed through, an
+estimate outside the band engages the correction only if it stays outside for ``confirm_s`` of
+host time (a stall of the process lasts milliseconds, a clock offset persists); meanwhile the
+stamps still pass unchanged. Before the first release (a clock that is off from the start) the
+correction engages at once, as above.
 """
 
 from __future__ import annotations
@@ -31,6 +38,8 @@ from dm2.messages import Profile
 
 log = logging.getLogger(__name__)
 
+CONFIRM_S = 1.0  # [s, host clock] an excursion of the skew estimate must last to be corrected
+
 
 class ClockAligner:
     """Map profile stamps onto the pose clock.
@@ -41,14 +50,19 @@ class ClockAligner:
     window : int, skew samples in the running median
     min_samples : int, samples needed before a sensor's profiles are released
     max_waiting : int, profiles held per sensor while waiting for samples
+    confirm_s : float [s, host clock], how long an estimate outside the band must last before
+        a sensor whose profiles were already passed through is corrected
     """
 
     def __init__(self, tolerance_s: float = 0.05, window: int = 15, min_samples: int = 3,
-                 max_waiting: int = 64):
+                 max_waiting: int = 64, confirm_s: float = CONFIRM_S):
         self.tolerance_s = float(tolerance_s)
         self.window = int(window)
         self.min_samples = int(min_samples)
         self.max_waiting = int(max_waiting)
+        self.confirm_s = float(confirm_s)
+        self._released: set[str] = set()  # sensors with profiles passed through already
+        self._outside_since: dict[str, float] = {}  # arrival [s] the estimate left the band
         self._arr: list[float] = []  # pose arrivals [s, host clock], non-decreasing
         self._stamp: list[float] = []  # their stamps [s, robot clock]
         self._samples: dict[str, deque] = {}
@@ -98,9 +112,15 @@ class ClockAligner:
             return []
         skew = self._estimate(samples, p.stamp_s)
         if sid not in self.engaged and abs(skew) > self.tolerance_s:
-            self.engaged.add(sid)
-            log.warning("clock of %s differs from the robot's by %.3f s: correcting its stamps",
-                        sid, skew)
+            # before the first release a skew is corrected at once; later it must last
+            since = self._outside_since.setdefault(sid, arrival_s)
+            if sid not in self._released or arrival_s - since >= self.confirm_s:
+                self.engaged.add(sid)
+                log.warning("clock of %s differs from the robot's by %.3f s: correcting its "
+                            "stamps", sid, skew)
+        else:
+            self._outside_since.pop(sid, None)
+        self._released.add(sid)
         corr = skew if sid in self.engaged else 0.0
         self.correction_s[sid] = corr
         out = [self._shift(q, corr) for q in waiting] + [self._shift(p, corr)]
