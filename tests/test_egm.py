@@ -70,6 +70,25 @@ def test_malformed_raises_decode_error(data):
         EgmDecoder().decode(data)
 
 
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_non_finite_joint_is_malformed(bad):
+    joints = JOINTS.copy()
+    joints[4] = bad
+    with pytest.raises(EgmDecodeError, match="joints: non-finite"):
+        EgmDecoder().decode(encode_egm_robot(1, 4, joints, T))
+
+
+def test_decoded_state_equals_a_validated_one():
+    state = EgmDecoder().decode(encode_egm_robot(9, 36, JOINTS, T, stamp_s=2.5))[-1]
+    ref = RobotState(state.stamp_s, state.seq, state.joints_rad.copy(), state.T_B_F.copy())
+    assert type(state.stamp_s) is float and type(state.seq) is int and state.seq == 9
+    for name in ("joints_rad", "T_B_F"):
+        a, b = getattr(state, name), getattr(ref, name)
+        assert a.dtype == b.dtype and a.shape == b.shape and a.flags.c_contiguous
+        assert not a.flags.writeable
+        np.testing.assert_array_equal(a, b)
+
+
 def test_non_unit_quaternion_is_malformed():
     msg = egm_pb2.EgmRobot()
     msg.ParseFromString(encode_egm_robot(1, 4, JOINTS, T))

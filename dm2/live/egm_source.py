@@ -32,7 +32,7 @@ from dm2.frames import to_quat_abb
 from dm2.live import egm_pb2
 from dm2.live.inbox import Inbox
 from dm2.live.udp_batch import DatagramBatch
-from dm2.messages import LayerMark, MessageError, RobotState
+from dm2.messages import LayerMark, RobotState
 
 log = logging.getLogger(__name__)
 
@@ -154,11 +154,13 @@ class EgmDecoder:
         norm = math.sqrt(w * w + x * x + y * y + z * z)
         if max(abs(w), abs(x), abs(y), abs(z)) > 2.0 or abs(norm - 1.0) > QUATERNION_NORM_TOL:
             raise EgmDecodeError("EgmRobot.feedBack.cartesian.orient: not a unit quaternion")
-        try:
-            T_B_F = quat_pose_matrix(px, py, pz, w / norm, x / norm, y / norm, z / norm)
-            state = RobotState(stamp_s, msg.header.seqno, joints, T_B_F)
-        except (MessageError, ValueError) as exc:
-            raise EgmDecodeError(str(exc)) from None
+        if not np.isfinite(joints).all():
+            raise EgmDecodeError("EgmRobot.feedBack.joints: non-finite joint values")
+        # everything RobotState validates is checked above (finite stamp, pose and joints, 6
+        # joints) and the pose comes from a normalised quaternion, so it is rigid: the trusted
+        # constructor saves the ~20 us of re-validation per datagram (2,500 a second at 10x)
+        T_B_F = quat_pose_matrix(px, py, pz, w / norm, x / norm, y / norm, z / norm)
+        state = RobotState.trusted(stamp_s, msg.header.seqno, joints, T_B_F)
         out: list = []
         digits = msg.RAPIDfromRobot.digVal
         if len(digits) and math.isfinite(digits[0]) and digits[0] >= 0:
