@@ -18,6 +18,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from dm2.tsdf_point_rays import NO_POSE, point_ray, profile_pose
+
 BLOCK = 8  # voxels per block edge
 BLOCK_SHIFT = 3
 BLOCK_VOXELS = BLOCK**3
@@ -51,7 +53,7 @@ def _hash(key, mask):
     return np.int64(h >> np.uint64(40)) & mask
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def hash_find(table_keys, table_slots, key):
     """Slot of ``key`` or -1."""
     mask = table_keys.shape[0] - 1
@@ -86,25 +88,29 @@ def rebuild_hash(block_keys, n_blocks, table_size):
 
 
 @njit(cache=True, inline="always")
-def _get_or_alloc(bx, by, bz, table_keys, table_slots, block_keys, touched, state):
-    key = pack_key(bx, by, bz)
+def hash_get_or_insert(key, table_keys, table_slots, block_keys, state):
+    """Slot of ``key``; a new block (slot ``state[0]``, counted up) when it has none yet."""
     mask = table_keys.shape[0] - 1
     h = _hash(key, mask)
     while True:
         k = table_keys[h]
         if k == key:
-            s = table_slots[h]
-            touched[s] = True
-            return s
+            return table_slots[h]
         if k == EMPTY:
             s = state[0]
             state[0] += 1
             table_keys[h] = key
             table_slots[h] = s
             block_keys[s] = key
-            touched[s] = True
             return s
         h = (h + 1) & mask
+
+
+@njit(cache=True, inline="always")
+def _get_or_alloc(bx, by, bz, table_keys, table_slots, block_keys, touched, state):
+    s = hash_get_or_insert(pack_key(bx, by, bz), table_keys, table_slots, block_keys, state)
+    touched[s] = True
+    return s
 
 
 @njit(cache=True, inline="always")
@@ -237,49 +243,22 @@ def _fuse(register, origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, a
     capacity = voxels.shape[0]
     table_limit = table_keys.shape[0] // 2
     inv_vox = 1.0 / voxel_mm
-    r00 = r10 = r20 = r02 = r12 = r22 = ox = oy = oz = sx = sy = sz = ax = ay = az = 0.0
+    pose = NO_POSE
     ra = rb = (1 << 40, 0, 0, -1)  # the two blocks looked up last (bx, by, bz, slot)
     for k in range(offsets.shape[0] - 1):
         if offsets[k + 1] <= start:
             continue
         if register:
-            r00, r10, r20 = T_O_S[k, 0, 0], T_O_S[k, 1, 0], T_O_S[k, 2, 0]
-            r02, r12, r22 = T_O_S[k, 0, 2], T_O_S[k, 1, 2], T_O_S[k, 2, 2]
-            ox, oy, oz = T_O_S[k, 0, 3], T_O_S[k, 1, 3], T_O_S[k, 2, 3]
-            sx, sy, sz = spot_O[k, 0], spot_O[k, 1], spot_O[k, 2]
-            ax, ay, az = axis_O[k, 0], axis_O[k, 1], axis_O[k, 2]
+            pose = profile_pose(T_O_S, spot_O, axis_O, k)
         for i in range(max(offsets[k], start), offsets[k + 1]):
             if state[0] + MAX_NEW_BLOCKS_PER_RAY > capacity or \
                     state[0] + MAX_NEW_BLOCKS_PER_RAY > table_limit:
                 return i
-            if register:
-                x, z = xz_S[i, 0], xz_S[i, 1]
-                if not z > 0.0:  # behind the sensor
-                    counts[0] += 1
-                    continue
-                px = ox + r00 * x + r02 * z
-                py = oy + r10 * x + r12 * z
-                pz = oz + r20 * x + r22 * z
-                if use_bounds and not (bounds_lo[0] <= px <= bounds_hi[0]
-                                       and bounds_lo[1] <= py <= bounds_hi[1]
-                                       and bounds_lo[2] <= pz <= bounds_hi[2]):
-                    counts[0] += 1
-                    continue
-                qx, qy, qz = px - sx, py - sy, pz - sz
-                along = qx * ax + qy * ay + qz * az
-                act = (qx * qx + qy * qy + qz * qz) - along * along <= active_r2_mm2
-            else:
-                ox, oy, oz = origins_O[i, 0], origins_O[i, 1], origins_O[i, 2]
-                px, py, pz = points_O[i, 0], points_O[i, 1], points_O[i, 2]
-                act = active[i]
-            counts[1] += 1
-            dx, dy, dz = px - ox, py - oy, pz - oz
-            r = np.sqrt(dx * dx + dy * dy + dz * dz)
-            if r <= truncation_mm:
+            ok, ox, oy, oz, dx, dy, dz, r, act = point_ray(
+                register, i, pose, xz_S, origins_O, points_O, active, active_r2_mm2, bounds_lo,
+                bounds_hi, use_bounds, truncation_mm, counts)
+            if not ok:
                 continue
-            dx /= r
-            dy /= r
-            dz /= r
             vx, vy, vz, span, stx, sty, stz, tdx, tdy, tdz, tmx, tmy, tmz = dda_start(
                 ox, oy, oz, dx, dy, dz, r, truncation_mm, inv_vox)
             last_bx, last_by, last_bz, slot = 1 << 40, 0, 0, -1

@@ -28,44 +28,15 @@ from dm2.tsdf_kernels import (
     _hash,
     dda_start,
     dda_step,
+    hash_find,
+    hash_get_or_insert,
     pack_key,
 )
+from dm2.tsdf_point_rays import NO_POSE, point_ray, profile_pose
 
 ACTIVE_FLAG = 4
 NEW_BLOCK_FLAG = 8
 RECENT = 1024  # entries of the cache of block keys a planning thread listed lately
-
-
-@njit(cache=True, inline="always")
-def _alloc(key, table_keys, table_slots, block_keys, state):
-    """Allocate the block of ``key`` unless it is allocated."""
-    mask = table_keys.shape[0] - 1
-    h = _hash(key, mask)
-    while True:
-        k = table_keys[h]
-        if k == key:
-            return
-        if k == EMPTY:
-            s = state[0]
-            state[0] += 1
-            table_keys[h] = key
-            table_slots[h] = s
-            block_keys[s] = key
-            return
-        h = (h + 1) & mask
-
-
-@njit(cache=True, inline="always")
-def _find(table_keys, table_slots, key):
-    mask = table_keys.shape[0] - 1
-    h = _hash(key, mask)
-    while True:
-        k = table_keys[h]
-        if k == key:
-            return table_slots[h]
-        if k == EMPTY:
-            return -1
-        h = (h + 1) & mask
 
 
 @njit(cache=True, inline="always")
@@ -89,7 +60,7 @@ def _all_allocated(bx0, by0, bz0, bx1, by1, bz1, table_keys, table_slots, recent
             for bz in range(bz0, bz1 + 1):
                 key = pack_key(bx, by, bz)
                 if recent[_hash(key, RECENT - 1)] != key and \
-                        _find(table_keys, table_slots, key) < 0:
+                        hash_find(table_keys, table_slots, key) < 0:
                     return False
     return True
 
@@ -111,7 +82,7 @@ def _list_missing_blocks(ox, oy, oz, dx, dy, dz, r, truncation_mm, inv_vox, tabl
         if bx != last_bx or by != last_by or bz != last_bz:
             key = pack_key(bx, by, bz)
             h = _hash(key, RECENT - 1)
-            if recent[h] != key and _find(table_keys, table_slots, key) < 0:
+            if recent[h] != key and hash_find(table_keys, table_slots, key) < 0:
                 m = new_state[0]
                 if m == new_keys.shape[0]:
                     return 0
@@ -146,46 +117,19 @@ def plan_rays(register, origins_O, points_O, active, xz_S, offsets, T_O_S, spot_
     new_state[1] = i1
     listing = True
     recent = np.full(RECENT, EMPTY, dtype=np.int64)
-    r00 = r10 = r20 = r02 = r12 = r22 = ox = oy = oz = sx = sy = sz = ax = ay = az = 0.0
+    pose = NO_POSE
     for k in range(offsets.shape[0] - 1):
         if offsets[k + 1] <= i0 or offsets[k] >= i1:
             continue
         if register:
-            r00, r10, r20 = T_O_S[k, 0, 0], T_O_S[k, 1, 0], T_O_S[k, 2, 0]
-            r02, r12, r22 = T_O_S[k, 0, 2], T_O_S[k, 1, 2], T_O_S[k, 2, 2]
-            ox, oy, oz = T_O_S[k, 0, 3], T_O_S[k, 1, 3], T_O_S[k, 2, 3]
-            sx, sy, sz = spot_O[k, 0], spot_O[k, 1], spot_O[k, 2]
-            ax, ay, az = axis_O[k, 0], axis_O[k, 1], axis_O[k, 2]
+            pose = profile_pose(T_O_S, spot_O, axis_O, k)
         for i in range(max(offsets[k], i0), min(offsets[k + 1], i1)):
             ray_flags[i] = 0
-            if register:
-                x, z = xz_S[i, 0], xz_S[i, 1]
-                if not z > 0.0:  # behind the sensor
-                    counts[0] += 1
-                    continue
-                px = ox + r00 * x + r02 * z
-                py = oy + r10 * x + r12 * z
-                pz = oz + r20 * x + r22 * z
-                if use_bounds and not (bounds_lo[0] <= px <= bounds_hi[0]
-                                       and bounds_lo[1] <= py <= bounds_hi[1]
-                                       and bounds_lo[2] <= pz <= bounds_hi[2]):
-                    counts[0] += 1
-                    continue
-                qx, qy, qz = px - sx, py - sy, pz - sz
-                along = qx * ax + qy * ay + qz * az
-                act = (qx * qx + qy * qy + qz * qz) - along * along <= active_r2_mm2
-            else:
-                ox, oy, oz = origins_O[i, 0], origins_O[i, 1], origins_O[i, 2]
-                px, py, pz = points_O[i, 0], points_O[i, 1], points_O[i, 2]
-                act = active[i]
-            counts[1] += 1
-            dx, dy, dz = px - ox, py - oy, pz - oz
-            r = np.sqrt(dx * dx + dy * dy + dz * dz)
-            if r <= truncation_mm:
+            ok, ox, oy, oz, dx, dy, dz, r, act = point_ray(
+                register, i, pose, xz_S, origins_O, points_O, active, active_r2_mm2, bounds_lo,
+                bounds_hi, use_bounds, truncation_mm, counts)
+            if not ok:
                 continue
-            dx /= r
-            dy /= r
-            dz /= r
             ray_f[i, 0], ray_f[i, 1], ray_f[i, 2] = ox, oy, oz
             ray_f[i, 3], ray_f[i, 4], ray_f[i, 5], ray_f[i, 6] = dx, dy, dz, r
             vx0, vy0, vz0, vx1, vy1, vz1 = _voxel_box(ox, oy, oz, dx, dy, dz, r,
@@ -229,7 +173,7 @@ def alloc_listed(new_keys, n_keys, start, table_keys, table_slots, block_keys, s
         if state[0] + MAX_NEW_BLOCKS_PER_RAY > capacity or \
                 state[0] + MAX_NEW_BLOCKS_PER_RAY > table_limit:
             return j
-        _alloc(new_keys[j], table_keys, table_slots, block_keys, state)
+        hash_get_or_insert(new_keys[j], table_keys, table_slots, block_keys, state)
     return n_keys
 
 
@@ -257,7 +201,8 @@ def alloc_rays(ray_f, ray_flags, start, stop, voxel_mm, truncation_mm, table_key
         while t <= span:
             bx, by, bz = vx >> BLOCK_SHIFT, vy >> BLOCK_SHIFT, vz >> BLOCK_SHIFT
             if bx != last_bx or by != last_by or bz != last_bz:
-                _alloc(pack_key(bx, by, bz), table_keys, table_slots, block_keys, state)
+                hash_get_or_insert(pack_key(bx, by, bz), table_keys, table_slots, block_keys,
+                                   state)
                 last_bx, last_by, last_bz = bx, by, bz
             t, vx, vy, vz, tmx, tmy, tmz = dda_step(vx, vy, vz, stx, sty, stz, tdx, tdy,
                                                     tdz, tmx, tmy, tmz)

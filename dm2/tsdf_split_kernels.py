@@ -16,11 +16,12 @@ from dm2.tsdf_kernels import (
     BLOCK_SHIFT,
     dda_start,
     dda_step,
+    hash_find,
     pack_key,
     recent_slot,
     update_voxel,
 )
-from dm2.tsdf_plan_kernels import ACTIVE_FLAG, _find
+from dm2.tsdf_plan_kernels import ACTIVE_FLAG
 
 
 @njit(cache=True, nogil=True)
@@ -52,7 +53,7 @@ def update_rays(tid, col_shift, ray_f, ray_flags, voxel_mm, truncation_mm, activ
                 if bx != last_bx or by != last_by or bz != last_bz:
                     slot = recent_slot(bx, by, bz, ra, rb)
                     if slot < 0:
-                        slot = _find(table_keys, table_slots, pack_key(bx, by, bz))
+                        slot = hash_find(table_keys, table_slots, pack_key(bx, by, bz))
                         if slot >= 0:
                             touched[slot] = True
                         ra, rb = (bx, by, bz, slot), ra
