@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
+import pytest
 from typer.testing import CliRunner
 
 from dm2.cli.main import app
@@ -21,6 +23,25 @@ def test_run_writes_the_report_folder_and_links_latest(tmp_path):
     assert (run_dir / "index.html").exists() and (run_dir / "config.toml").exists()
     assert (run_dir / "truth").is_dir() and not (run_dir / "run.mcap").exists()
     assert "reconstruction vs the twin's true surface" in res.output
+
+
+@pytest.mark.slow
+def test_default_run_finds_the_corner_overbuild(tmp_path):
+    """The README's main job: the 150-degree corner dwell of the default scenario is found as
+    an overbuild track at that corner (its [expect] section), from the dwell's first layer."""
+    runs = tmp_path / "runs"
+    res = CliRunner().invoke(app, ["run", "--runs", str(runs), "--no-record"])
+    assert res.exit_code == 0, res.output
+    report = json.loads((runs / "latest" / "report.json").read_text())
+    (expect,) = report["expectations"]
+    assert expect["passed"] and expect["track_ids"], expect
+    tracks = {t["id"]: t for t in report["tracks"]}
+    corner = np.array([77.6, 59.3])
+    for tid in expect["track_ids"]:
+        assert tracks[tid]["kind"] == "overbuild"
+        assert tracks[tid]["first_layer"] >= 1  # the dwell starts in layer 1
+        last = tracks[tid]["history"][-1]["centroid_O_mm"][:2]
+        assert np.linalg.norm(np.asarray(last) - corner) <= 8.0
 
 
 def test_bad_scenarios_exit_2_and_write_nothing(tmp_path):
