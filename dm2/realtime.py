@@ -15,15 +15,13 @@ observed as normal are never counted.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 from scipy import ndimage
 
-from dm2.refmap import bilinear_height
-
-OVER, UNDER = 1, 2
+from dm2.realtime_kernels import OVER, UNDER, compare_columns, window_reference_heights
 KIND_NAMES = {OVER: "overbuild", UNDER: "underbuild"}
 
 
@@ -70,23 +68,6 @@ class FrameDeviation:
     alarms: tuple
 
 
-@njit(cache=True)
-def _column_crossings(d, w, min_weight):
-    """Fractional voxel index (nx, ny) of the topmost - to + crossing along z, NaN if none."""
-    nx, ny, nz = d.shape
-    out = np.full((nx, ny), np.nan)
-    for i in range(nx):
-        for j in range(ny):
-            for k in range(nz - 2, -1, -1):
-                if w[i, j, k] < min_weight or w[i, j, k + 1] < min_weight:
-                    continue
-                a, b = d[i, j, k], d[i, j, k + 1]
-                if a < 0.0 <= b:
-                    out[i, j] = k + (-a) / (b - a)
-                    break
-    return out
-
-
 class RealtimeDeviation:
     """Per-frame-set deviation monitor over the plate's voxel columns.
 
@@ -125,12 +106,14 @@ class RealtimeDeviation:
     def update_from_tsdf(self, tsdf, spot_O, stamp_s: float, reference) -> FrameDeviation:
         """Gather the box around ``spot_O`` (3,) [mm] from a dm2.tsdf.SparseTSDF and compare."""
         v = self.voxel_mm
-        lo_xy = np.asarray(spot_O[:2], float) - self.radius_mm
-        hi_xy = np.asarray(spot_O[:2], float) + self.radius_mm
+        sx, sy, r = float(spot_O[0]), float(spot_O[1]), self.radius_mm
         ny, nx = self.flag_map.shape
-        i0, j0 = np.clip(np.floor(lo_xy / v).astype(int), 0, [nx - 1, ny - 1])
-        i1, j1 = np.clip(np.ceil(hi_xy / v).astype(int), [i0 + 1, j0 + 1], [nx, ny])
-        h = _window_heights(reference, (i0, j0, i1, j1), v)
+        i0 = min(max(math.floor((sx - r) / v), 0), nx - 1)
+        j0 = min(max(math.floor((sy - r) / v), 0), ny - 1)
+        i1 = min(max(math.ceil((sx + r) / v), i0 + 1), nx)
+        j1 = min(max(math.ceil((sy + r) / v), j0 + 1), ny)
+        h = window_reference_heights(np.asarray(reference.heights_mm, np.float64),
+                                     float(reference.cell_mm), i0, j0, i1, j1, v)
         z_lo = float(h.min()) - self.z_margin_mm
         z_hi = float(h.max()) + self.z_margin_mm
         k0, k1 = int(np.floor(z_lo / v)), int(np.ceil(z_hi / v))
@@ -154,30 +137,25 @@ class RealtimeDeviation:
         """
         v = self.voxel_mm
         i0, j0, k0 = (int(x) for x in origin_voxel)
-        cross = _column_crossings(np.asarray(tsdf_mm, np.float32), np.asarray(weight, np.float32),
-                                  np.float32(self.cfg.min_weight))
-        ii, jj = np.nonzero(np.isfinite(cross))
-        gi, gj = ii + i0, jj + j0
-        ny, nx = self.flag_map.shape
-        inside = (gi >= 0) & (gi < nx) & (gj >= 0) & (gj < ny)
-        ii, jj, gi, gj = ii[inside], jj[inside], gi[inside], gj[inside]
-        z = (k0 + cross[ii, jj] + 0.5) * v
-        xy = np.column_stack([(gi + 0.5) * v, (gj + 0.5) * v])
-        box = (i0, j0, i0 + cross.shape[0], j0 + cross.shape[1])
-        hw = _window_heights(reference, box, v) if window_heights is None else window_heights
-        dev = _reference_distance(hw, v, ii, jj, z)
-        dg = float(self.cfg.delta_global_mm)
-        flag = np.where(dev > dg, OVER, np.where(dev < -dg, UNDER, 0)).astype(np.int8)
-        self.deviation_map_mm[gj, gi] = dev
-        newly = (flag != 0) & (self.flag_map[gj, gi] != flag)
-        self.first_flag_s[gj[newly], gi[newly]] = stamp_s
-        self.flag_map[gj, gi] = flag
-        self._alarmed[gj[flag == 0], gi[flag == 0]] = False
-        alarms = self._raise_alarms(stamp_s, gi, gj) if np.any(flag) else ()
+        d = np.asarray(tsdf_mm, np.float32)
+        hw = window_heights
+        if hw is None:
+            hw = window_reference_heights(np.asarray(reference.heights_mm, np.float64),
+                                          float(reference.cell_mm), i0, j0, i0 + d.shape[0],
+                                          j0 + d.shape[1], v)
+        gi, gj, dev, flag = compare_columns(
+            d, np.asarray(weight, np.float32), np.float32(self.cfg.min_weight), i0, j0, k0, hw,
+            v, float(self.cfg.delta_global_mm), float(stamp_s), self.deviation_map_mm,
+            self.flag_map, self.first_flag_s, self._alarmed)
+        n_over = int(np.count_nonzero(flag == OVER))
+        n_under = int(np.count_nonzero(flag == UNDER))
+        alarms = self._raise_alarms(stamp_s, gi, gj) if n_over or n_under else ()
+        xy = np.empty((gi.shape[0], 2))
+        xy[:, 0] = (gi + 0.5) * v
+        xy[:, 1] = (gj + 0.5) * v
         cell_area = v * v
-        return FrameDeviation(float(stamp_s), xy, dev, flag,
-                              float(np.count_nonzero(flag == OVER)) * cell_area,
-                              float(np.count_nonzero(flag == UNDER)) * cell_area, alarms)
+        return FrameDeviation(float(stamp_s), xy, dev, flag, n_over * cell_area,
+                              n_under * cell_area, alarms)
 
     def _raise_alarms(self, stamp_s, gi, gj) -> tuple:
         v = self.voxel_mm
@@ -212,24 +190,3 @@ class RealtimeDeviation:
                 alarmed[rows, cols] = True
         self.alarms.extend(out)
         return tuple(out)
-
-
-def _window_heights(reference, box, v) -> np.ndarray:
-    """Reference heights [mm] (ny, nx) at the voxel columns of ``box = (i0, j0, i1, j1)``."""
-    i0, j0, i1, j1 = box
-    x = (np.arange(i0, i1) + 0.5) * v
-    y = (np.arange(j0, j1) + 0.5) * v
-    xx, yy = np.meshgrid(x, y)
-    return bilinear_height(reference.heights_mm, reference.cell_mm,
-                           np.column_stack([xx.ravel(), yy.ravel()])).reshape(len(y), len(x))
-
-
-def _reference_distance(hw, v, ii, jj, z) -> np.ndarray:
-    """``(z - h) * n_z`` at window columns ``(ii, jj)``: height above the reference projected
-    on its normal [mm]; ``hw`` (ny, nx) the reference at the window's voxel columns."""
-    if hw.shape[0] > 1 and hw.shape[1] > 1:
-        gy, gx = np.gradient(hw, v)
-        g2 = gx[jj, ii] ** 2 + gy[jj, ii] ** 2
-    else:
-        g2 = 0.0
-    return (z - hw[jj, ii]) / np.sqrt(1.0 + g2)

@@ -100,3 +100,43 @@ def test_fault_free_stream_raises_no_alarm():
     assert rt.alarms == []
     assert np.nanmax(np.abs(rt.deviation_map_mm)) < 0.25  # sparse oblique rays: ~0.2 mm
     assert not rt.flag_map.any()
+
+
+def test_sloped_reference_deviation_is_projected_on_its_normal_like_numpy():
+    """The compiled comparison equals the formula in numpy: bilinear reference heights at the
+    voxel columns, slopes by np.gradient, deviation (z - h) / sqrt(1 + |grad h|^2)."""
+    from dm2.refmap import bilinear_height
+
+    rng = np.random.default_rng(7)
+    c = (np.arange(480) + 0.5) * CELL
+    xx, yy = np.meshgrid(c, c)
+    heights = 2.0 + 0.8 * np.sin(xx / 7.0) * np.cos(yy / 5.0)
+    ref = ReferenceMap(heights, CELL)
+    rt = RealtimeDeviation(MON)
+    v = MON.voxel_mm
+    origin = (90, 70, 0)
+    nx, ny, nz = 24, 20, 12
+    zc = (np.arange(nz) + 0.5) * v
+    surface = rng.uniform(1.2, 4.5, (nx, ny))
+    d = (zc[None, None, :] - surface[:, :, None]).astype(np.float32)
+    w = np.full(d.shape, 3.0, np.float32)
+    w[:3] = 0.0  # three unobserved column rows
+    fd = rt.update(2.0, d, w, origin, ref)
+
+    gx_c = (np.arange(origin[0], origin[0] + nx) + 0.5) * v
+    gy_c = (np.arange(origin[1], origin[1] + ny) + 0.5) * v
+    X, Y = np.meshgrid(gx_c, gy_c)
+    hw = bilinear_height(heights, CELL, np.column_stack([X.ravel(), Y.ravel()])).reshape(ny, nx)
+    gy, gx = np.gradient(hw, v)
+    ii = np.round(fd.xy_O[:, 0] / v - 0.5).astype(int) - origin[0]
+    jj = np.round(fd.xy_O[:, 1] / v - 0.5).astype(int) - origin[1]
+    assert len(fd.deviation_mm) == (nx - 3) * ny and ii.min() == 3
+    k = np.floor(surface[ii, jj] / v - 0.5)  # the crossing interpolates linearly: exact z
+    z = (k + (surface[ii, jj] - (k + 0.5) * v) / v + 0.5) * v
+    want = (z - hw[jj, ii]) / np.sqrt(1.0 + gx[jj, ii] ** 2 + gy[jj, ii] ** 2)
+    assert np.allclose(fd.deviation_mm, want, atol=1e-5)
+    assert np.abs(want).max() > 1.0 and np.any(np.hypot(gx, gy) > 0.1)  # sloped, flagged
+    dg = MON.delta_global_mm
+    assert np.array_equal(fd.flag, np.where(want > dg, OVER, np.where(want < -dg, UNDER, 0)))
+    assert np.allclose(rt.deviation_map_mm[jj + origin[1], ii + origin[0]], want, atol=1e-5)
+    assert np.all(rt.first_flag_s[jj + origin[1], ii + origin[0]][fd.flag != 0] == 2.0)
