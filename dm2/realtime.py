@@ -22,6 +22,7 @@ import numpy as np
 from scipy import ndimage
 
 from dm2.realtime_kernels import OVER, UNDER, compare_columns, window_reference_heights
+
 KIND_NAMES = {OVER: "overbuild", UNDER: "underbuild"}
 
 
