@@ -144,13 +144,15 @@ class RealtimeDeviation:
             hw = window_reference_heights(np.asarray(reference.heights_mm, np.float64),
                                           float(reference.cell_mm), i0, j0, i0 + d.shape[0],
                                           j0 + d.shape[1], v)
-        gi, gj, dev, flag = compare_columns(
+        gi, gj, dev, flag, newly = compare_columns(
             d, np.asarray(weight, np.float32), np.float32(self.cfg.min_weight), i0, j0, k0, hw,
             v, float(self.cfg.delta_global_mm), float(stamp_s), self.deviation_map_mm,
             self.flag_map, self.first_flag_s, self._alarmed)
         n_over = int(np.count_nonzero(flag == OVER))
         n_under = int(np.count_nonzero(flag == UNDER))
-        alarms = self._raise_alarms(stamp_s, gi, gj) if n_over or n_under else ()
+        # a patch can only reach the alarm area, or lose its alarmed columns, through a newly
+        # flagged column: columns observed as normal only shrink patches and clear their marks
+        alarms = self._raise_alarms(stamp_s, gi, gj) if newly else ()
         xy = np.empty((gi.shape[0], 2))
         xy[:, 0] = (gi + 0.5) * v
         xy[:, 1] = (gj + 0.5) * v

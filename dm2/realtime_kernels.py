@@ -83,7 +83,8 @@ def compare_columns(d, w, min_weight, i0, j0, k0, hw, voxel_mm, delta_mm, stamp_
     zero crossing inside the maps gets its deviation: height above the reference projected on
     the reference normal, ``(z - h) / sqrt(1 + |grad h|^2)`` [mm]; beyond ``+-delta_mm`` it is
     flagged over (1) or under (2). Returns ``gi, gj`` (map column indices), ``dev`` [mm] and
-    ``flag`` of those columns, in ``np.nonzero`` order.
+    ``flag`` of those columns, in ``np.nonzero`` order, and how many columns were newly flagged
+    (flag changed to over or under).
     """
     cross = column_crossings(d, w, min_weight)
     nx, ny = cross.shape
@@ -91,6 +92,7 @@ def compare_columns(d, w, min_weight, i0, j0, k0, hw, voxel_mm, delta_mm, stamp_
     hy, hx = hw.shape
     slopes = hy > 1 and hx > 1
     n = 0
+    newly = 0
     gi = np.empty(nx * ny, np.int64)
     gj = np.empty(nx * ny, np.int64)
     dev = np.empty(nx * ny)
@@ -113,9 +115,10 @@ def compare_columns(d, w, min_weight, i0, j0, k0, hw, voxel_mm, delta_mm, stamp_
             deviation_map[y, x] = e
             if f != 0 and flag_map[y, x] != f:
                 first_flag_s[y, x] = stamp_s
+                newly += 1
             flag_map[y, x] = f
             if f == 0:
                 alarmed[y, x] = False
             gi[n], gj[n], dev[n], flag[n] = x, y, e, f
             n += 1
-    return gi[:n], gj[:n], dev[:n], flag[:n]
+    return gi[:n], gj[:n], dev[:n], flag[:n], newly
