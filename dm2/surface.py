@@ -230,7 +230,7 @@ class SurfaceExtractor:
                 self._chunks[c] = self._volume(np.array(c)) if m is _MISSING else m
         self._premeshed.clear()
         self._todo.clear()
-        return PendingSurface(list(self._chunks.values()), self.tsdf.voxel_mm)
+        return PendingSurface(self._chunks_in_order(), self.tsdf.voxel_mm)
 
     def premesh(self, stop=None) -> bool:
         """Mesh the touched chunks ahead of the next :meth:`update`, which then only meshes
@@ -276,4 +276,9 @@ class SurfaceExtractor:
 
     def assemble(self) -> SurfaceMesh:
         """The surface from the chunk meshes cached now (volumes still pending are meshed)."""
-        return assemble([_resolved(p) for p in self._chunks.values()], self.tsdf.voxel_mm)
+        return assemble([_resolved(p) for p in self._chunks_in_order()], self.tsdf.voxel_mm)
+
+    def _chunks_in_order(self) -> list:
+        """The chunks' meshes or volumes sorted by chunk coordinates: the surface's vertex
+        order then depends only on the field, not on the order blocks were allocated in."""
+        return [self._chunks[c] for c in sorted(self._chunks)]

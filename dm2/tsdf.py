@@ -63,7 +63,8 @@ class SparseTSDF:
     initial_blocks : int, preallocated block rows (grows by doubling)
     threads : int, 1 or 2 (default: 2 where the machine has 2 or more cores). With 2, batches
         of at least ``MIN_SPLIT_POINTS`` points are fused by two threads that own alternate
-        block columns; the field is bit-identical to the one-thread result.
+        block columns; every voxel is bit-identical to the one-thread result (block slots are
+        allocated in another, still deterministic, order).
     """
 
     def __init__(self, voxel_mm: float = 0.5, truncation_mm: float = 1.5,
@@ -83,8 +84,8 @@ class SparseTSDF:
         if threads not in (1, 2):
             raise ValueError(f"SparseTSDF.threads: 1 or 2, got {threads}")
         self.threads = int(threads)
-        # CPU seconds of the two-thread path so far: serial allocation, thread 0 (plan and
-        # update), thread 1, and the threaded phases' critical path (the slower thread of each)
+        # CPU seconds of the two-thread path so far: serial commits of staged blocks, thread 0,
+        # thread 1, and the threaded phases' critical path (the slower thread of each run)
         self.split_cpu_s = np.zeros(4)
         self._split_buffers = SplitBuffers()
         cap = max(64, int(initial_blocks))
@@ -207,19 +208,26 @@ class SparseTSDF:
                 self._grow()
         return int(counts[1]), int(counts[0])
 
-    def _grow(self) -> None:
-        n = self.n_blocks
+    def _grow(self, extra: int = 0) -> None:
+        """Room for ``extra`` more blocks plus one ray's worth: the block arrays and the hash
+        table (kept at most half full) double until they fit."""
+        need = self.n_blocks + int(extra) + K.MAX_NEW_BLOCKS_PER_RAY
         cap = self.voxels.shape[0]
-        if n + K.MAX_NEW_BLOCKS_PER_RAY > cap:
-            new_cap = 2 * cap
+        if need > cap:
+            new_cap = cap
+            while need > new_cap:
+                new_cap *= 2
             log.debug("SparseTSDF: growing block storage %d -> %d blocks", cap, new_cap)
             self.voxels = _resized(self.voxels, new_cap, 0.0)
             self.block_keys = _resized(self.block_keys, new_cap, K.EMPTY)
             self.touched = _resized(self.touched, new_cap, False)
         table = self._table_keys.shape[0]
-        if n + K.MAX_NEW_BLOCKS_PER_RAY > table // 2:
+        if need <= table // 2 and extra:
+            return  # the table has room: no rebuild
+        while need > table // 2:
             table *= 2
-        self._table_keys, self._table_slots = K.rebuild_hash(self.block_keys, n, table)
+        self._table_keys, self._table_slots = K.rebuild_hash(self.block_keys, self.n_blocks,
+                                                             table)
 
     # ------------------------------------------------------------------------------ queries
     def take_touched(self) -> np.ndarray:

@@ -126,8 +126,12 @@ def recent_slot(bx, by, bz, a, b):
 
 
 @njit(cache=True, inline="always")
-def dda_start(ox, oy, oz, dx, dy, dz, r, truncation_mm, inv_vox):
-    """First voxel and DDA state (Amanatides & Woo) of the band ``r +- truncation_mm``."""
+def dda_start(ox, oy, oz, dx, dy, dz, r, truncation_mm, voxel_mm, inv_vox):
+    """First voxel and DDA state (Amanatides & Woo) of the band ``r +- truncation_mm``: voxel
+    ``vx, vy, vz``, the band's length ``span`` [voxels], steps ``st*``, crossing increments
+    ``td*`` and next crossings ``tm*`` [voxels], and the projective signed distance ``d`` [mm]
+    of the first voxel's centre (``r`` minus its distance from the origin along the ray) with
+    its change ``dd*`` [mm] per step along each axis."""
     t0 = r - truncation_mm
     t1 = r + truncation_mm
     sx0, sy0, sz0 = (ox + dx * t0) * inv_vox, (oy + dy * t0) * inv_vox, \
@@ -144,37 +148,37 @@ def dda_start(ox, oy, oz, dx, dy, dz, r, truncation_mm, inv_vox):
     tmx = ((vx + 1 - sx0) if dx > 0 else (sx0 - vx)) * tdx if dx != 0 else big
     tmy = ((vy + 1 - sy0) if dy > 0 else (sy0 - vy)) * tdy if dy != 0 else big
     tmz = ((vz + 1 - sz0) if dz > 0 else (sz0 - vz)) * tdz if dz != 0 else big
-    return vx, vy, vz, span, stx, sty, stz, tdx, tdy, tdz, tmx, tmy, tmz
+    d = r - (((vx + 0.5) * voxel_mm - ox) * dx + ((vy + 0.5) * voxel_mm - oy) * dy
+             + ((vz + 0.5) * voxel_mm - oz) * dz)
+    return (vx, vy, vz, span, stx, sty, stz, tdx, tdy, tdz, tmx, tmy, tmz, d,
+            stx * voxel_mm * dx, sty * voxel_mm * dy, stz * voxel_mm * dz)
 
 
 @njit(cache=True, inline="always")
-def dda_step(vx, vy, vz, stx, sty, stz, tdx, tdy, tdz, tmx, tmy, tmz):
+def dda_step(vx, vy, vz, stx, sty, stz, tdx, tdy, tdz, tmx, tmy, tmz, d, ddx, ddy, ddz):
     """Step to the next voxel along the axis whose boundary the ray crosses first; returns the
-    new ray parameter ``t`` (voxel units), voxel and crossing parameters."""
+    new ray parameter ``t`` (voxel units), voxel, crossing parameters and signed distance."""
     if tmx < tmy:
         if tmx < tmz:
-            return tmx, vx + stx, vy, vz, tmx + tdx, tmy, tmz
-        return tmz, vx, vy, vz + stz, tmx, tmy, tmz + tdz
+            return tmx, vx + stx, vy, vz, tmx + tdx, tmy, tmz, d - ddx
+        return tmz, vx, vy, vz + stz, tmx, tmy, tmz + tdz, d - ddz
     if tmy < tmz:
-        return tmy, vx, vy + sty, vz, tmx, tmy + tdy, tmz
-    return tmz, vx, vy, vz + stz, tmx, tmy, tmz + tdz
+        return tmy, vx, vy + sty, vz, tmx, tmy + tdy, tmz, d - ddy
+    return tmz, vx, vy, vz + stz, tmx, tmy, tmz + tdz, d - ddz
 
 
 @njit(cache=True, inline="always")
-def update_voxel(voxels, slot, vx, vy, vz, ox, oy, oz, dx, dy, dz, r, voxel_mm, truncation_mm,
-                 act, active_weight_cap, max_weight):
-    """One voxel's update along a ray (paper eqs 2-5): projective signed distance clamped to
-    +-truncation, weight ``w_A = 1`` in the active region and ``w_I`` (1 in front, falling
-    linearly behind the surface) elsewhere, the stored weight capped in the active region."""
-    cx = (vx + 0.5) * voxel_mm - ox
-    cy = (vy + 0.5) * voxel_mm - oy
-    cz = (vz + 0.5) * voxel_mm - oz
-    d = r - (cx * dx + cy * dy + cz * dz)
+def update_voxel(voxels, slot, vx, vy, vz, d, truncation_mm, inv_trunc, act, active_weight_cap,
+                 max_weight):
+    """One voxel's update along a ray (paper eqs 2-5): projective signed distance ``d`` [mm]
+    clamped to +-truncation, weight ``w_A = 1`` in the active region and ``w_I`` (1 in front,
+    falling linearly behind the surface) elsewhere, the stored weight capped in the active
+    region."""
     if d > truncation_mm:
         d = truncation_mm
     elif d < -truncation_mm:
         d = -truncation_mm
-    w = 1.0 if (act or d >= 0.0) else 1.0 + d / truncation_mm
+    w = 1.0 if (act or d >= 0.0) else 1.0 + d * inv_trunc
     if w > 0.0:
         li = (vx & 7) + 8 * ((vy & 7) + 8 * (vz & 7))
         w_prev = voxels[slot, li, 1]
@@ -185,7 +189,7 @@ def update_voxel(voxels, slot, vx, vy, vz, ox, oy, oz, dx, dy, dz, r, voxel_mm, 
         voxels[slot, li, 1] = min(w_new, max_weight)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def integrate_rays(origins_O, points_O, active, voxel_mm, truncation_mm, active_weight_cap,
                    max_weight, table_keys, table_slots, block_keys, voxels, touched, state,
                    start):
@@ -204,7 +208,7 @@ def integrate_rays(origins_O, points_O, active, voxel_mm, truncation_mm, active_
                  block_keys, voxels, touched, state, counts)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def fuse_profiles(xz_S, offsets, T_O_S, spot_O, axis_O, active_r2_mm2, bounds_lo, bounds_hi,
                   use_bounds, start, voxel_mm, truncation_mm, active_weight_cap, max_weight,
                   table_keys, table_slots, block_keys, voxels, touched, state, counts):
@@ -220,19 +224,25 @@ def fuse_profiles(xz_S, offsets, T_O_S, spot_O, axis_O, active_r2_mm2, bounds_lo
     block arrays or the hash table need to grow (``len(xz_S)`` when done).
     """
     none3 = np.zeros((0, 3))
+    if use_bounds:  # literal flags: each variant is compiled without the other's tests
+        return _fuse(True, none3, none3, np.zeros(0, np.bool_), xz_S, offsets, T_O_S, spot_O,
+                     axis_O, active_r2_mm2, bounds_lo, bounds_hi, True, start, voxel_mm,
+                     truncation_mm, active_weight_cap, max_weight, table_keys, table_slots,
+                     block_keys, voxels, touched, state, counts)
     return _fuse(True, none3, none3, np.zeros(0, np.bool_), xz_S, offsets, T_O_S, spot_O,
-                 axis_O, active_r2_mm2, bounds_lo, bounds_hi, use_bounds, start, voxel_mm,
+                 axis_O, active_r2_mm2, bounds_lo, bounds_hi, False, start, voxel_mm,
                  truncation_mm, active_weight_cap, max_weight, table_keys, table_slots,
                  block_keys, voxels, touched, state, counts)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _fuse(register, origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, axis_O,
           active_r2_mm2, bounds_lo, bounds_hi, use_bounds, start, voxel_mm, truncation_mm,
           active_weight_cap, max_weight, table_keys, table_slots, block_keys, voxels, touched,
           state, counts):
     """The one integration loop behind :func:`integrate_rays` (``register=False``: rays given
-    in ``O``) and :func:`fuse_profiles` (``register=True``: profiles registered here).
+    in ``O``) and :func:`fuse_profiles` (``register=True``: profiles registered here), inlined
+    into each with ``register`` and ``use_bounds`` as constants.
 
     Signed distance ``d`` [mm] is positive in front of the measured point (free space towards
     the sensor) and negative behind it. Weights: ``w_A = 1`` over the whole band in the active
@@ -243,6 +253,7 @@ def _fuse(register, origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, a
     capacity = voxels.shape[0]
     table_limit = table_keys.shape[0] // 2
     inv_vox = 1.0 / voxel_mm
+    inv_trunc = 1.0 / truncation_mm
     pose = NO_POSE
     ra = rb = (1 << 40, 0, 0, -1)  # the two blocks looked up last (bx, by, bz, slot)
     for k in range(offsets.shape[0] - 1):
@@ -259,8 +270,8 @@ def _fuse(register, origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, a
                 bounds_hi, use_bounds, truncation_mm, counts)
             if not ok:
                 continue
-            vx, vy, vz, span, stx, sty, stz, tdx, tdy, tdz, tmx, tmy, tmz = dda_start(
-                ox, oy, oz, dx, dy, dz, r, truncation_mm, inv_vox)
+            vx, vy, vz, span, stx, sty, stz, tdx, tdy, tdz, tmx, tmy, tmz, d, ddx, ddy, ddz = \
+                dda_start(ox, oy, oz, dx, dy, dz, r, truncation_mm, voxel_mm, inv_vox)
             last_bx, last_by, last_bz, slot = 1 << 40, 0, 0, -1
             t = 0.0
             while t <= span:
@@ -272,8 +283,8 @@ def _fuse(register, origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, a
                                              touched, state)
                         ra, rb = (bx, by, bz, slot), ra
                     last_bx, last_by, last_bz = bx, by, bz
-                update_voxel(voxels, slot, vx, vy, vz, ox, oy, oz, dx, dy, dz, r, voxel_mm,
-                             truncation_mm, act, active_weight_cap, max_weight)
-                t, vx, vy, vz, tmx, tmy, tmz = dda_step(vx, vy, vz, stx, sty, stz, tdx, tdy,
-                                                        tdz, tmx, tmy, tmz)
+                update_voxel(voxels, slot, vx, vy, vz, d, truncation_mm, inv_trunc, act,
+                             active_weight_cap, max_weight)
+                t, vx, vy, vz, tmx, tmy, tmz, d = dda_step(vx, vy, vz, stx, sty, stz, tdx, tdy,
+                                                           tdz, tmx, tmy, tmz, d, ddx, ddy, ddz)
     return offsets[offsets.shape[0] - 1]

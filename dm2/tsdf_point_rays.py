@@ -1,6 +1,6 @@
 """Per-point rays of the TSDF kernels: profile registration (paper eq 1) and the active-region
 test, shared by the serial integrator (:func:`dm2.tsdf_kernels._fuse`) and the two-thread
-planner (:func:`dm2.tsdf_plan_kernels.plan_rays`) so both count and skip points identically.
+kernel (:func:`dm2.tsdf_owned_kernels.fuse_owned`) so both count and skip points identically.
 
 Both helpers are inlined into their callers (``inline="always"``): the arithmetic is the same
 operations in the same order wherever it runs, which keeps the two-thread fusion bit-identical
