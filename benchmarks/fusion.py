@@ -7,8 +7,8 @@ with one kernel call per frame set (``batch_profiles=3``, the default for live a
 the two-thread TSDF update (``SparseTSDF(threads=2)``, bit-identical) with the one-thread kernel.
 The load average is printed first: on a shared machine the second thread only helps when a
 second core is idle. The CPU-time line is load-independent: the replay's CPU seconds outside the
-two threads plus, for each threaded phase of each batch (plan, update), the slower thread's
-seconds, i.e. the replay's critical path on two idle cores.
+two threads plus, for each batch, the slower thread's seconds, i.e. the replay's critical path
+on two idle cores.
 
 Three profilers (640 points each) look at a growing 60 x 60 mm block while the spot rasters over
 its top, which rises 100 mm over the run. Profiles are cast analytically before timing starts.
@@ -147,11 +147,11 @@ def main() -> None:
     alloc, t0, t1, threaded = mon.tsdf.split_cpu_s
     crit = cpu_split - t0 - t1 + threaded  # the replay's critical path on two idle cores
     print(f"CPU time of one batched replay (load-independent): {cpu_serial:.2f} s with the "
-          f"1-thread kernel; 2 threads: {cpu_split:.2f} s in all, of it TSDF block allocation "
-          f"{alloc:.2f} s (serial), thread 0 {t0:.2f} s, thread 1 {t1:.2f} s (plan + update; "
-          f"slower of each phase {threaded:.2f} s) -> critical path {crit:.2f} s "
-          f"= {mon.points_fused / crit / 1e6:.2f} M points/s end to end on two idle cores "
-          f"(1 thread: {mon.points_fused / cpu_serial / 1e6:.2f} M points/s)")
+          f"1-thread kernel; 2 threads: {cpu_split:.2f} s in all, of it committing staged TSDF "
+          f"blocks {alloc:.2f} s (serial), thread 0 {t0:.2f} s, thread 1 {t1:.2f} s (each its "
+          f"own block columns; the slower of each batch {threaded:.2f} s) -> critical path "
+          f"{crit:.2f} s = {mon.points_fused / crit / 1e6:.2f} M points/s end to end on two "
+          f"idle cores (1 thread: {mon.points_fused / cpu_serial / 1e6:.2f} M points/s)")
 
     _, _, lat = run_once(cal, msgs, True, batch_profiles=3)
     lat_ms = np.array(lat) * 1e3
