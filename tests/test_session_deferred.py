@@ -26,6 +26,7 @@ def _run(pad_stream, defer: bool, catch_up_every: int = 5, yield_every: int = 3)
     sc, sim, msgs = pad_stream
     s = MonitoringSession(sim.calibration, sc.monitor, sc.process, sc.cell.plate_size_mm,
                           toolpath=sim.toolpath, analysis_thread=defer)
+    s.monitor.max_delay_s = np.inf  # batches by count only: no wall-clock dependence
     asked = [0]
 
     def should_yield() -> bool:  # an inbox that fills up every few slices
@@ -48,19 +49,20 @@ def immediate(pad_stream):
 @pytest.mark.parametrize("every", [1, 40])
 def test_deferred_matches_immediate_bit_for_bit(pad_stream, immediate, every, monkeypatch):
     monkeypatch.setattr(session_mod, "PREMESH_EVERY_S", 0.0)  # pre-mesh at every catch-up
-    meshed_on, gathering = [], [False]
+    meshed_on, gathering = [], set()  # threads inside a gather right now
     mesh_volume, gather = surface_mod.mesh_volume, surface_mod.SurfaceExtractor.gather
 
     def noted_mesh(*args):
-        meshed_on.append((threading.current_thread().name, gathering[0]))
+        me = threading.current_thread()
+        meshed_on.append((me.name, me.ident in gathering))
         return mesh_volume(*args)
 
     def noted_gather(self):
-        gathering[0] = True
+        gathering.add(threading.get_ident())
         try:
             return gather(self)
         finally:
-            gathering[0] = False
+            gathering.discard(threading.get_ident())
 
     monkeypatch.setattr(surface_mod, "mesh_volume", noted_mesh)
     monkeypatch.setattr(surface_mod.SurfaceExtractor, "gather", noted_gather)
