@@ -47,10 +47,6 @@ class Staging:
         self.table_slots = np.full(2 * capacity, -1, dtype=np.int32)
         self.state = np.zeros(1, dtype=np.int64)
 
-    @property
-    def n(self) -> int:
-        return int(self.state[0])
-
 
 @njit(cache=True, nogil=True)
 def _staged_slot(key, base, st_keys, st_table_keys, st_table_slots, st_state):
