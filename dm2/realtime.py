@@ -19,9 +19,14 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
 
-from dm2.realtime_kernels import OVER, UNDER, compare_columns, window_reference_heights
+from dm2.realtime_kernels import (
+    OVER,
+    UNDER,
+    compare_columns,
+    patch_alarms,
+    window_reference_heights,
+)
 
 KIND_NAMES = {OVER: "overbuild", UNDER: "underbuild"}
 
@@ -170,26 +175,14 @@ class RealtimeDeviation:
         alarmed = self._alarmed[r0:r1, c0:c1]
         out = []
         min_cells = max(self.cfg.min_region_area_mm2 / (v * v), 1.0)
-        unseen = np.isnan(self.deviation_map_mm[r0:r1, c0:c1])
-        for kind in (OVER, UNDER):
-            hit = flags == kind
-            if not hit.any():
-                continue
-            # bridge the unobserved gaps between the swept laser lines (never observed-normal)
-            patch = (ndimage.binary_closing(hit, self._link) & (hit | unseen)) | hit
-            labels, n = ndimage.label(patch, structure=np.ones((3, 3), bool))
-            if n == 0:
-                continue
-            sizes = np.bincount(labels.ravel(), minlength=n + 1)
-            already = np.bincount(labels[alarmed].ravel(), minlength=n + 1)
-            for lab in np.flatnonzero((sizes >= min_cells) & (already == 0)):
-                if lab == 0:
-                    continue
-                rows, cols = np.nonzero(labels == lab)
-                centroid = np.array([(cols.mean() + c0 + 0.5) * v, (rows.mean() + r0 + 0.5) * v])
-                first = float(np.nanmin(self.first_flag_s[rows + r0, cols + c0]))
-                out.append(RealtimeAlarm(float(stamp_s), KIND_NAMES[kind],
-                                         float(sizes[lab]) * v * v, centroid, first))
-                alarmed[rows, cols] = True
+        deviation_mm = self.deviation_map_mm[r0:r1, c0:c1]
+        first_flag_s = self.first_flag_s[r0:r1, c0:c1]
+        for kind in (OVER, UNDER):  # over first: its marks count for the under patches
+            sizes, stats = patch_alarms(flags, kind, deviation_mm, alarmed, first_flag_s,
+                                        self._link, min_cells)
+            for size, (row, col, first) in zip(sizes.tolist(), stats.tolist(), strict=True):
+                centroid = np.array([(col + c0 + 0.5) * v, (row + r0 + 0.5) * v])
+                out.append(RealtimeAlarm(float(stamp_s), KIND_NAMES[kind], size * v * v,
+                                         centroid, first))
         self.alarms.extend(out)
         return tuple(out)

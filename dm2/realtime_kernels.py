@@ -122,3 +122,111 @@ def compare_columns(d, w, min_weight, i0, j0, k0, hw, voxel_mm, delta_mm, stamp_
             gi[n], gj[n], dev[n], flag[n] = x, y, e, f
             n += 1
     return gi[:n], gj[:n], dev[:n], flag[:n], newly
+
+
+@njit(cache=True)
+def patch_alarms(flags, kind, deviation_mm, alarmed, first_flag_s, link, min_cells):
+    """New alarms of one kind in a window of the column maps, marking their columns alarmed.
+
+    The columns flagged ``kind`` (``hit``), bridged over unobserved columns (deviation NaN:
+    ``unseen``) by a closing with
+    the disk ``link`` (dilation then erosion, outside the window counting as not flagged; never
+    over observed-normal columns: ``(closing & (hit | unseen)) | hit``), form 8-connected
+    patches, numbered in raster order. Each patch of at least ``min_cells`` columns with no
+    alarmed column raises an alarm. Returns per alarm, in patch order: its size [columns],
+    the mean row and column of its columns and the earliest first-flag stamp [s] among them.
+    """
+    h, w = flags.shape
+    hit = flags == kind
+    out_n = np.zeros(0, np.int64)
+    out_f = np.zeros((0, 3))
+    if not hit.any():
+        return out_n, out_f
+    r = link.shape[0] // 2
+    dil = np.zeros((h, w), np.bool_)
+    for y in range(h):
+        for x in range(w):
+            if hit[y, x]:
+                for a in range(-r, r + 1):
+                    for b in range(-r, r + 1):
+                        yy, xx = y + a, x + b
+                        if link[a + r, b + r] and 0 <= yy < h and 0 <= xx < w:
+                            dil[yy, xx] = True
+    patch = np.zeros((h, w), np.bool_)
+    for y in range(h):
+        for x in range(w):
+            if hit[y, x]:
+                patch[y, x] = True
+                continue
+            if not np.isnan(deviation_mm[y, x]) or not dil[y, x]:
+                continue
+            closed = True
+            for a in range(-r, r + 1):
+                for b in range(-r, r + 1):
+                    yy, xx = y + a, x + b
+                    if link[a + r, b + r] and not (0 <= yy < h and 0 <= xx < w and dil[yy, xx]):
+                        closed = False
+                        break
+                if not closed:
+                    break
+            patch[y, x] = closed
+    labels = np.zeros((h, w), np.int64)
+    stack = np.empty((h * w, 2), np.int64)
+    n = 0
+    for y in range(h):
+        for x in range(w):
+            if patch[y, x] and labels[y, x] == 0:
+                n += 1
+                labels[y, x] = n
+                top = 0
+                stack[0, 0], stack[0, 1] = y, x
+                top = 1
+                while top:
+                    top -= 1
+                    cy, cx = stack[top, 0], stack[top, 1]
+                    for a in range(-1, 2):
+                        for b in range(-1, 2):
+                            yy, xx = cy + a, cx + b
+                            if 0 <= yy < h and 0 <= xx < w and patch[yy, xx] and \
+                                    labels[yy, xx] == 0:
+                                labels[yy, xx] = n
+                                stack[top, 0], stack[top, 1] = yy, xx
+                                top += 1
+    size = np.zeros(n + 1, np.int64)
+    taken = np.zeros(n + 1, np.bool_)
+    rows = np.zeros(n + 1)
+    cols = np.zeros(n + 1)
+    first = np.full(n + 1, np.nan)
+    for y in range(h):
+        for x in range(w):
+            lab = labels[y, x]
+            if lab:
+                size[lab] += 1
+                rows[lab] += y
+                cols[lab] += x
+                if alarmed[y, x]:
+                    taken[lab] = True
+                f = first_flag_s[y, x]
+                if not np.isnan(f) and not f >= first[lab]:
+                    first[lab] = f
+    raise_ = np.zeros(n + 1, np.bool_)
+    m = 0
+    for lab in range(1, n + 1):
+        if size[lab] >= min_cells and not taken[lab]:
+            raise_[lab] = True
+            m += 1
+    out_n = np.empty(m, np.int64)
+    out_f = np.empty((m, 3))
+    k = 0
+    for lab in range(1, n + 1):
+        if raise_[lab]:
+            out_n[k] = size[lab]
+            out_f[k, 0] = rows[lab] / size[lab]
+            out_f[k, 1] = cols[lab] / size[lab]
+            out_f[k, 2] = first[lab]
+            k += 1
+    for y in range(h):
+        for x in range(w):
+            if raise_[labels[y, x]]:
+                alarmed[y, x] = True
+    return out_n, out_f

@@ -140,3 +140,52 @@ def test_sloped_reference_deviation_is_projected_on_its_normal_like_numpy():
     assert np.array_equal(fd.flag, np.where(want > dg, OVER, np.where(want < -dg, UNDER, 0)))
     assert np.allclose(rt.deviation_map_mm[jj + origin[1], ii + origin[0]], want, atol=1e-5)
     assert np.all(rt.first_flag_s[jj + origin[1], ii + origin[0]][fd.flag != 0] == 2.0)
+
+
+def _patch_alarms_scipy(flags, kind, deviation_mm, alarmed, first_flag_s, link, min_cells):
+    """The alarm patches with scipy.ndimage: the definition the compiled search follows."""
+    from scipy import ndimage
+
+    hit = flags == kind
+    unseen = np.isnan(deviation_mm)
+    patch = (ndimage.binary_closing(hit, link) & (hit | unseen)) | hit
+    labels, n = ndimage.label(patch, structure=np.ones((3, 3), bool))
+    sizes = np.bincount(labels.ravel(), minlength=n + 1)
+    already = np.bincount(labels[alarmed].ravel(), minlength=n + 1)
+    out = []
+    for lab in np.flatnonzero((sizes >= min_cells) & (already == 0)):
+        if lab:
+            rows, cols = np.nonzero(labels == lab)
+            firsts = first_flag_s[rows, cols]
+            out.append((sizes[lab], rows.mean(), cols.mean(),
+                        np.nanmin(firsts) if np.isfinite(firsts).any() else np.nan))
+            alarmed[rows, cols] = True
+    return out
+
+
+def test_alarm_patches_equal_scipy_closing_and_labelling():
+    from dm2.realtime_kernels import patch_alarms
+
+    rng = np.random.default_rng(12)
+    yy, xx = np.mgrid[-4:5, -4:5]
+    link = xx * xx + yy * yy <= 16
+    n_alarms = 0
+    for _ in range(40):
+        h, w = rng.integers(20, 90, 2)
+        flags = rng.choice([0, 1, 2], size=(h, w), p=[0.8, 0.12, 0.08]).astype(np.int8)
+        flags[rng.random((h, w)) < 0.5] = 0  # sparse lines of flagged columns
+        dev = np.where(rng.random((h, w)) < 0.6, np.nan, 0.1)  # mostly unobserved between
+        dev[flags != 0] = 0.5
+        first = np.where(flags != 0, rng.uniform(0, 10, (h, w)), np.nan)
+        alarmed = rng.random((h, w)) < 0.01
+        want_alarmed, got_alarmed = alarmed.copy(), alarmed.copy()
+        for kind in (OVER, UNDER):
+            want = _patch_alarms_scipy(flags, kind, dev, want_alarmed, first, link, 6.0)
+            sizes, stats = patch_alarms(flags, kind, dev, got_alarmed, first, link, 6.0)
+            got = [(s, *row) for s, row in zip(sizes, stats, strict=True)]
+            # a patch can be an island of bridged unobserved columns: no first flag (NaN)
+            np.testing.assert_equal(np.array(got, float).reshape(-1, 4),
+                                    np.array(want, float).reshape(-1, 4))
+            n_alarms += len(got)
+        assert np.array_equal(got_alarmed, want_alarmed)
+    assert n_alarms > 50
