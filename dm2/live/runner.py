@@ -18,8 +18,9 @@ the session's worker thread. While the loop is caught up, a profile is fused as 
 robot state after its stamp has arrived (batches of one, so it never waits for its frame set
 while the loop catches up); while it is behind, full batches and the monitor's batch delay let
 fusion run in larger, cheaper batches until it has caught up. For the run, the objects that
-exist when it starts are frozen out of the cyclic garbage collector (``gc.freeze``): a full
-collection over them took 130-180 ms, a stall no profile should wait behind.
+exist when the sources open are frozen out of the cyclic garbage collector (``gc.freeze``,
+thawed when the run finishes or closes): a full collection over them took 130-180 ms, a stall no
+profile should wait behind.
 :attr:`LiveRunner.latencies_s` holds socket-arrival to fused for every profile fused while the
 stream runs (matched by sensor and stamp, so dropped profiles never count), and
 :attr:`LiveRunner.inbox_waits_s` the part of it spent in the inbox (the loop busy with other
@@ -111,6 +112,7 @@ class LiveRunner:
         self.max_step_s = 0.0  # [s] longest single message (a layer end, typically)
         self._last_data = None
         self._finished = False
+        self._frozen = False  # objects frozen out of the cyclic collector for the run
 
     @property
     def report_dir(self) -> Path:
@@ -129,6 +131,7 @@ class LiveRunner:
         from dm2.live.egm_source import EgmSource
         from dm2.live.tcp_profiles import ProfileServer
 
+        self._freeze_heap()  # before the first message can arrive: a collection stalls it
         live = self.cell.live
         try:
             host, port = parse_host_port(live.egm, "live.egm")
@@ -206,11 +209,7 @@ class LiveRunner:
         idle_stop_s = live.idle_stop_s if idle_stop_s is None else idle_stop_s
         monitor = self.analysis.monitor
         batch_delay_s, batch_profiles = monitor.max_delay_s, monitor.batch_profiles
-        # everything allocated so far (modules, compiled kernels, calibration, the reference
-        # grid: a few hundred thousand objects) leaves the collector's view for the run, so
-        # a full collection never stalls the loop for the 100+ ms it takes to scan them
-        gc.collect()
-        gc.freeze()
+        self._freeze_heap()
         t0 = time.monotonic()
         pending = False  # deferred session work left by the last catch-up
 
@@ -246,11 +245,23 @@ class LiveRunner:
                 self.max_step_s = max(self.max_step_s, step)
                 pending = True
         finally:
-            try:
-                report = self.finish()
-            finally:
-                gc.unfreeze()
+            report = self.finish()
         return report
+
+    def _freeze_heap(self) -> None:
+        """Everything allocated so far (modules, compiled kernels, calibration, the reference
+        grid: a few hundred thousand objects) leaves the cyclic collector's view until the run
+        ends, so a full collection never stalls the stream for the 100+ ms it takes to scan
+        them. Once per run, before the sources open (the collection itself takes that long)."""
+        if not self._frozen:
+            gc.collect()
+            gc.freeze()
+            self._frozen = True
+
+    def _thaw_heap(self) -> None:
+        if self._frozen:
+            gc.unfreeze()
+            self._frozen = False
 
     def drain(self) -> None:
         """Process everything already queued (no waiting)."""
@@ -273,6 +284,7 @@ class LiveRunner:
             self.fused_at_end = self.analysis.monitor.profiles_fused - fused
             self.analysis.monitor.fused_log.clear()
         finally:
+            self._thaw_heap()
             if self.recorder is not None:
                 self.recorder.close()
         log.info("live run finished: %d messages, dropped %s", self.messages_in,
@@ -283,6 +295,7 @@ class LiveRunner:
         """Release sockets and files without a final report (error paths)."""
         for s in self.sources:
             s.close()
+        self._thaw_heap()
         if not self._finished:
             self.analysis.close()
             if self.recorder is not None:
