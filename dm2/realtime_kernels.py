@@ -7,6 +7,8 @@ live process (socket, recorder and analysis threads) each release could wait up 
 interval to take it back. Here the whole comparison is one compiled call that holds the lock
 throughout and runs in well under a millisecond. The arithmetic is numpy's, operation for
 operation (bilinear heights as :func:`dm2.refmap.bilinear_height`, slopes as ``np.gradient``).
+The alarm patches (:func:`patch_alarms`) are likewise one call: the closing and 8-connected
+labelling of ``scipy.ndimage`` (``binary_closing``, ``label``), with the same result.
 """
 
 from __future__ import annotations
