@@ -6,7 +6,7 @@ releases the interpreter lock in every call on more than a few hundred elements,
 live process (socket, recorder and analysis threads) each release could wait up to a switch
 interval to take it back. Here the whole comparison is one compiled call that holds the lock
 throughout and runs in well under a millisecond. The arithmetic is numpy's, operation for
-operation (bilinear heights as :func:`dm2.refmap.bilinear_height`, slopes as ``np.gradient``).
+operation (bilinear heights by :func:`dm2.refmap.bilinear_at`, slopes as ``np.gradient``).
 The alarm patches (:func:`patch_alarms`) are likewise one call: the closing and 8-connected
 labelling of ``scipy.ndimage`` (``binary_closing``, ``label``), with the same result.
 """
@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 from numba import njit
+
+from dm2.refmap import bilinear_at
 
 OVER, UNDER = 1, 2
 
@@ -39,23 +41,12 @@ def column_crossings(d, w, min_weight):
 @njit(cache=True)
 def window_reference_heights(heights_mm, cell_mm, i0, j0, i1, j1, voxel_mm):
     """Reference heights [mm] (ny, nx) at the voxel column centres ``i0:i1, j0:j1``: bilinear
-    in the cell-centred grid ``heights_mm`` (as :func:`dm2.refmap.bilinear_height`)."""
-    gny, gnx = heights_mm.shape
+    in the cell-centred grid ``heights_mm`` (:func:`dm2.refmap.bilinear_at`)."""
     out = np.empty((j1 - j0, i1 - i0))
     for jj in range(j1 - j0):
         y = (j0 + jj + 0.5) * voxel_mm
-        fy = min(max(y / cell_mm - 0.5, 0.0), gny - 1.0)
-        cj = min(np.int64(fy), gny - 2)
-        ty = fy - cj
         for ii in range(i1 - i0):
-            x = (i0 + ii + 0.5) * voxel_mm
-            fx = min(max(x / cell_mm - 0.5, 0.0), gnx - 1.0)
-            ci = min(np.int64(fx), gnx - 2)
-            tx = fx - ci
-            out[jj, ii] = ((1 - tx) * (1 - ty) * heights_mm[cj, ci]
-                           + tx * (1 - ty) * heights_mm[cj, ci + 1]
-                           + (1 - tx) * ty * heights_mm[cj + 1, ci]
-                           + tx * ty * heights_mm[cj + 1, ci + 1])
+            out[jj, ii] = bilinear_at(heights_mm, cell_mm, (i0 + ii + 0.5) * voxel_mm, y)
     return out
 
 

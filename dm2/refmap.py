@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 
 @dataclass(frozen=True)
@@ -148,7 +149,27 @@ def _cell_fractions(shape, cell_mm: float, xy_O: np.ndarray):
 def bilinear_height(heights_mm: np.ndarray, cell_mm: float, xy_O) -> np.ndarray:
     """Bilinear interpolation [mm] (n,) of a cell-centred height grid (ny, nx) at ``xy_O``."""
     xy = np.asarray(xy_O, dtype=np.float64).reshape(-1, 2)
-    h = heights_mm
-    i0, j0, tx, ty = _cell_fractions(h.shape, cell_mm, xy)
-    return ((1 - tx) * (1 - ty) * h[j0, i0] + tx * (1 - ty) * h[j0, i0 + 1]
-            + (1 - tx) * ty * h[j0 + 1, i0] + tx * ty * h[j0 + 1, i0 + 1])
+    return _bilinear_points(np.asarray(heights_mm, np.float64), float(cell_mm), xy)
+
+
+@njit(cache=True, inline="always")
+def bilinear_at(heights_mm, cell_mm, x, y):
+    """Bilinear height [mm] of a cell-centred grid (ny, nx) at one point ``(x, y)`` [mm],
+    clamped at the grid's border (the kernel behind :func:`bilinear_height`, for compiled
+    callers)."""
+    ny, nx = heights_mm.shape
+    fx = min(max(x / cell_mm - 0.5, 0.0), nx - 1.0)
+    fy = min(max(y / cell_mm - 0.5, 0.0), ny - 1.0)
+    i0 = min(np.int64(fx), nx - 2)
+    j0 = min(np.int64(fy), ny - 2)
+    tx, ty = fx - i0, fy - j0
+    return ((1 - tx) * (1 - ty) * heights_mm[j0, i0] + tx * (1 - ty) * heights_mm[j0, i0 + 1]
+            + (1 - tx) * ty * heights_mm[j0 + 1, i0] + tx * ty * heights_mm[j0 + 1, i0 + 1])
+
+
+@njit(cache=True)
+def _bilinear_points(heights_mm, cell_mm, xy):
+    out = np.empty(xy.shape[0])
+    for k in range(xy.shape[0]):
+        out[k] = bilinear_at(heights_mm, cell_mm, xy[k, 0], xy[k, 1])
+    return out

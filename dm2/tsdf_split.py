@@ -54,7 +54,7 @@ def fuse_split(field, register, o, p, a, xz, off, T, spot, axis, r2, lo, hi, use
         # rows for the blocks each thread may stage, beyond the allocated ones
         field._grow(sum(st.capacity for st in staging))
         bases = (field.n_blocks, field.n_blocks + staging[0].capacity)
-        args = (COL_SHIFT, register, o, p, a, xz, off, T, spot, axis, r2, lo, hi, use_bounds,
+        args = (register, o, p, a, xz, off, T, spot, axis, r2, lo, hi, use_bounds,
                 field.voxel_mm, field.truncation_mm, field.weight_cap, max_weight,
                 field._table_keys, field._table_slots, field.voxels, field.touched)
         other = _pool().submit(_timed_run, 1, starts[1], n, args, lines[1], bases[1],
@@ -78,6 +78,6 @@ def _timed_run(tid: int, start: int, n: int, args: tuple, counts, base: int,
     if start >= n:
         return n, 0.0
     c = time.thread_time()
-    stop = OK.fuse_owned(tid, args[0], start, *args[1:], counts, base, st.keys,
-                         st.table_keys, st.table_slots, st.state)
+    stop = OK.fuse_owned(tid, COL_SHIFT, start, *args, counts, base, st.keys, st.table_keys,
+                         st.table_slots, st.state)
     return stop, time.thread_time() - c
