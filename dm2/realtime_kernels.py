@@ -125,8 +125,9 @@ def patch_alarms(flags, kind, deviation_mm, alarmed, first_flag_s, link, min_cel
     ``unseen``) by a closing with
     the disk ``link`` (dilation then erosion, outside the window counting as not flagged; never
     over observed-normal columns: ``(closing & (hit | unseen)) | hit``), form 8-connected
-    patches, numbered in raster order. Each patch of at least ``min_cells`` columns with no
-    alarmed column raises an alarm. Returns per alarm, in patch order: its size [columns],
+    patches, numbered in raster order. Each patch of at least ``min_cells`` columns that holds
+    a flagged column and no alarmed one raises an alarm (an island of bridged unobserved
+    columns cut off from the flagged ones by observed-normal columns shows no defect). Returns per alarm, in patch order: its size [columns],
     the mean row and column of its columns and the earliest first-flag stamp [s] among them.
     """
     h, w = flags.shape
@@ -187,6 +188,7 @@ def patch_alarms(flags, kind, deviation_mm, alarmed, first_flag_s, link, min_cel
                                 top += 1
     size = np.zeros(n + 1, np.int64)
     taken = np.zeros(n + 1, np.bool_)
+    flagged = np.zeros(n + 1, np.bool_)
     rows = np.zeros(n + 1)
     cols = np.zeros(n + 1)
     first = np.full(n + 1, np.nan)
@@ -199,13 +201,15 @@ def patch_alarms(flags, kind, deviation_mm, alarmed, first_flag_s, link, min_cel
                 cols[lab] += x
                 if alarmed[y, x]:
                     taken[lab] = True
+                if hit[y, x]:
+                    flagged[lab] = True
                 f = first_flag_s[y, x]
                 if not np.isnan(f) and not f >= first[lab]:
                     first[lab] = f
     raise_ = np.zeros(n + 1, np.bool_)
     m = 0
     for lab in range(1, n + 1):
-        if size[lab] >= min_cells and not taken[lab]:
+        if size[lab] >= min_cells and flagged[lab] and not taken[lab]:
             raise_[lab] = True
             m += 1
     out_n = np.empty(m, np.int64)

@@ -152,13 +152,13 @@ def _patch_alarms_scipy(flags, kind, deviation_mm, alarmed, first_flag_s, link, 
     labels, n = ndimage.label(patch, structure=np.ones((3, 3), bool))
     sizes = np.bincount(labels.ravel(), minlength=n + 1)
     already = np.bincount(labels[alarmed].ravel(), minlength=n + 1)
+    flagged = np.bincount(labels[hit].ravel(), minlength=n + 1)
     out = []
-    for lab in np.flatnonzero((sizes >= min_cells) & (already == 0)):
+    for lab in np.flatnonzero((sizes >= min_cells) & (already == 0) & (flagged > 0)):
         if lab:
             rows, cols = np.nonzero(labels == lab)
-            firsts = first_flag_s[rows, cols]
             out.append((sizes[lab], rows.mean(), cols.mean(),
-                        np.nanmin(firsts) if np.isfinite(firsts).any() else np.nan))
+                        np.nanmin(first_flag_s[rows, cols][hit[rows, cols]])))
             alarmed[rows, cols] = True
     return out
 
@@ -183,9 +183,31 @@ def test_alarm_patches_equal_scipy_closing_and_labelling():
             want = _patch_alarms_scipy(flags, kind, dev, want_alarmed, first, link, 6.0)
             sizes, stats = patch_alarms(flags, kind, dev, got_alarmed, first, link, 6.0)
             got = [(s, *row) for s, row in zip(sizes, stats, strict=True)]
-            # a patch can be an island of bridged unobserved columns: no first flag (NaN)
+            assert np.isfinite(np.asarray(stats)[:, 2]).all()  # every alarm holds a flag
             np.testing.assert_equal(np.array(got, float).reshape(-1, 4),
                                     np.array(want, float).reshape(-1, 4))
             n_alarms += len(got)
         assert np.array_equal(got_alarmed, want_alarmed)
     assert n_alarms > 50
+
+
+def test_island_of_unobserved_columns_raises_no_alarm():
+    """Unobserved columns bridged by the closing but walled off from the flagged ones by
+    observed-normal columns form a patch of their own: it shows no defect, so no alarm."""
+    from dm2.realtime_kernels import patch_alarms
+
+    h, w = 30, 30
+    flags = np.zeros((h, w), np.int8)
+    dev = np.full((h, w), 0.05)  # observed, normal
+    first = np.full((h, w), np.nan)
+    flags[5:25, 5] = flags[5:25, 11] = OVER  # two flagged lines of 20 columns, 6 apart
+    dev[flags == OVER] = 0.8
+    first[flags == OVER] = 3.0
+    dev[5:25, 8] = np.nan  # unobserved line midway, walled off by normal columns 6-7, 9-10
+    yy, xx = np.mgrid[-4:5, -4:5]
+    link = xx * xx + yy * yy <= 16
+    alarmed = np.zeros((h, w), bool)
+    sizes, stats = patch_alarms(flags, OVER, dev, alarmed, first, link, 6.0)
+    assert sorted(sizes.tolist()) == [20, 20]  # the two flagged lines, not the island
+    assert np.all(stats[:, 2] == 3.0)
+    assert not alarmed[:, 8].any() and alarmed[5:25, 5].all() and alarmed[5:25, 11].all()
