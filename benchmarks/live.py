@@ -46,7 +46,8 @@ from dm2.config import load_scenario  # noqa: E402
 from dm2.live.config import load_cell_file  # noqa: E402
 from dm2.live.egm_source import encode_egm_robot  # noqa: E402
 from dm2.live.runner import LiveRunner  # noqa: E402
-from dm2.live.tcp_profiles import ProfileClient, encode_frame  # noqa: E402
+from dm2.live.tcp_frames import encode_frame  # noqa: E402
+from dm2.live.tcp_profiles import ProfileClient  # noqa: E402
 from dm2.messages import LayerMark, Profile, RobotState  # noqa: E402
 from scenarios import resolve_scenario  # noqa: E402
 

@@ -122,13 +122,14 @@ def patch_alarms(flags, kind, deviation_mm, alarmed, first_flag_s, link, min_cel
     """New alarms of one kind in a window of the column maps, marking their columns alarmed.
 
     The columns flagged ``kind`` (``hit``), bridged over unobserved columns (deviation NaN:
-    ``unseen``) by a closing with
-    the disk ``link`` (dilation then erosion, outside the window counting as not flagged; never
-    over observed-normal columns: ``(closing & (hit | unseen)) | hit``), form 8-connected
-    patches, numbered in raster order. Each patch of at least ``min_cells`` columns that holds
-    a flagged column and no alarmed one raises an alarm (an island of bridged unobserved
-    columns cut off from the flagged ones by observed-normal columns shows no defect). Returns per alarm, in patch order: its size [columns],
-    the mean row and column of its columns and the earliest first-flag stamp [s] among them.
+    ``unseen``) by a closing with the disk ``link`` (dilation then erosion, outside the window
+    counting as not flagged; never over observed-normal columns:
+    ``(closing & (hit | unseen)) | hit``), form 8-connected patches, numbered in raster order.
+    Each patch of at least ``min_cells`` columns that holds a flagged column and no alarmed one
+    raises an alarm (an island of bridged unobserved columns cut off from the flagged ones by
+    observed-normal columns shows no defect). Returns per alarm, in patch order: its size
+    [columns], the mean row and column of its columns and the earliest first-flag stamp [s]
+    among them.
     """
     h, w = flags.shape
     hit = flags == kind

@@ -12,7 +12,8 @@ from dm2.config import FaultConfig, load_scenario
 from dm2.live.config import load_cell_file
 from dm2.live.egm_source import encode_egm_robot
 from dm2.live.runner import LiveRunner
-from dm2.live.tcp_profiles import ProfileClient, encode_frame
+from dm2.live.tcp_frames import encode_frame
+from dm2.live.tcp_profiles import ProfileClient
 from dm2.messages import LayerMark, Profile, RobotState
 from dm2.session import MonitoringSession
 from scenarios import resolve_scenario

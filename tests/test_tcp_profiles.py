@@ -9,13 +9,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from dm2.live.inbox import Inbox
-from dm2.live.tcp_profiles import (
-    FrameParser,
-    ProfileClient,
-    ProfileServer,
-    decode_body,
-    encode_frame,
-)
+from dm2.live.tcp_frames import FrameParser, decode_body, encode_frame
+from dm2.live.tcp_profiles import ProfileClient, ProfileServer
 from dm2.messages import COUNTER_MODULO, Profile
 
 

@@ -3,7 +3,7 @@
 :func:`serve_twin` runs a scenario's simulation and sends its stream the way the real cell
 does: robot states as ABB EGM ``EgmRobot`` datagrams over UDP (the layer index in
 ``RAPIDfromRobot.digVal[0]``, as a RAPID program would report it), profiles as frames of the
-TCP profile protocol (:mod:`dm2.live.tcp_profiles`) through a bridge connection that
+TCP profile protocol (:mod:`dm2.live.tcp_frames`) through a bridge connection that
 reconnects if dropped. Messages leave at their stamps, in real time (``speed=1``) or
 accelerated; ``speed <= 0`` sends as fast as the twin produces them.
 :func:`write_cell_files` writes the cell file (calibration, toolpath, addresses) a live

@@ -16,7 +16,7 @@ and list the sensors in the cell file::
 
 The wrapper is imported only when a cell file names scanCONTROL sensors; without it
 :func:`load_wrapper` raises :class:`ScanControlUnavailable` with these instructions. Sensors on
-another machine can instead run a bridge that speaks :mod:`dm2.live.tcp_profiles`.
+another machine can instead run a bridge that speaks :mod:`dm2.live.tcp_frames`.
 
 Per sensor, :class:`ScanControlSource` selects the interface, connects, checks and sets the
 resolution, selects the ``PROFILE`` transfer format, sets internal triggering (and exposure and
@@ -63,7 +63,7 @@ TRIGGER_INTERNAL = 0  # FEATURE_FUNCTION_TRIGGER value for the sensor's own cloc
 SETUP_HINT = ("install Micro-Epsilon's scanCONTROL Linux SDK and put its Python bindings "
               "(the `pyllt` package in the SDK's python_bindings folder) on PYTHONPATH; see "
               "dm2.live.scancontrol or README 'Live hardware'. Sensors on another machine can "
-              "send the TCP profile protocol (dm2.live.tcp_profiles) to live.profiles instead")
+              "send the TCP profile protocol (dm2.live.tcp_frames) to live.profiles instead")
 
 
 class ScanControlError(OSError):
