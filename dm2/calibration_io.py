@@ -30,9 +30,10 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2.config import ConfigError, dump_toml
+from dm2.config import ConfigError
 from dm2.frames import from_quat_abb, to_quat_abb
 from dm2.messages import SENSOR_IDS, Calibration, MessageError
+from dm2.toml_write import dump_toml
 
 CALIBRATION_SCHEMA = 1
 _POSE_KEYS = ("translation_mm", "quaternion_wxyz")

@@ -2,7 +2,8 @@
 
 import pytest
 
-from dm2.config import ConfigError, dump_toml, load_scenario, parse_scenario
+from dm2.config import ConfigError, load_scenario, parse_scenario
+from dm2.toml_write import dump_toml
 from scenarios import list_scenarios, resolve_scenario
 
 
@@ -55,3 +56,33 @@ def test_every_shipped_scenario_loads():
         load_scenario(resolve_scenario(name))
     with pytest.raises(FileNotFoundError, match="neither a file nor a shipped scenario"):
         resolve_scenario("no_such_scenario")
+
+
+def test_toml_writer_round_trips_awkward_values():
+    """Strings with quotes, backslashes and control characters, keys that are not bare,
+    numpy scalars, nan and inf: written TOML reads back equal."""
+    import math
+    import tomllib
+
+    import numpy as np
+
+    data = {
+        "name": 'tower "B"\\v2\nsecond line\ttab\x01',
+        "count": np.int64(7),
+        "scale": np.float64(0.25),
+        "flag": np.bool_(True),
+        "limits": [np.float32(1.5), -2, math.inf],
+        "odd key.with dot": 1,
+        "part": {"stl": "C:\\parts\\tower.stl", "size mm": [60.0, 60.0], "nested": {"a": 1}},
+        "sensor": [{"id": "S1", "noise": 0.05}, {"id": "S2", "noise": math.nan}],
+    }
+    back = tomllib.loads(dump_toml(data))
+    assert back["name"] == data["name"]
+    assert back["count"] == 7 and isinstance(back["count"], int)
+    assert back["scale"] == 0.25 and back["flag"] is True
+    assert back["limits"] == [1.5, -2, math.inf]
+    assert back["odd key.with dot"] == 1
+    assert back["part"] == {"stl": "C:\\parts\\tower.stl", "size mm": [60.0, 60.0],
+                            "nested": {"a": 1}}
+    assert back["sensor"][0] == {"id": "S1", "noise": 0.05}
+    assert math.isnan(back["sensor"][1]["noise"])

@@ -19,8 +19,9 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from dm2.config import Scenario, dump_toml
+from dm2.config import Scenario
 from dm2.messages import LayerMark, Profile, RobotState
+from dm2.toml_write import dump_toml
 
 log = logging.getLogger(__name__)
 

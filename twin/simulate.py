@@ -21,9 +21,10 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2.config import Scenario, dump_toml
+from dm2.config import Scenario
 from dm2.frames import PoseInterpolator
 from dm2.messages import SENSOR_IDS, Calibration, LayerMark, Profile, RobotState
+from dm2.toml_write import dump_toml
 from twin.simulate_split import ChunkWorker, FanSplit, chunk_runs
 
 log = logging.getLogger(__name__)

@@ -107,10 +107,10 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
     twin.kinematics.ReachError : the toolpath leaves the robot's reach (nothing written)
     ValueError : ``run_dir`` cannot be written (nothing written)
     """
-    from dm2.config import dump_toml
     from dm2.report import check_output_dir, write_report
     from dm2.report.report_json import build_report, write_tracks_csv
     from dm2.session import MonitoringSession
+    from dm2.toml_write import dump_toml
     from twin.simulate import Simulation
 
     t_start = time.perf_counter()

@@ -107,9 +107,9 @@ def monitor(
         fail("give a recording to replay, or --live CELL.toml")
     from rich.table import Table
 
-    from dm2.config import dump_toml
     from dm2.report import check_output_dir, write_report
     from dm2.session import MonitoringSession
+    from dm2.toml_write import dump_toml
 
     t_start = time.perf_counter()
     with bad_input_exits():

@@ -49,7 +49,7 @@ def write_report(out_dir: str | Path, results, tracks, *, config_toml: str | Non
     out_dir : target folder (replaced if it exists)
     results : list of dm2.defects.LayerResult
     tracks : list of dm2.track.Track
-    config_toml : the resolved configuration text (``dm2.config.dump_toml``), written as-is
+    config_toml : the resolved configuration text (``dm2.toml_write.dump_toml``), written as-is
     dropped, timing : dicts copied into report.json
     fault_truth : dict/list of injected faults to compare the tracks with (or None)
     expect : dm2.config.ExpectConfig to check (or None)
