@@ -11,8 +11,8 @@ Recordings use the standard ROS 2 types so that Foxglove and ROS 2 tools open th
 - ``dm2_msgs/msg/LayerMark`` (``builtin_interfaces/Time stamp``, ``int32 layer``).
 
 The CDR (XCDR1, little endian) encoders and decoders here are written out by hand for these
-fixed layouts: they are several times faster than the generic dynamic encoder, and the tests
-check them against ``mcap_ros2``'s independent decoder.
+fixed layouts (primitives in :mod:`dm2.cdr`): they are several times faster than the generic
+dynamic encoder, and the tests check them against ``mcap_ros2``'s independent decoder.
 """
 
 from __future__ import annotations
@@ -21,6 +21,8 @@ import math
 import struct
 
 import numpy as np
+
+from dm2.cdr import CdrError, CdrReader, CdrWriter, split_ns
 
 SEP = "=" * 80 + "\n"
 HEADER_DEF = "MSG: std_msgs/Header\nbuiltin_interfaces/Time stamp\nstring frame_id\n"
@@ -59,107 +61,6 @@ CLOUD_FIELDS = ("x", "y", "z", "intensity")
 FLOAT32 = 7
 POINT_STEP = 16
 MM_PER_M = 1000.0
-_ENCAPSULATION = b"\x00\x01\x00\x00"  # CDR, little endian
-
-
-class CdrError(ValueError):
-    """A CDR payload does not match the expected layout."""
-
-
-class _Writer:
-    """Append-only little-endian CDR buffer (alignment relative to the payload start)."""
-
-    __slots__ = ("buf",)
-
-    def __init__(self):
-        self.buf = bytearray(_ENCAPSULATION)
-
-    def align(self, n: int) -> None:
-        pad = (-(len(self.buf) - 4)) % n
-        if pad:
-            self.buf += b"\x00" * pad
-
-    def u32(self, v: int) -> None:
-        self.align(4)
-        self.buf += struct.pack("<I", v)
-
-    def i32(self, v: int) -> None:
-        self.align(4)
-        self.buf += struct.pack("<i", v)
-
-    def u8(self, v: int) -> None:
-        self.buf.append(v)
-
-    def string(self, s: str) -> None:
-        b = s.encode()
-        self.u32(len(b) + 1)
-        self.buf += b + b"\x00"
-
-    def f64s(self, values) -> None:
-        self.align(8)
-        self.buf += struct.pack(f"<{len(values)}d", *values)
-
-    def time(self, stamp_ns: int) -> None:
-        self.align(4)
-        self.buf += struct.pack("<iI", *split_ns(stamp_ns))
-
-    def header(self, stamp_ns: int, frame_id: str) -> None:
-        self.time(stamp_ns)
-        self.string(frame_id)
-
-
-class _Reader:
-    __slots__ = ("data", "pos")
-
-    def __init__(self, data: bytes):
-        if len(data) < 4 or data[1] != 1:
-            raise CdrError("not a little-endian CDR payload")
-        self.data = memoryview(data)
-        self.pos = 4
-
-    def align(self, n: int) -> None:
-        self.pos += (-(self.pos - 4)) % n
-
-    def _take(self, n: int) -> memoryview:
-        if self.pos + n > len(self.data):
-            raise CdrError("payload ends early")
-        out = self.data[self.pos:self.pos + n]
-        self.pos += n
-        return out
-
-    def u32(self) -> int:
-        self.align(4)
-        return struct.unpack("<I", self._take(4))[0]
-
-    def i32(self) -> int:
-        self.align(4)
-        return struct.unpack("<i", self._take(4))[0]
-
-    def u8(self) -> int:
-        return self._take(1)[0]
-
-    def string(self) -> str:
-        n = self.u32()
-        return bytes(self._take(n)[:-1]).decode() if n else ""
-
-    def f64s(self, n: int) -> np.ndarray:
-        if n == 0:
-            return np.zeros(0)
-        self.align(8)
-        return np.frombuffer(self._take(8 * n), dtype="<f8").astype(np.float64)
-
-    def time_ns(self) -> int:
-        self.align(4)
-        sec, nsec = struct.unpack("<iI", self._take(8))
-        return sec * 1_000_000_000 + nsec
-
-
-def split_ns(stamp_ns: int) -> tuple[int, int]:
-    """ROS ``builtin_interfaces/Time`` (sec, nanosec) of a nanosecond stamp."""
-    sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
-    if not -(1 << 31) <= sec < (1 << 31):
-        raise ValueError(f"stamp {stamp_ns} ns does not fit ROS Time")
-    return sec, nsec
 
 
 def encode_cloud(stamp_ns: int, frame_id: str, xz_mm: np.ndarray, valid: np.ndarray,
@@ -171,7 +72,7 @@ def encode_cloud(stamp_ns: int, frame_id: str, xz_mm: np.ndarray, valid: np.ndar
     pts[:, 2] = xz_mm[:, 1] / MM_PER_M
     pts[~valid, :3] = np.nan
     pts[:, 3] = intensity
-    w = _Writer()
+    w = CdrWriter()
     w.header(stamp_ns, frame_id)
     w.u32(1)
     w.u32(n)
@@ -192,7 +93,7 @@ def encode_cloud(stamp_ns: int, frame_id: str, xz_mm: np.ndarray, valid: np.ndar
 
 def decode_cloud(data: bytes) -> tuple[int, str, np.ndarray, np.ndarray, np.ndarray]:
     """Inverse of :func:`encode_cloud`: ``(stamp_ns, frame_id, xz_mm, valid, intensity)``."""
-    r = _Reader(data)
+    r = CdrReader(data)
     stamp_ns = r.time_ns()
     frame_id = r.string()
     height, width = r.u32(), r.u32()
@@ -226,7 +127,7 @@ def decode_cloud(data: bytes) -> tuple[int, str, np.ndarray, np.ndarray, np.ndar
 
 
 def _encode_joint_state_general(stamp_ns: int, joints_rad) -> bytes:
-    w = _Writer()
+    w = CdrWriter()
     w.header(stamp_ns, "")
     w.u32(len(JOINT_NAMES))
     for name in JOINT_NAMES:
@@ -254,7 +155,7 @@ def encode_joint_state(stamp_ns: int, joints_rad: np.ndarray) -> bytes:
 
 def decode_joint_state(data: bytes) -> tuple[int, list[str], np.ndarray]:
     """``(stamp_ns, names, position_rad)`` of a JointState."""
-    r = _Reader(data)
+    r = CdrReader(data)
     stamp_ns = r.time_ns()
     r.string()
     names = [r.string() for _ in range(r.u32())]
@@ -285,7 +186,7 @@ def quat_xyzw(R: np.ndarray) -> tuple[float, float, float, float]:
 
 def encode_tf(transforms: list[tuple[int, str, str, np.ndarray]]) -> bytes:
     """TFMessage of ``(stamp_ns, parent, child, T_parent_child)`` (translation mm -> m)."""
-    w = _Writer()
+    w = CdrWriter()
     w.u32(len(transforms))
     for stamp_ns, parent, child, T in transforms:
         w.header(stamp_ns, parent)
@@ -308,7 +209,7 @@ def matrix_from_quat_xyzw(x: float, y: float, z: float, w: float) -> np.ndarray:
 
 def decode_tf(data: bytes) -> list[tuple[int, str, str, np.ndarray]]:
     """Inverse of :func:`encode_tf`: ``(stamp_ns, parent, child, T_parent_child [mm])``."""
-    r = _Reader(data)
+    r = CdrReader(data)
     out = []
     for _ in range(r.u32()):
         stamp_ns = r.time_ns()
@@ -322,12 +223,12 @@ def decode_tf(data: bytes) -> list[tuple[int, str, str, np.ndarray]]:
 
 
 def encode_layer_mark(stamp_ns: int, layer: int) -> bytes:
-    w = _Writer()
+    w = CdrWriter()
     w.time(stamp_ns)
     w.i32(layer)
     return bytes(w.buf)
 
 
 def decode_layer_mark(data: bytes) -> tuple[int, int]:
-    r = _Reader(data)
+    r = CdrReader(data)
     return r.time_ns(), r.i32()
