@@ -25,28 +25,30 @@ straight pass of the same length follows directly: each corner costs the time of
 ``v`` to ``v_corner`` and back plus the slower crossing of the step.
 
 **Path resolution.** A point closer than ``PATH_RESOLUTION_MM`` (0.01 mm, well under the arm's
-0.06 mm repeatability) to the previous kept one is no move for the controller: it joins that
-vertex (its dwell too), and the spray-axis turn it asked for is made along the next move,
-under the same reorientation limit. Only an exact repeat with a new axis stays a pure
-reorientation. A move that short has no direction of its own; planned as a corner, its zone
-(half its length) made a blend of micrometres radius and braked the arm almost to a stop, and
-with an axis turn it became a crawl at ``max_reorient * L / angle``. Sliced contours carry such
-near-duplicates (every third point of the twisted tower's edge contours lies 0.2 um from the
-previous one), and they alone made its edge contours take 2.0 times their programmed time,
-stuttering between 4 and 27 mm/s along straight sides.
+0.06 mm repeatability; in :mod:`twin.trajectory_kernels`) to the previous kept one is no move
+for the controller: it joins that vertex (its dwell too), and the spray-axis turn it asked for
+is made along the next move, under the same reorientation limit. Only an exact repeat with a
+new axis stays a pure reorientation. A move that short has no direction of its own; planned as
+a corner, its zone (half its length) made a blend of micrometres radius and braked the arm
+almost to a stop, and with an axis turn it became a crawl at ``max_reorient * L / angle``.
+Sliced contours carry such near-duplicates (every third point of the twisted tower's edge
+contours lies 0.2 um from the previous one), and they alone made its edge contours take 2.0
+times their programmed time, stuttering between 4 and 27 mm/s along straight sides.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
-_EPS_MM = 1e-9
-_EPS_RAD = 1e-9
-PATH_RESOLUTION_MM = 0.01  # closer points are one point to the controller (see module notes)
+from twin.trajectory_kernels import (
+    EPS_MM,
+    EPS_RAD,
+    distinct_vertices,
+    look_ahead,
+    phases,
+)
 
 
 def corner_speed_limit(turn_rad: np.ndarray, zone_mm: np.ndarray, len_in_mm: np.ndarray,
@@ -133,7 +135,7 @@ def plan_path(position_O: np.ndarray, axis_O: np.ndarray, speed_mm_s: np.ndarray
     a = float(accel_mm_s2)
     # Drop repeats within the path resolution (same point and axis to the controller); their
     # dwell joins the kept vertex.
-    keep = _distinct_vertices(pos, ax)
+    keep = distinct_vertices(pos, ax)
     idx = np.flatnonzero(keep)
     group = np.cumsum(keep) - 1
     k = idx.size
@@ -142,9 +144,9 @@ def plan_path(position_O: np.ndarray, axis_O: np.ndarray, speed_mm_s: np.ndarray
     P, A = pos[idx], ax[idx]
     L = np.r_[0.0, np.linalg.norm(np.diff(P, axis=0), axis=1)]
     ang = np.r_[0.0, _angles(A[:-1], A[1:])]
-    moving = L > _EPS_MM
+    moving = L > EPS_MM
     with np.errstate(divide="ignore"):
-        v_reor = np.where(ang > _EPS_RAD, max_reorient_rad_s * L / np.maximum(ang, 1e-300),
+        v_reor = np.where(ang > EPS_RAD, max_reorient_rad_s * L / np.maximum(ang, 1e-300),
                           np.inf)
     v_seg = np.minimum(np.asarray(speed_mm_s, float)[idx], v_reor)
     v_seg[0] = 0.0
@@ -171,7 +173,7 @@ def plan_path(position_O: np.ndarray, axis_O: np.ndarray, speed_mm_s: np.ndarray
     dzone[dwell_k > 0] = 0.0
     arc = np.cumsum(L)
     # Knots: every kept vertex plus the ends of its zone; the zone is crossed at v_corner.
-    zi = np.flatnonzero(dzone > _EPS_MM)
+    zi = np.flatnonzero(dzone > EPS_MM)
     ks = np.r_[arc, arc[zi] - dzone[zi], arc[zi] + dzone[zi]]
     kv = np.r_[vcorner, vcorner[zi], vcorner[zi]]
     kvert = np.r_[np.arange(k), np.full(2 * zi.size, -1)]
@@ -179,7 +181,7 @@ def plan_path(position_O: np.ndarray, axis_O: np.ndarray, speed_mm_s: np.ndarray
     ks, kv, kvert = ks[order], kv[order], kvert[order]
     # Merge a zone knot into a coincident neighbour (zones of adjacent corners may touch).
     drop = np.zeros(ks.size, dtype=bool)
-    for j in np.flatnonzero((np.diff(ks) < _EPS_MM) & ((kvert[1:] < 0) | (kvert[:-1] < 0))):
+    for j in np.flatnonzero((np.diff(ks) < EPS_MM) & ((kvert[1:] < 0) | (kvert[:-1] < 0))):
         keep_j, drop_j = (j, j + 1) if kvert[j + 1] < 0 else (j + 1, j)
         kv[keep_j] = min(kv[keep_j], kv[drop_j])
         drop[drop_j] = True
@@ -197,8 +199,8 @@ def plan_path(position_O: np.ndarray, axis_O: np.ndarray, speed_mm_s: np.ndarray
     kv = np.minimum(kv, cap)
     kv[0] = kv[-1] = 0.0
     kl = np.r_[0.0, np.diff(ks)]
-    kv = _look_ahead(kv, kl, a)
-    ph, arrive, depart, t = _phases(ks, kv, kvert, kl, cap, owner, moving, ang, dwell_k, a,
+    kv = look_ahead(kv, kl, a)
+    ph, arrive, depart, t = phases(ks, kv, kvert, kl, cap, owner, moving, ang, dwell_k, a,
                                     float(max_reorient_rad_s))
     arr = ph
     return PathTiming(
@@ -207,90 +209,6 @@ def plan_path(position_O: np.ndarray, axis_O: np.ndarray, speed_mm_s: np.ndarray
         phase_t0=arr[:, 0], phase_seg=arr[:, 1].astype(np.int64), phase_s0=arr[:, 2],
         phase_v0=arr[:, 3], phase_acc=arr[:, 4], phase_kind=arr[:, 5].astype(np.int8),
         phase_T=arr[:, 6], duration_s=float(t))
-
-
-@njit(cache=True)
-def _distinct_vertices(pos: np.ndarray, ax: np.ndarray) -> np.ndarray:
-    """Mask (n,) of the points the controller moves to: farther than the path resolution from
-    the last kept point, or exactly on it with another spray axis (a pure reorientation)."""
-    n = pos.shape[0]
-    keep = np.zeros(n, dtype=np.bool_)
-    if n == 0:
-        return keep
-    keep[0] = True
-    last = 0
-    for i in range(1, n):
-        d = math.sqrt((pos[i, 0] - pos[last, 0]) ** 2 + (pos[i, 1] - pos[last, 1]) ** 2
-                      + (pos[i, 2] - pos[last, 2]) ** 2)
-        if d > PATH_RESOLUTION_MM:
-            keep[i] = True
-            last = i
-        elif d <= _EPS_MM:
-            c = ax[i, 0] * ax[last, 0] + ax[i, 1] * ax[last, 1] + ax[i, 2] * ax[last, 2]
-            s = math.sqrt((ax[i, 1] * ax[last, 2] - ax[i, 2] * ax[last, 1]) ** 2
-                          + (ax[i, 2] * ax[last, 0] - ax[i, 0] * ax[last, 2]) ** 2
-                          + (ax[i, 0] * ax[last, 1] - ax[i, 1] * ax[last, 0]) ** 2)
-            if math.atan2(s, c) > _EPS_RAD:
-                keep[i] = True
-                last = i
-    return keep
-
-
-@njit(cache=True)
-def _phases(ks, kv, kvert, kl, cap, owner, moving, ang, dwell_k, a, max_reorient):
-    """Trapezoid phases between knots, reorientations and dwells, in time order.
-
-    Returns (phases (p, 7): t0, seg, s0, v0, acc, kind, T; arrive (k,); depart (k,); end time).
-    """
-    k = moving.size
-    ph = np.zeros((3 * ks.size + 2 * k + 1, 7))
-    arrive = np.zeros(k)
-    depart = np.zeros(k)
-    n = 0
-    t = 0.0
-    for j in range(ks.size):
-        i = kvert[j]
-        if j > 0 and kl[j] > _EPS_MM:
-            v0, v1, vc, Lj = kv[j - 1], kv[j], cap[j], kl[j]
-            vp = max(min(vc, math.sqrt(a * Lj + 0.5 * (v0 * v0 + v1 * v1))), v0, v1)
-            ta, tdec = (vp - v0) / a, (vp - v1) / a
-            da, dd = (vp * vp - v0 * v0) / (2 * a), (vp * vp - v1 * v1) / (2 * a)
-            tc = max(Lj - da - dd, 0.0) / vp
-            for T, v_start, acc, s0 in ((ta, v0, a, ks[j - 1]), (tc, vp, 0.0, ks[j - 1] + da),
-                                        (tdec, vp, -a, ks[j] - dd)):
-                if T > 0.0:
-                    ph[n, 0], ph[n, 1], ph[n, 2], ph[n, 3] = t, owner[j], s0, v_start
-                    ph[n, 4], ph[n, 5], ph[n, 6] = acc, 0.0, T
-                    n += 1
-                    t += T
-        if i < 0:
-            continue
-        if i > 0 and not moving[i]:
-            T = 1.5 * ang[i] / max_reorient
-            ph[n, 0], ph[n, 1], ph[n, 2], ph[n, 5], ph[n, 6] = t, i, ks[j], 2.0, T
-            n += 1
-            t += T
-        arrive[i] = t
-        if dwell_k[i] > 0:
-            ph[n, 0], ph[n, 1], ph[n, 2], ph[n, 5], ph[n, 6] = t, i, ks[j], 1.0, dwell_k[i]
-            n += 1
-            t += dwell_k[i]
-        depart[i] = t
-    if n == 0:
-        n = 1  # a single point: one empty dwell phase
-        ph[0, 5] = 1.0
-    return ph[:n], arrive, depart, t
-
-
-@njit(cache=True)
-def _look_ahead(v: np.ndarray, L: np.ndarray, a: float) -> np.ndarray:
-    """Cap knot speeds ``v`` so each is reachable from and brakeable to its neighbours."""
-    v = v.copy()
-    for i in range(v.size - 2, -1, -1):
-        v[i] = min(v[i], math.sqrt(v[i + 1] * v[i + 1] + 2.0 * a * L[i + 1]))
-    for i in range(1, v.size):
-        v[i] = min(v[i], math.sqrt(v[i - 1] * v[i - 1] + 2.0 * a * L[i]))
-    return v
 
 
 def sample_path(timing: PathTiming, t_s: np.ndarray):
