@@ -13,7 +13,7 @@ from dm2.cli.main import app
 from dm2.config import load_scenario
 from dm2.frames import apply, from_rotvec, pose_error
 from dm2.messages import Calibration, Profile, RobotState
-from dm2.recording import RecordingWriter
+from dm2.recording_writer import RecordingWriter
 from scenarios import resolve_scenario, scenario_dir
 from twin.rehearsal import RehearsalConfig, rehearse_calibration
 

@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 from dm2.calibration_io import calibration_to_toml, write_calibration_toml
 from dm2.cli.main import app
 from dm2.messages import LayerMark
-from dm2.recording import RecordingWriter
+from dm2.recording_writer import RecordingWriter
 from dm2.surface import read_ply
 
 SCENE = Scene(boxes=[((50, 50, 0), (66, 66, 6))])

@@ -11,7 +11,8 @@ from mcap.reader import make_reader
 from dm2.calibration_io import calibration_to_toml
 from dm2.frames import from_euler_deg, from_quat_abb
 from dm2.messages import Calibration, LayerMark, MessageError, Profile, RobotState
-from dm2.recording import RecordingWriter, read_recording
+from dm2.recording import read_recording
+from dm2.recording_writer import RecordingWriter
 
 N_POINTS = 640
 DURATION_S = 4.0

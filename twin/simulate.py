@@ -273,7 +273,7 @@ def simulate(scenario: Scenario, out_path: str | Path, truth_dir: str | Path | N
     ``on_message`` sees every message after it is written (e.g. a viewer).
     Raises ConfigError / ReachError before anything is written when the scenario is unusable.
     """
-    from dm2.recording import RecordingWriter
+    from dm2.recording_writer import RecordingWriter
 
     sim = simulation if simulation is not None else Simulation(scenario)
     counts: Counter = Counter()

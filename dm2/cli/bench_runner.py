@@ -67,7 +67,7 @@ def stream_session(sim, session, scratch: Path, record: bool,
     """
     writer = None
     if record:
-        from dm2.recording import RecordingWriter
+        from dm2.recording_writer import RecordingWriter
 
         writer = RecordingWriter(scratch / "run.mcap", attachments=sim.attachments())
         writer.write_static_tf(sim.calibration)
