@@ -141,3 +141,23 @@ def _cell_and_out(sim, folder):
     from twin.serve import write_cell_files
 
     return load_cell_file(write_cell_files(sim, folder / "cell")), folder / "out"
+
+
+@pytest.mark.parametrize("speed, tolerance_s, window_s", [
+    (10.0, 0.5, 5.0), (2.5, 0.125, 1.25), (1.0, 0.05, 0.5), (0.5, 0.05, 0.5), (0.0, 30.0, 0.5)])
+def test_cell_file_for_an_accelerated_twin_scales_its_jitter_windows(tmp_path, speed,
+                                                                     tolerance_s, window_s):
+    """Served at 10x, a millisecond of host jitter is 10 ms of stream time: the cell file
+    widens the clock band and the reorder window by the speed-up (never below the real
+    cell's); unpaced, the clock band is wide open. An explicit live entry wins."""
+    from twin.serve import write_cell_files
+    from twin.simulate import Simulation
+
+    sim = Simulation(pad_with_bump(0.5))
+    assert sim.scenario.monitor.reorder_window_s == 0.5
+    cell = load_cell_file(write_cell_files(sim, tmp_path / "a", speed=speed))
+    assert cell.live.clock_tolerance_s == pytest.approx(tolerance_s)
+    assert cell.monitor.reorder_window_s == pytest.approx(window_s)
+    given = load_cell_file(write_cell_files(sim, tmp_path / "b", speed=speed,
+                                            live={"clock_tolerance_s": 0.2}))
+    assert given.live.clock_tolerance_s == 0.2

@@ -25,6 +25,8 @@ from dm2.toml_write import dump_toml
 
 log = logging.getLogger(__name__)
 
+UNPACED_CLOCK_TOLERANCE_S = 30.0  # [s] clock band of a cell file for a twin served unpaced
+
 
 @dataclass(frozen=True)
 class ServeResult:
@@ -36,22 +38,41 @@ class ServeResult:
 
 
 def write_cell_files(simulation, folder: str | Path, egm: str = "127.0.0.1:6510",
-                     profiles: str = "127.0.0.1:6511", live: dict | None = None) -> Path:
+                     profiles: str = "127.0.0.1:6511", live: dict | None = None,
+                     speed: float = 1.0) -> Path:
     """Write ``cell.toml``, ``calibration.toml`` and ``toolpath.csv`` for a live monitor of
-    ``simulation`` (a :class:`twin.simulate.Simulation`); returns the cell file's path."""
+    ``simulation`` (a :class:`twin.simulate.Simulation`) served at ``speed``; returns the cell
+    file's path.
+
+    The monitor judges arrival jitter in stream seconds: the clock tolerance band
+    (``live.clock_tolerance_s``) and the reorder window (``monitor.reorder_window_s``). Served
+    at ``speed`` times real time, a millisecond of jitter on the host is ``speed`` ms of stream
+    time, so above real time both are written ``speed`` times as wide (the default band, the
+    scenario's window): the same wall-clock margins as on the real cell. Unpaced (speed 0 or
+    below) arrival times say nothing about the clocks: the band is then 30 s, so the twin's
+    stamps (one clock for poses and profiles) pass as they are. Entries of ``live`` are written
+    as given."""
     from dm2.calibration_io import write_calibration_toml
+    from dm2.live.config import LiveConfig
     from dm2.toolpath.formats import write_csv
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     sc = simulation.scenario
+    monitor = sc.monitor.model_dump(mode="json", exclude_none=True)
+    timing = {}
+    if speed > 0:
+        timing["clock_tolerance_s"] = LiveConfig().clock_tolerance_s * max(speed, 1.0)
+        monitor["reorder_window_s"] = sc.monitor.reorder_window_s * max(speed, 1.0)
+    else:
+        timing["clock_tolerance_s"] = UNPACED_CLOCK_TOLERANCE_S
     write_calibration_toml(simulation.calibration, folder / "calibration.toml")
     write_csv(simulation.toolpath, folder / "toolpath.csv")
     doc = {"schema": 1, "name": f"twin:{sc.name}", "calibration": "calibration.toml",
            "toolpath": "toolpath.csv", "plate_size_mm": list(sc.cell.plate_size_mm),
            "process": sc.process.model_dump(mode="json", exclude_none=True),
-           "monitor": sc.monitor.model_dump(mode="json", exclude_none=True),
-           "live": {"egm": egm, "profiles": profiles, **(live or {})}}
+           "monitor": monitor,
+           "live": {"egm": egm, "profiles": profiles, **timing, **(live or {})}}
     path = folder / "cell.toml"
     path.write_text(dump_toml(doc), encoding="utf-8")
     return path

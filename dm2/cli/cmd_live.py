@@ -60,7 +60,8 @@ def serve_twin(
                                      help="Stop after this many process seconds."),
     write_cell: Path = typer.Option(None, "--write-cell", help="Write cell.toml (with the "
                                     "calibration and toolpath) for `dm2 monitor --live` into "
-                                    "this folder, then serve."),
+                                    "this folder, then serve; its clock tolerance and reorder "
+                                    "window are scaled by --speed."),
 ) -> None:
     """Play the twin as the cell over loopback sockets: EGM robot states (UDP) and profile
     frames (TCP), at their stamps, real time or accelerated.
@@ -88,7 +89,7 @@ def serve_twin(
     except ReachError as exc:
         fail(f"{sc.name}: the robot cannot follow the toolpath: {exc}")
     if write_cell is not None:
-        path = write_cell_files(sim, write_cell, egm=egm, profiles=profiles)
+        path = write_cell_files(sim, write_cell, egm=egm, profiles=profiles, speed=speed)
         console.print(f"cell file: {path}")
     console.print(f"serving {sc.name} ({sim.end_s:.1f} s of process) to EGM udp {egm}, "
                   f"profiles tcp {profiles} at {speed:g}x")
