@@ -5,6 +5,7 @@ transport faults on the sockets end up, counted exactly, in report.json."""
 import json
 import socket
 import threading
+import time
 
 import pytest
 
@@ -161,3 +162,64 @@ def test_cell_file_for_an_accelerated_twin_scales_its_jitter_windows(tmp_path, s
     given = load_cell_file(write_cell_files(sim, tmp_path / "b", speed=speed,
                                             live={"clock_tolerance_s": 0.2}))
     assert given.live.clock_tolerance_s == 0.2
+
+
+def _free_port(kind: int) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_twin_served_before_its_monitor_waits_and_loses_nothing(tmp_path):
+    """The rehearsal's usual order: the twin is started first (it writes the cell file the
+    monitor needs). Its stream only starts once the monitor accepts, so every robot state
+    and profile arrives, none sent into the void."""
+    from twin.serve import serve_twin, write_cell_files
+    from twin.simulate import Simulation
+
+    sc = pad_with_bump(1.0)
+    sim = Simulation(sc)
+    egm = f"127.0.0.1:{_free_port(socket.SOCK_DGRAM)}"
+    prof = f"127.0.0.1:{_free_port(socket.SOCK_STREAM)}"
+    cell_path = write_cell_files(sim, tmp_path / "cell", egm=egm, profiles=prof, speed=10.0)
+    served, done = {}, threading.Event()
+
+    def serve():
+        try:
+            host, port = egm.split(":")
+            phost, pport = prof.split(":")
+            served["result"] = serve_twin(sc, (host, int(port)), (phost, int(pport)),
+                                          speed=10.0, simulation=sim, connect_timeout_s=30.0)
+        finally:
+            done.set()
+
+    thread = threading.Thread(target=serve)
+    thread.start()
+    time.sleep(0.7)  # the monitor comes up late
+    assert not done.is_set()
+    runner = LiveRunner(load_cell_file(cell_path), tmp_path / "out", record=False)
+    try:
+        runner.open_sources()
+        done.wait(60)
+        runner.run(idle_stop_s=1.0, max_duration_s=60)
+    finally:
+        runner.close()
+        thread.join(30)
+    counts = served["result"].counts
+    assert counts["Profile"] >= 30 and counts["RobotState"] > 200
+    # the layer changes travel in the EGM datagrams and come out of the EGM source again
+    assert runner.messages_in == counts["Profile"] + counts["RobotState"] + counts["LayerMark"]
+    assert runner.inbox.dropped == {}
+
+
+def test_serve_twin_cli_gives_up_when_no_monitor_accepts():
+    from typer.testing import CliRunner
+
+    from dm2.cli.main import app
+
+    port = _free_port(socket.SOCK_STREAM)
+    res = CliRunner().invoke(app, ["serve-twin", "pad", "--duration-s", "0.2", "--wait-s", "0.3",
+                                   "--profiles", f"127.0.0.1:{port}"])
+    assert res.exit_code == 1
+    assert f"cannot connect to the profile server at 127.0.0.1:{port} within 0.3 s" in \
+        " ".join(res.output.split())

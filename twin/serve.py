@@ -90,6 +90,12 @@ def serve_twin(scenario: Scenario, egm: tuple[str, int], profiles: tuple[str, in
     speed : float, process seconds per wall second (``<= 0``: as fast as possible)
     simulation : an already prepared :class:`twin.simulate.Simulation` of ``scenario``
     stop : set it to end early
+    connect_timeout_s : float [s], how long to wait for the monitor's profile server, first
+        and after a dropped connection (ConnectionError when it does not accept)
+
+    The bridge connects before the first message leaves, and the clock of the stream starts
+    only then: a twin started before its monitor waits for it instead of sending into the void
+    (the monitor binds its EGM port before its profile server accepts).
     """
     from dm2.live.egm_source import encode_egm_robot
     from dm2.live.tcp_profiles import ProfileClient
@@ -102,6 +108,7 @@ def serve_twin(scenario: Scenario, egm: tuple[str, int], profiles: tuple[str, in
     layer = None
     t_wall0 = stamp0 = None
     try:
+        bridge.connect()
         for msg in sim.messages():
             if stop is not None and stop.is_set():
                 break

@@ -58,6 +58,8 @@ def serve_twin(
                                 "(1 = real time; 0 = as fast as possible)."),
     duration_s: float = typer.Option(None, "--duration-s", min=0.001,
                                      help="Stop after this many process seconds."),
+    wait_s: float = typer.Option(60.0, "--wait-s", min=0.0, help="How long to wait for the "
+                                 "monitor's profile server before giving up (seconds)."),
     write_cell: Path = typer.Option(None, "--write-cell", help="Write cell.toml (with the "
                                     "calibration and toolpath) for `dm2 monitor --live` into "
                                     "this folder, then serve; its clock tolerance and reorder "
@@ -92,11 +94,13 @@ def serve_twin(
         path = write_cell_files(sim, write_cell, egm=egm, profiles=profiles, speed=speed)
         console.print(f"cell file: {path}")
     console.print(f"serving {sc.name} ({sim.end_s:.1f} s of process) to EGM udp {egm}, "
-                  f"profiles tcp {profiles} at {speed:g}x")
+                  f"profiles tcp {profiles} at {speed:g}x; the stream starts when the monitor "
+                  f"accepts (waiting up to {wait_s:g} s)")
     try:
-        result = serve(sc, egm_addr, prof_addr, speed, simulation=sim)
+        result = serve(sc, egm_addr, prof_addr, speed, simulation=sim, connect_timeout_s=wait_s)
     except ConnectionError as exc:
-        fail(f"{exc} (start `dm2 monitor --live` first)", code=1)
+        fail(f"{exc} within {wait_s:g} s (start `dm2 monitor --live` with the cell file)",
+             code=1)
     except KeyboardInterrupt:
         fail("interrupted", code=130)
     c = result.counts

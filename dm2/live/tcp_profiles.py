@@ -143,6 +143,12 @@ class ProfileClient:
         self.reconnects = 0
         self._sock: socket.socket | None = None
 
+    def connect(self) -> None:
+        """Connect now (no-op when connected), retrying for up to ``connect_timeout_s``;
+        ConnectionError when the server does not accept in that time."""
+        if self._sock is None:
+            self._connect()
+
     def _connect(self) -> None:
         deadline = time.monotonic() + self.connect_timeout_s
         while True:
