@@ -149,7 +149,8 @@ class Recording:
                 yield from NonSeekingReader(f).iter_messages(topics=topics,
                                                              log_time_order=False)
             except (McapError, EOFError, ValueError, struct.error) as exc:
-                log.warning("%s: stopped at a truncated record (%s)", self.path, exc)
+                log.warning("%s: stopped at a truncated record (%s)", self.path,
+                            str(exc) or type(exc).__name__)
 
     def messages(self) -> Iterator[Profile | RobotState | LayerMark]:
         """Pipeline messages in stamp order (a RobotState once its joints and pose both came)."""

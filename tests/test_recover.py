@@ -94,6 +94,19 @@ def test_recover_rejects_non_mcap_and_missing(tmp_path):
     assert not (tmp_path / "x.mcap").exists()
 
 
+def test_recover_of_a_file_cut_before_anything_complete_writes_nothing(tmp_path):
+    w = LiveRecorder(tmp_path / "a.mcap", chunk_s=0.5)
+    for k in range(300):
+        w.write(RobotState(k * 0.01, k, np.zeros(6), np.eye(4)))
+    w.close()
+    cut = tmp_path / "b.mcap.part"
+    cut.write_bytes((tmp_path / "a.mcap").read_bytes()[:200])  # header and schemas only
+    out = CliRunner().invoke(app, ["recover", str(cut)])
+    assert out.exit_code == 2
+    assert "nothing to recover" in " ".join(out.output.split())
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.mcap", "b.mcap.part"]
+
+
 def test_recorder_pushes_chunks_to_disk_within_a_second(tmp_path):
     w = LiveRecorder(tmp_path / "b.mcap", chunk_s=0.2)
     try:

@@ -123,5 +123,6 @@ def recover(
             raise ValueError(f"{target}: already exists; choose another --out")
         result = recover_recording(file, target)
     state = "complete" if result.complete else "cut off; kept every complete chunk"
-    console.print(f"recovered {result.messages} messages and {result.attachments} attachments "
-                  f"up to {result.last_stamp_s:.3f} s ({state}) -> {result.out_path}")
+    upto = f" up to {result.last_stamp_s:.3f} s" if result.messages else ""
+    console.print(f"recovered {result.messages} messages and {result.attachments} "
+                  f"attachments{upto} ({state}) -> {result.out_path}")

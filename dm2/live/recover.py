@@ -54,8 +54,9 @@ def default_output(path: Path) -> Path:
 def recover_recording(path: str | Path, out_path: str | Path | None = None) -> RecoveryResult:
     """Copy every complete record of ``path`` into a proper MCAP file at ``out_path``.
 
-    Raises FileNotFoundError / ValueError (naming the file) when ``path`` is missing or is not
-    an MCAP file at all; the output is written as ``<out>.recovering`` and renamed when complete.
+    Raises FileNotFoundError / ValueError (naming the file) when ``path`` is missing, is not
+    an MCAP file at all or is cut off before anything could be recovered (nothing is written
+    then); the output is written as ``<out>.recovering`` and renamed when complete.
     """
     path = Path(path)
     if not path.is_file():
@@ -112,10 +113,15 @@ def recover_recording(path: str | Path, out_path: str | Path | None = None) -> R
                 complete = True
         except (McapError, EOFError, ValueError, struct.error, KeyError) as exc:
             complete = False
-            log.info("%s: stopped at a damaged or missing record (%s)", path, exc)
+            log.info("%s: stopped at a damaged or missing record (%s)", path,
+                     str(exc) or type(exc).__name__)
         if not started:
             writer.start(profile=profile, library=library)
         writer.finish()
+    if not complete and n_msg == 0 and n_att == 0:
+        part.unlink()
+        raise ValueError(f"{path}: nothing to recover: the file is cut off before its first "
+                         f"complete message or attachment")
     part.replace(out)
     stamp = last_ns / 1e9 if last_ns is not None else float("nan")
     log.info("recovered %s -> %s: %d messages, %d attachments%s", path, out, n_msg, n_att,
