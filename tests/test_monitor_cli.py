@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+import typer
 from test_monitor_scene import Scene, make_calibration, raster_run
 from typer.testing import CliRunner
 
@@ -92,3 +93,21 @@ def test_monitor_bad_input_exits_2_without_output(tmp_path, stream):
     res = runner.invoke(app, ["monitor", str(nocal), "--out", str(tmp_path / "x"),
                               "--calibration", str(cal_path)])
     assert res.exit_code == 0, res.output
+
+
+def test_error_messages_keep_their_brackets(tmp_path):
+    """Errors are plain text: a cell file's ``[live]`` section or a unit like ``[mm]`` in a
+    message is printed, not swallowed as console markup."""
+    cell = tmp_path / "cell.toml"
+    (tmp_path / "c.toml").write_text("")
+    cell.write_text('calibration = "c.toml"\n[live]\nbogus = 1\n')
+    res = CliRunner().invoke(app, ["monitor", "--live", str(cell), "--out", str(tmp_path / "o")])
+    assert res.exit_code == 2
+    text = " ".join(res.output.split())
+    assert "live.bogus" in text and str(cell) in text
+
+    from dm2.cli.common import err_console, fail
+
+    with err_console.capture() as cap, pytest.raises(typer.Exit):
+        fail("cell.toml: [live] egm: step [mm] of x[1]")
+    assert "cell.toml: [live] egm: step [mm] of x[1]" in cap.get()

@@ -10,6 +10,7 @@ from datetime import datetime
 from pathlib import Path
 
 import typer
+from rich.markup import escape
 from rich.table import Table
 
 from dm2.cli.common import app, bad_input_exits, console, err_console, fail
@@ -101,7 +102,7 @@ def bench(
         try:
             run = run_scenario(sc, out_dir / path.stem, scenario_file=path, full_report=full)
         except Exception as exc:  # one broken scenario must not hide the others' scores
-            err_console.print(f"[red]{path.name}: {type(exc).__name__}: {exc}[/]")
+            err_console.print(f"[red]{escape(f'{path.name}: {type(exc).__name__}: {exc}')}[/]")
             runs[path.stem] = {"error": f"{type(exc).__name__}: {exc}", "expect_passed": False}
             continue
         runs[path.stem] = score_scenario_run(run)

@@ -34,20 +34,24 @@ def _artifact_path(artifact: str | None) -> Path:
 
 
 def _estimates_table(result, title: str, truth=None):
+    from rich.markup import escape
     from rich.table import Table
 
     from dm2.frames import pose_error
 
-    table = Table(title=title)
+    table = Table(title=title, caption=escape(
+        "t: translation [mm], r: rotation [deg], sigma: 1-sigma from the Jacobian, RMS: "
+        "residual [mm]; points fitted and rejected (off the spheres or gated out)"))
     table.add_column("sensor")
     if truth is not None:
-        table.add_column("translation error [mm]", justify="right")
-        table.add_column("rotation error [deg]", justify="right")
-    table.add_column("1-sigma t [mm]", justify="right")
-    table.add_column("1-sigma r [deg]", justify="right")
-    table.add_column("residual RMS [mm]", justify="right")
+        table.add_column("t error", justify="right")
+        table.add_column("r error", justify="right")
+    table.add_column("sigma t", justify="right")
+    table.add_column("sigma r", justify="right")
+    table.add_column("RMS", justify="right")
     table.add_column("profiles", justify="right")
-    table.add_column("points / outliers", justify="right")
+    table.add_column("fitted", justify="right")
+    table.add_column("rejected", justify="right")
     rows = {}
     for sid, est in result.sensors.items():
         row = {"residual_rms_mm": est.residual_rms_mm, "n_profiles": est.n_profiles,
@@ -60,11 +64,11 @@ def _estimates_table(result, title: str, truth=None):
         if truth is not None:
             dt, dr = pose_error(est.T_B_S, truth.T_B_S[sid])
             row["translation_error_mm"], row["rotation_error_deg"] = dt, float(np.degrees(dr))
-            cells += [f"{dt:.2e}", f"{np.degrees(dr):.2e}"]
+            cells += [f"{dt:.4f}", f"{np.degrees(dr):.4f}"]
         cells += [f"{np.linalg.norm(est.sigma_translation_mm):.4f}",
                   f"{np.linalg.norm(est.sigma_rotation_deg):.4f}",
-                  f"{est.residual_rms_mm:.4f}", str(est.n_profiles),
-                  f"{est.n_points} / {est.n_outliers}"]
+                  f"{est.residual_rms_mm:.4f}", str(est.n_profiles), str(est.n_points),
+                  str(est.n_outliers)]
         table.add_row(*cells)
         rows[sid] = row
     return table, rows

@@ -46,8 +46,11 @@ def setup_logging(verbose: bool) -> None:
 
 
 def fail(message: str, code: int = EXIT_BAD_INPUT) -> None:
-    """Print a clear error and exit with ``code`` (2 = bad input)."""
-    err_console.print(f"[bold red]error:[/] {message}", highlight=False)
+    """Print a clear error and exit with ``code`` (2 = bad input). The message is plain text:
+    brackets in it (``[live]``, ``[mm]``, lists) are printed, not read as console markup."""
+    from rich.markup import escape
+
+    err_console.print(f"[bold red]error:[/] {escape(message)}", highlight=False)
     raise typer.Exit(code)
 
 
