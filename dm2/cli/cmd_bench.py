@@ -61,7 +61,7 @@ def bench(
     suite: str = typer.Option("regression", "--suite", "-s",
                               help="Suite name (regression, smoke, paper) or a folder of "
                               "scenario files."),
-    out: Path = typer.Option(None, "--out", "-o", help="Bench folder (default runs/bench-<time>)."),
+    out: Path = typer.Option(None, "--out", "-o", help="Bench folder (default runs/bench-TIME)."),
     overrides: list[str] = typer.Option([], "--set", help="SECTION.KEY=VALUE applied to every "
                                         "scenario, e.g. --set toolpath.max_layers=12."),
     only: list[str] = typer.Option([], "--only", help="Run only these scenario files (stems)."),
@@ -184,7 +184,7 @@ def sweep(
     scheduler: str = typer.Option(None, "--scheduler", help="Dask scheduler ADDRESS (a real "
                                   "cluster) instead of a local cluster."),
     out: Path = typer.Option(None, "--out", "-o",
-                             help="Output folder (default runs/sweep-<time>)."),
+                             help="Output folder (default runs/sweep-TIME)."),
 ) -> None:
     """Monte Carlo over seeds and fault sizes on Dask: detection probability against size.
 

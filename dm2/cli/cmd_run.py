@@ -48,7 +48,7 @@ def tracks_table(report: dict) -> Table:
 def run(
     scenario: str = typer.Argument(None, help="Scenario name or TOML file (default: the "
                                    "seven-sided part with an injected corner overbuild)."),
-    out: Path = typer.Option(None, "--out", "-o", help="Run folder (default runs/<time>-<name>)."),
+    out: Path = typer.Option(None, "--out", "-o", help="Run folder (default runs/TIME-SCENARIO)."),
     runs_root: Path = typer.Option(Path("runs"), "--runs", help="Parent of default run folders."),
     record: bool = typer.Option(True, "--record/--no-record",
                                 help="Also write the raw stream to run.mcap in the run folder."),
