@@ -68,6 +68,27 @@ def test_monitor_without_attachments_uses_tf_static_and_one_layer(tmp_path, stre
     assert np.sqrt(np.mean(SCENE.sdf(surf.vertices_O) ** 2)) < 0.4
 
 
+def test_monitor_replaces_the_outputs_of_an_earlier_run(tmp_path, stream):
+    """A two-layer replay into a folder that holds an earlier five-layer run: the stale
+    layer meshes and report go, the user's other files stay."""
+    cal, msgs = stream
+    t_mid = msgs[len(msgs) // 2].stamp_s
+    run = tmp_path / "run.mcap"
+    _record(run, msgs, cal, attach=True, marks=[LayerMark(0.0, 0), LayerMark(t_mid, 1)])
+    out = tmp_path / "out"
+    (out / "report").mkdir(parents=True)
+    for k in range(5):
+        (out / f"layer_{k:04d}.ply").write_text("stale")
+    (out / "report" / "report.json").write_text("{}")
+    (out / "report" / "old.png").write_text("stale")
+    (out / "notes.txt").write_text("mine")
+    res = CliRunner().invoke(app, ["monitor", str(run), "--out", str(out), "--no-analyse"])
+    assert res.exit_code == 0, res.output
+    assert sorted(p.name for p in out.iterdir()) == [
+        "layer_0000.ply", "layer_0001.ply", "monitor.json", "monitor.toml", "notes.txt"]
+    assert read_ply(out / "layer_0001.ply").n_faces > 1000
+
+
 def test_monitor_bad_input_exits_2_without_output(tmp_path, stream):
     cal, msgs = stream
     runner = CliRunner()

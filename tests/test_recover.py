@@ -134,3 +134,23 @@ def test_cell_file_errors_name_the_field(tmp_path, text, field):
     with pytest.raises(ConfigError, match=field) as exc:
         load_cell_file(cell)
     assert str(cell) in str(exc.value)
+
+
+def test_live_monitor_refuses_a_folder_holding_a_cut_recording(tmp_path):
+    """A crashed run's live.mcap.part is what `dm2 recover` needs: a new live run into that
+    folder must not truncate it."""
+    from dm2.config import load_scenario
+    from scenarios import resolve_scenario
+    from twin.serve import write_cell_files
+    from twin.simulate import Simulation
+
+    sim = Simulation(load_scenario(resolve_scenario("pad")).model_copy(
+        update={"duration_s": 0.5}))
+    cell = write_cell_files(sim, tmp_path / "cell", egm="127.0.0.1:0", profiles="127.0.0.1:0")
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "live.mcap.part").write_bytes(b"\x89MCAP0\r\n crashed run")
+    res = CliRunner().invoke(app, ["monitor", "--live", str(cell), "--out", str(out)])
+    assert res.exit_code == 2
+    assert "dm2 recover" in " ".join(res.output.split())
+    assert (out / "live.mcap.part").read_bytes() == b"\x89MCAP0\r\n crashed run"

@@ -25,6 +25,10 @@ def run_live_monitor(cell_path: Path, out: Path, max_duration_s: float | None = 
         if (out / "live.mcap").exists():
             raise ValueError(f"--out {out}: already holds a live recording (live.mcap); "
                              "choose a new folder")
+        if (out / "live.mcap.part").exists():
+            raise ValueError(f"--out {out}: holds a live recording cut short (live.mcap.part); "
+                             f"restore it with `dm2 recover {out / 'live.mcap.part'}` or choose "
+                             "a new folder")
         runner = LiveRunner(cell, out, cell_toml=cell_path.read_text(encoding="utf-8"))
     try:
         addresses = runner.open_sources()

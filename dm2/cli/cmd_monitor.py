@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import time
 from pathlib import Path
 
@@ -10,6 +11,8 @@ import numpy as np
 import typer
 
 from dm2.cli.common import app, bad_input_exits, console, fail
+
+log = logging.getLogger(__name__)
 
 
 def _load_inputs(run: Path, calibration: Path | None, toolpath: Path | None):
@@ -92,7 +95,9 @@ def monitor(
     Writes `layer_NNNN.ply` (frame O, mm, per-vertex `scalar_weight`) for every finished layer,
     `monitor.toml` (the configuration used), `monitor.json` (counts, drops, layers) and, unless
     `--no-analyse`, the report folder `report/` (report.json, tracks.csv, deviation meshes and
-    maps, index.html) comparing each layer with the near-net reference.
+    maps, index.html) comparing each layer with the near-net reference. These replace the
+    outputs of an earlier replay in the folder. With `--live`, the folder must not hold a live
+    recording yet (`live.mcap`, or a `live.mcap.part` left by a crash: `dm2 recover` it).
 
     Example: `dm2 monitor run.mcap --out runs/replay`
     """
@@ -122,8 +127,9 @@ def monitor(
             check_output_dir(out / "report")
     try:
         out.mkdir(parents=True, exist_ok=True)
+        _clear_earlier_outputs(out)
     except OSError as exc:
-        fail(f"--out {out}: cannot create the folder: {exc.strerror}")
+        fail(f"--out {out}: cannot prepare the folder: {exc.strerror}")
     (out / "monitor.toml").write_text(dump_toml({
         "recording": str(run),
         "monitor": monitor_cfg.model_dump(mode="json", exclude_none=True),
@@ -183,3 +189,25 @@ def monitor(
         console.print(f"report: [bold]{out / 'report' / 'index.html'}[/]")
     if mon.points_fused == 0:
         fail(f"{run}: no profile could be fused (dropped: {mon.dropped})", code=1)
+
+
+def _clear_earlier_outputs(out: Path) -> None:
+    """Remove what an earlier replay wrote into ``out`` (layer meshes, monitor.json, its
+    report folder), so no stale layer is taken for one of this run; other files stay."""
+    import re
+    import shutil
+
+    stale = [p for p in out.iterdir() if re.fullmatch(r"layer_\d{4}\.ply", p.name)]
+    stale += [p for p in (out / "monitor.json",) if p.is_file()]
+    report = out / "report"
+    if (report / "report.json").is_file():
+        stale.append(report)
+    if not stale:
+        return
+    log.info("%s: replacing the outputs of an earlier run (%d layer meshes%s)", out,
+             sum(p.suffix == ".ply" for p in stale), ", report" if report in stale else "")
+    for p in stale:
+        if p.is_dir():
+            shutil.rmtree(p)
+        else:
+            p.unlink()
