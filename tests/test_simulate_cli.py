@@ -56,8 +56,14 @@ def test_run_writes_recording_and_fault_truth(tmp_path):
     sc = tmp_path / "pad.toml"
     sc.write_text(PAD_BUMP)
     out, truth = tmp_path / "run.mcap", tmp_path / "truth"
+    truth.mkdir()  # an earlier, longer run's truth: its layers must not survive
+    for k in range(5):
+        (truth / f"layer_{k:03d}.ply").write_text("stale")
+    (truth / "notes.txt").write_text("mine")
     res = runner.invoke(app, ["simulate", str(sc), "--out", str(out), "--truth", str(truth)])
     assert res.exit_code == 0, res.output
+    assert sorted(p.name for p in truth.iterdir()) == [
+        "faults.json", "layer_000.ply", "layer_001.ply", "notes.txt"]
     rec = read_recording(out)
     msgs = list(rec.messages())
     assert [m.layer for m in msgs if isinstance(m, LayerMark)] == [0, 1]
