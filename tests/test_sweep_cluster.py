@@ -46,3 +46,20 @@ def test_tiny_sweep_is_reproducible_on_a_local_cluster(client, tmp_path):
             assert r["onset_delay_layers"] == 0 and r["peak_height_mm"] > 1.0
     # the seed changes the stream: different seeds, different reconstructions
     assert first[2]["reconstruction_rms_mm"] != first[3]["reconstruction_rms_mm"]
+
+
+def test_cluster_chatter_is_held_back_for_the_block_then_restored(caplog):
+    """The local cluster's INFO life cycle (and the tracebacks its shutdown logs at INFO) stays
+    out of the console; warnings still show; the logger's own level comes back after."""
+    import logging
+
+    from dm2.bench.sweep import _logger_level
+
+    logger = logging.getLogger("distributed.test_child")
+    parent = logging.getLogger("distributed")
+    parent.setLevel(logging.NOTSET)
+    with caplog.at_level(logging.INFO), _logger_level("distributed", logging.WARNING):
+        logger.info("Batched Comm Closed")
+        logger.warning("worker lost")
+    assert [r.getMessage() for r in caplog.records] == ["worker lost"]
+    assert parent.level == logging.NOTSET

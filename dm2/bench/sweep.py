@@ -11,6 +11,7 @@ only on the cases, never on the order in which workers finish.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import logging
 from collections.abc import Callable, Sequence
@@ -62,18 +63,36 @@ def run_sweep(cases: list[dict], case_fn: Callable[[dict, str], dict], *,
     if client is not None:
         return _collect(client, cases, case_fn, progress)
     cluster = None
-    if scheduler_address is None:
-        cluster = LocalCluster(n_workers=n_workers, threads_per_worker=threads_per_worker,
-                               processes=True, dashboard_address=None, silence_logs=logging.ERROR)
-        client = Client(cluster)
-    else:
-        client = Client(scheduler_address)
+    with contextlib.ExitStack() as quiet:
+        if scheduler_address is None:
+            # the local cluster's life cycle (and the comm tracebacks its shutdown logs at
+            # INFO) is no news to the user; its warnings and errors still show
+            quiet.enter_context(_logger_level("distributed", logging.WARNING))
+            cluster = LocalCluster(n_workers=n_workers, threads_per_worker=threads_per_worker,
+                                   processes=True, dashboard_address=None,
+                                   silence_logs=logging.ERROR)
+            client = Client(cluster)
+        else:
+            client = Client(scheduler_address)
+        try:
+            return _collect(client, cases, case_fn, progress)
+        finally:
+            client.close()
+            if cluster is not None:
+                cluster.close()
+
+
+@contextlib.contextmanager
+def _logger_level(name: str, level: int):
+    """Raise logger ``name`` to at least ``level`` for the block (records below it are not
+    even created), then restore it."""
+    logger = logging.getLogger(name)
+    old = logger.level
+    logger.setLevel(max(level, logger.getEffectiveLevel()))
     try:
-        return _collect(client, cases, case_fn, progress)
+        yield
     finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
+        logger.setLevel(old)
 
 
 def _collect(client, cases, case_fn, progress) -> list[dict]:
