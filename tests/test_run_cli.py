@@ -67,3 +67,22 @@ def test_unwritable_output_is_refused_before_any_work(tmp_path):
     res = CliRunner().invoke(app, ["run", "pad", "--out", str(blocker)])
     assert res.exit_code == 2 and "not a folder" in res.output
     assert blocker.read_text() == "x"
+
+
+def test_first_run_says_the_kernels_are_being_compiled(tmp_path, monkeypatch):
+    """With no compiled kernel cached beside the sources, the first run says why it is slow;
+    with the cache in place it says nothing."""
+    import dm2
+    from dm2.cli import common
+
+    monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
+    fake = tmp_path / "dm2"
+    (fake / "__pycache__").mkdir(parents=True)
+    monkeypatch.setattr(dm2, "__file__", str(fake / "__init__.py"))
+    with common.console.capture() as cap:
+        common.note_cold_kernel_cache()
+    assert "compiling the numeric kernels" in cap.get()
+    (fake / "__pycache__" / "tsdf_kernels.fuse_profiles-211.py311.nbi").write_bytes(b"")
+    with common.console.capture() as cap:
+        common.note_cold_kernel_cache()
+    assert cap.get() == ""

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import typer
 
-from dm2.cli.common import app, bad_input_exits, console, fail
+from dm2.cli.common import app, bad_input_exits, console, fail, note_cold_kernel_cache
 
 log = logging.getLogger(__name__)
 
@@ -101,6 +101,7 @@ def monitor(
 
     Example: `dm2 monitor run.mcap --out runs/replay`
     """
+    note_cold_kernel_cache()
     if live is not None:
         from dm2.cli.cmd_live import run_live_monitor
 

@@ -11,7 +11,7 @@ import typer
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from dm2.cli.common import app, bad_input_exits, console, fail
+from dm2.cli.common import app, bad_input_exits, console, fail, note_cold_kernel_cache
 
 
 def default_run_dir(root: Path, name: str) -> Path:
@@ -78,6 +78,7 @@ def run(
         check_output_dir(run_dir)
     run_dir.parent.mkdir(parents=True, exist_ok=True)
     console.print(f"[bold]dm2 run[/] scenario [cyan]{sc.name}[/] ({path})")
+    note_cold_kernel_cache()
 
     from dm2.cli.bench_runner import run_scenario
     from twin.kinematics import ReachError

@@ -45,6 +45,23 @@ def setup_logging(verbose: bool) -> None:
     )
 
 
+def note_cold_kernel_cache() -> None:
+    """Say so when the compiled kernels are not cached yet (the first run after installing
+    compiles them, about a minute of silence otherwise). Checked where numba caches them for
+    a writable source tree; elsewhere nothing is said."""
+    import os
+    from pathlib import Path
+
+    import dm2
+
+    root = Path(dm2.__file__).parent
+    if os.environ.get("NUMBA_CACHE_DIR") or not os.access(root, os.W_OK):
+        return
+    if not any((root / "__pycache__").glob("*.nbi")):
+        console.print("first run: compiling the numeric kernels (about a minute; cached for "
+                      "later runs)")
+
+
 def fail(message: str, code: int = EXIT_BAD_INPUT) -> None:
     """Print a clear error and exit with ``code`` (2 = bad input). The message is plain text:
     brackets in it (``[live]``, ``[mm]``, lists) are printed, not read as console markup."""
