@@ -123,14 +123,12 @@ def main() -> None:
         tmp = Path(tmp)
         # the cell file a rehearsal at this speed gets (`dm2 serve-twin --write-cell`): clock
         # band and reorder window widened by the speed-up, the real cell's wall-clock margins
-        def cell_for(speed):
-            return load_cell_file(write_cell_files(sim, tmp / f"cell{speed:g}", "127.0.0.1:0",
-                                                   "127.0.0.1:0", speed=speed))
-
-        one_run(cell_for(speeds[0]), wire, speeds[0], tmp / "warmup")
+        cells = {speed: load_cell_file(write_cell_files(
+            sim, tmp / f"cell{speed:g}", "127.0.0.1:0", "127.0.0.1:0", speed=speed))
+            for speed in speeds}
+        one_run(cells[speeds[0]], wire, speeds[0], tmp / "warmup")
         for speed in speeds:
-            cell = cell_for(speed)
-            runs = [one_run(cell, wire, speed, tmp / f"run{speed:g}_{k}")
+            runs = [one_run(cells[speed], wire, speed, tmp / f"run{speed:g}_{k}")
                     for k in range(args.runs)]
             p50 = median([np.percentile(r["lat_ms"], 50) for r in runs])
             p99 = median([np.percentile(r["lat_ms"], 99) for r in runs])

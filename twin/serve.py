@@ -62,8 +62,9 @@ def write_cell_files(simulation, folder: str | Path, egm: str = "127.0.0.1:6510"
     monitor = sc.monitor.model_dump(mode="json", exclude_none=True)
     timing = {}
     if speed > 0:
-        timing["clock_tolerance_s"] = LiveConfig().clock_tolerance_s * max(speed, 1.0)
-        monitor["reorder_window_s"] = sc.monitor.reorder_window_s * max(speed, 1.0)
+        widen = max(speed, 1.0)  # never narrower than on the real cell
+        timing["clock_tolerance_s"] = LiveConfig().clock_tolerance_s * widen
+        monitor["reorder_window_s"] = sc.monitor.reorder_window_s * widen
     else:
         timing["clock_tolerance_s"] = UNPACED_CLOCK_TOLERANCE_S
     write_calibration_toml(simulation.calibration, folder / "calibration.toml")

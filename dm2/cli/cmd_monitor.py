@@ -199,7 +199,8 @@ def _clear_earlier_outputs(out: Path) -> None:
     import shutil
 
     stale = [p for p in out.iterdir() if re.fullmatch(r"layer_\d{4}\.ply", p.name)]
-    stale += [p for p in (out / "monitor.json",) if p.is_file()]
+    if (out / "monitor.json").is_file():
+        stale.append(out / "monitor.json")
     report = out / "report"
     if (report / "report.json").is_file():
         stale.append(report)

@@ -168,5 +168,3 @@ class FrameParser:
         if self._buf and not self._resyncing:
             self._drop("truncated_frame")
             self._buf.clear()
-
-
