@@ -23,10 +23,10 @@ import numpy as np  # noqa: E402
 from calib.artifact import load_artifact  # noqa: E402
 from calib.observations import observations_from_messages  # noqa: E402
 from calib.solver import ISO9283_RP_PER_SIGMA, SolverOptions, solve_calibration  # noqa: E402
-from dm2.config import load_scenario  # noqa: E402
-from dm2.frames import pose_error  # noqa: E402
+from dm2.core.config import load_scenario  # noqa: E402
+from dm2.core.frames import pose_error  # noqa: E402
 from scenarios import resolve_scenario, scenario_dir  # noqa: E402
-from twin.rehearsal import RehearsalConfig, rehearse_calibration  # noqa: E402
+from twin.stream.rehearsal import RehearsalConfig, rehearse_calibration  # noqa: E402
 
 
 def main() -> None:

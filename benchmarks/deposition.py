@@ -19,9 +19,9 @@ import numpy as np
 # the twin package
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).parent.resolve()]
 
-from dm2.config import ProcessConfig  # noqa: E402
-from twin.deposition import SprayModel  # noqa: E402
-from twin.heightfield import HeightField  # noqa: E402
+from dm2.core.config import ProcessConfig  # noqa: E402
+from twin.world.deposition import SprayModel  # noqa: E402
+from twin.world.heightfield import HeightField  # noqa: E402
 
 RATE_HZ = 250.0
 DT = 1.0 / RATE_HZ

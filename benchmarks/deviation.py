@@ -13,11 +13,11 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from dm2.config import MonitorConfig
-from dm2.defects import DefectMonitor
-from dm2.realtime import RealtimeDeviation
-from dm2.refmap import ReferenceMap
-from dm2.tsdf import SparseTSDF
+from dm2.core.config import MonitorConfig
+from dm2.defects.layer_analysis import DefectMonitor
+from dm2.defects.realtime import RealtimeDeviation
+from dm2.fusion.tsdf.field import SparseTSDF
+from dm2.reference.height_map import ReferenceMap
 
 CELL = 0.25
 
@@ -97,7 +97,7 @@ def raster_poses(rate_hz=250.0, speed=30.0, spacing=2.0, side=40.0, layers=2, ti
     plate on the flange (``T_F_O`` identity) and the nozzle at the origin of B spraying down."""
     from scipy.spatial.transform import Rotation
 
-    from dm2.frames import make_T
+    from dm2.core.frames import make_T
 
     pts = []
     for layer in range(layers):
@@ -112,10 +112,10 @@ def raster_poses(rate_hz=250.0, speed=30.0, spacing=2.0, side=40.0, layers=2, ti
 
 
 def bench_reference(repeats: int) -> None:
-    from dm2.config import ProcessConfig
-    from dm2.frames import make_T
-    from dm2.messages import Calibration
-    from dm2.reference import NearNetReference
+    from dm2.core.config import ProcessConfig
+    from dm2.core.frames import make_T
+    from dm2.core.messages import Calibration
+    from dm2.reference.model import NearNetReference
 
     cal = Calibration({}, np.eye(4), make_T(np.eye(3), [0.0, 0.0, 0.0]))
     stamps, T = raster_poses()

@@ -32,11 +32,11 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from test_monitor_scene import Scene, make_calibration, raster_run  # noqa: E402
 
-from dm2.config import MonitorConfig, ProcessConfig  # noqa: E402
-from dm2.messages import Profile  # noqa: E402
-from dm2.pipeline import REPLAY_BATCH_PROFILES, Monitor  # noqa: E402
-from dm2.surface import SurfaceExtractor  # noqa: E402
-from dm2.tsdf import MIN_SPLIT_POINTS, SparseTSDF  # noqa: E402
+from dm2.core.config import MonitorConfig, ProcessConfig  # noqa: E402
+from dm2.core.messages import Profile  # noqa: E402
+from dm2.fusion.fusion import REPLAY_BATCH_PROFILES, Monitor  # noqa: E402
+from dm2.fusion.surface import SurfaceExtractor  # noqa: E402
+from dm2.fusion.tsdf.field import MIN_SPLIT_POINTS, SparseTSDF  # noqa: E402
 
 
 def make_stream(frames: int):

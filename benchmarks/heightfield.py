@@ -17,8 +17,8 @@ import numpy as np
 # the twin package
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).parent.resolve()]
 
-from twin import heightfield_kernels as K  # noqa: E402
-from twin.heightfield import HeightField  # noqa: E402
+from twin.world import heightfield_kernels as K  # noqa: E402
+from twin.world.heightfield import HeightField  # noqa: E402
 
 
 def build_field() -> HeightField:

@@ -42,13 +42,13 @@ import numpy as np
 if sys.path and Path(sys.path[0]).resolve() == Path(__file__).resolve().parent:
     sys.path.pop(0)  # keep benchmarks/ off the path so `twin` resolves to the package
 
-from dm2.config import load_scenario  # noqa: E402
+from dm2.core.config import load_scenario  # noqa: E402
+from dm2.core.messages import LayerMark, Profile, RobotState  # noqa: E402
 from dm2.live.config import load_cell_file  # noqa: E402
 from dm2.live.egm_source import encode_egm_robot  # noqa: E402
 from dm2.live.runner import LiveRunner  # noqa: E402
 from dm2.live.tcp_frames import encode_frame  # noqa: E402
 from dm2.live.tcp_profiles import ProfileClient  # noqa: E402
-from dm2.messages import LayerMark, Profile, RobotState  # noqa: E402
 from scenarios import resolve_scenario  # noqa: E402
 
 
@@ -112,8 +112,8 @@ def main() -> None:
     load = " ".join(f"{v:.2f}" for v in os.getloadavg())
     print(f"load average before the runs (1, 5, 15 min): {load} on {os.cpu_count()} cores",
           flush=True)
-    from twin.serve import write_cell_files
-    from twin.simulate import Simulation
+    from twin.stream.serve import write_cell_files
+    from twin.stream.simulate import Simulation
 
     sc = load_scenario(resolve_scenario("pad")).model_copy(update={"duration_s": args.seconds})
     sim = Simulation(sc)

@@ -24,13 +24,13 @@ sys.path.insert(0, str(_HERE.parent))
 
 import numpy as np  # noqa: E402
 
-from dm2.config import load_scenario  # noqa: E402
+from dm2.core.config import load_scenario  # noqa: E402
 from dm2.toolpath import generate_toolpath  # noqa: E402
 from scenarios import resolve_scenario  # noqa: E402
 from scenarios.parts import build_part  # noqa: E402
-from twin import kinematics as kin  # noqa: E402
-from twin.cell import CellModel  # noqa: E402
-from twin.motion import execute_toolpath  # noqa: E402
+from twin.cell import kinematics as kin  # noqa: E402
+from twin.cell.cell import CellModel  # noqa: E402
+from twin.cell.motion import execute_toolpath  # noqa: E402
 
 
 def _median_time(fn, runs: int) -> float:

@@ -23,14 +23,14 @@ sys.path.insert(0, str(_HERE.parent))
 
 import numpy as np  # noqa: E402
 
-from dm2.config import CellConfig, NoiseConfig, PartConfig, SensorConfig  # noqa: E402
-from dm2.messages import SENSOR_IDS  # noqa: E402
+from dm2.core.config import CellConfig, NoiseConfig, PartConfig, SensorConfig  # noqa: E402
+from dm2.core.messages import SENSOR_IDS  # noqa: E402
 from scenarios.parts import build_part  # noqa: E402
-from twin import heightfield  # noqa: E402
-from twin.cell import CellModel  # noqa: E402
-from twin.heightfield import HeightField  # noqa: E402
-from twin.occluders import nozzle_occluder  # noqa: E402
-from twin.profiler import VirtualProfiler  # noqa: E402
+from twin.cell.cell import CellModel  # noqa: E402
+from twin.profiler.occluders import nozzle_occluder  # noqa: E402
+from twin.profiler.sensor import VirtualProfiler  # noqa: E402
+from twin.world import heightfield  # noqa: E402
+from twin.world.heightfield import HeightField  # noqa: E402
 
 
 def _setup():

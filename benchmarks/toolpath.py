@@ -8,7 +8,7 @@ from __future__ import annotations
 import statistics
 import time
 
-from dm2.config import load_scenario
+from dm2.core.config import load_scenario
 from dm2.toolpath import generate_toolpath
 from scenarios import resolve_scenario
 from scenarios.parts import build_part

@@ -2,7 +2,8 @@
 
 Runs the scenario's toolpath and executed motion, then grows the true part with the twin's
 deposition only (no profilers, no recording: the same ``SprayModel.plan_samples`` /
-``deposit_plan`` calls as :class:`twin.simulate.Simulation`, so the surface is the twin's own;
+``deposit_plan`` calls as :class:`twin.stream.simulate.Simulation`, so the surface is the twin's
+own;
 the scenario's faults are not applied), and prints per layer band:
 
 - planned top ``z`` of the band's last layer and the true height there: at the part's centre
@@ -38,8 +39,8 @@ sys.path.insert(0, str(_HERE.parent))
 import numpy as np  # noqa: E402
 import shapely  # noqa: E402
 
-from dm2.config import load_scenario, parse_scenario  # noqa: E402
-from dm2.messages import KIND_CODE  # noqa: E402
+from dm2.core.config import load_scenario, parse_scenario  # noqa: E402
+from dm2.core.messages import KIND_CODE  # noqa: E402
 from scenarios import resolve_scenario  # noqa: E402
 
 CENTRE_RADIUS_MM = 2.0
@@ -87,9 +88,9 @@ def main() -> None:
     print(f"load average: {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
 
     from dm2.toolpath.slicing import slice_mesh
-    from twin.deposition import SprayModel
-    from twin.heightfield import HeightField
-    from twin.simulate import HEIGHTFIELD_CELL_MM, Simulation
+    from twin.stream.simulate import Simulation
+    from twin.world.deposition import SprayModel
+    from twin.world.heightfield import HEIGHTFIELD_CELL_MM, HeightField
 
     sc = _scenario(args.scenario, args.layers, args.set)
     t0 = time.perf_counter()

@@ -40,10 +40,10 @@ import numpy as np
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).parent.resolve()]
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from dm2.config import load_scenario  # noqa: E402
+from dm2.core.config import load_scenario  # noqa: E402
 from scenarios import DEFAULT_SCENARIO, resolve_scenario  # noqa: E402
-from twin.simulate import Simulation, simulate  # noqa: E402
-from twin.simulate_reference import per_sample_messages  # noqa: E402
+from tests.oracles.simulate_numpy import per_sample_messages  # noqa: E402
+from twin.stream.simulate import Simulation, simulate  # noqa: E402
 
 
 def _same(a, b) -> bool:

@@ -50,8 +50,8 @@ from pathlib import Path
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from dm2.config import ConfigError, format_validation_error, read_toml
-from dm2.frames import from_euler_deg
+from dm2.core.config import ConfigError, format_validation_error, read_toml
+from dm2.core.frames import from_euler_deg
 
 ARTIFACT_SCHEMA = 1
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from dm2.frames import make_T
+from dm2.core.frames import make_T
 
 
 def fit_circle_xz(xz: np.ndarray) -> tuple[np.ndarray, float, float]:

@@ -8,8 +8,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dm2.frames import PoseInterpolator, pose_error
-from dm2.messages import SENSOR_IDS, Profile, RobotState
+from dm2.core.frames import PoseInterpolator, pose_error
+from dm2.core.messages import SENSOR_IDS, Profile, RobotState
 
 log = logging.getLogger(__name__)
 

@@ -21,7 +21,7 @@ from scipy.stats import qmc
 from calib.artifact import Artifact
 from calib.scan_model import Cylinder, FanModel, scan_artifact
 from calib.solver import CalibrationError
-from dm2.frames import apply, invert, make_T
+from dm2.core.frames import apply, invert, make_T
 
 log = logging.getLogger(__name__)
 

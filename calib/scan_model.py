@@ -14,8 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from calib.artifact import Artifact, ray_cylinder
-from dm2.config import SensorConfig
-from dm2.frames import apply, invert, rotate
+from dm2.core.config import SensorConfig
+from dm2.core.frames import apply, invert, rotate
 
 
 @dataclass(frozen=True)

@@ -39,7 +39,7 @@ from calib.fitting import (
     spread_mm,
 )
 from calib.observations import Observation
-from dm2.frames import invert
+from dm2.core.frames import invert
 
 log = logging.getLogger(__name__)
 

@@ -2,7 +2,7 @@
 
 Every part is centred on the plate (``plate_size_mm = (Lx, Ly, thickness)``) with its base on
 the plate's top surface (z_O = 0). Parameters come from ``[part] params`` (all in mm / deg);
-an unknown parameter is a :class:`~dm2.config.ConfigError` naming ``part.params.<name>``.
+an unknown parameter is a :class:`~dm2.core.config.ConfigError` naming ``part.params.<name>``.
 
 Generators
 ----------
@@ -30,7 +30,7 @@ import shapely
 import trimesh
 from shapely.geometry import Polygon
 
-from dm2.config import ConfigError, PartConfig
+from dm2.core.config import ConfigError, PartConfig
 
 SEVEN_SIDED_ANGLES_DEG = (45.0, 220.0, 60.0, 150.0, 120.0, 90.0, 215.0)
 

@@ -124,7 +124,7 @@ def test_overrides_and_suites(tmp_path):
 
 def test_shipped_regression_suite_covers_every_fault_kind():
     from dm2.bench.suites import load_suite_scenario
-    from dm2.config import FaultConfig
+    from dm2.core.config import FaultConfig
     from scenarios import scenario_dir
 
     spec, files = resolve_suite("regression", scenario_dir() / "suites")

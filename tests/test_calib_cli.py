@@ -8,14 +8,14 @@ import numpy as np
 from typer.testing import CliRunner
 
 from calib.artifact import load_artifact
-from dm2.calibration_io import read_calibration_toml
 from dm2.cli.main import app
-from dm2.config import load_scenario
-from dm2.frames import apply, from_rotvec, pose_error
-from dm2.messages import Calibration, Profile, RobotState
-from dm2.recording_writer import RecordingWriter
+from dm2.core.calibration_io import read_calibration_toml
+from dm2.core.config import load_scenario
+from dm2.core.frames import apply, from_rotvec, pose_error
+from dm2.core.messages import Calibration, Profile, RobotState
+from dm2.io.recording_writer import RecordingWriter
 from scenarios import resolve_scenario, scenario_dir
-from twin.rehearsal import RehearsalConfig, rehearse_calibration
+from twin.stream.rehearsal import RehearsalConfig, rehearse_calibration
 
 runner = CliRunner()
 

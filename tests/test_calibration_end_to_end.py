@@ -5,9 +5,9 @@ from __future__ import annotations
 import pytest
 from typer.testing import CliRunner
 
-from dm2.calibration_io import write_calibration_toml
 from dm2.cli.main import app
-from dm2.config import load_scenario
+from dm2.core.calibration_io import write_calibration_toml
+from dm2.core.config import load_scenario
 from scenarios import resolve_scenario
 
 
@@ -18,9 +18,9 @@ def median_rms(run) -> float:
 
 @pytest.mark.slow
 def test_solved_calibration_removes_the_miscalibration_error(tmp_path):
-    from dm2.calibration_io import read_calibration_toml
     from dm2.cli.bench_runner import run_scenario
-    from twin.simulate import Simulation
+    from dm2.core.calibration_io import read_calibration_toml
+    from twin.stream.simulate import Simulation
 
     sc = load_scenario(resolve_scenario("pad_miscalibrated"))
     sc = sc.model_copy(update={"duration_s": 20.0})

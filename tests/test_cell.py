@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from dm2 import frames
-from dm2.config import CellConfig, ConfigError, parse_scenario
-from twin import kinematics as kin
-from twin.cell import CellModel
+from dm2.core import frames
+from dm2.core.config import CellConfig, ConfigError, parse_scenario
+from twin.cell import kinematics as kin
+from twin.cell.cell import CellModel
 
 STANDOFF = 30.0
 
@@ -105,7 +105,7 @@ def test_cell_model_rejects_unreachable_geometry_naming_field():
 
 
 def test_pybullet_fk_matches_our_fk(cell):
-    from twin.pybullet_cell import URDF_PATH, PybulletCell, irb4600_urdf
+    from twin.cell.pybullet_cell import URDF_PATH, PybulletCell, irb4600_urdf
 
     assert URDF_PATH.read_text(encoding="utf-8") == irb4600_urdf()
     rng = np.random.default_rng(11)
@@ -120,8 +120,8 @@ def test_pybullet_fk_matches_our_fk(cell):
 def test_profilers_that_cannot_reach_the_spot_are_refused():
     import pytest as _pytest
 
-    from dm2.config import ConfigError, parse_scenario
-    from twin.cell import CellModel
+    from dm2.core.config import ConfigError, parse_scenario
+    from twin.cell.cell import CellModel
 
     sc = parse_scenario({"name": "x", "part": {"generator": "pad"},
                          "cell": {"sensor_distance_mm": 400.0}})

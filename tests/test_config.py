@@ -2,8 +2,8 @@
 
 import pytest
 
-from dm2.config import ConfigError, load_scenario, parse_scenario
-from dm2.toml_write import dump_toml
+from dm2.core.config import ConfigError, load_scenario, parse_scenario
+from dm2.core.toml_write import dump_toml
 from scenarios import list_scenarios, resolve_scenario
 
 

@@ -8,14 +8,14 @@ import numpy as np
 import pytest
 from scipy.optimize import curve_fit
 
-from dm2.config import ProcessConfig
-from twin.deposition import (
+from dm2.core.config import ProcessConfig
+from twin.world.deposition import (
     SprayModel,
     deposition_efficiency,
     plume_sigma_mm,
     volume_rate_mm3_s,
 )
-from twin.heightfield import HeightField
+from twin.world.heightfield import HeightField
 
 DT = 1.0 / 250.0
 
@@ -151,7 +151,7 @@ def test_feed_factor_and_residence_time_scale_the_deposit():
 
 
 def test_unrolled_splat_equals_general_path_bit_for_bit():
-    from twin import deposition_kernels as DK
+    from twin.world import deposition_kernels as DK
 
     rng = np.random.default_rng(4)
     h0 = rng.uniform(0.0, 0.3, (32, 40))

@@ -5,12 +5,12 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from dm2.classify import LOCAL_OVERBUILD, OVERBUILD, UNDERBUILD, UNOBSERVED
-from dm2.config import MonitorConfig
-from dm2.deviation import layer_deviation, signed_deviation
-from dm2.refmap import ReferenceMap
-from dm2.segment import segment_regions
-from dm2.track import RegionTracker
+from dm2.core.config import MonitorConfig
+from dm2.defects.classify import LOCAL_OVERBUILD, OVERBUILD, UNDERBUILD, UNOBSERVED
+from dm2.defects.deviation import layer_deviation, signed_deviation
+from dm2.defects.segment import segment_regions
+from dm2.defects.track import RegionTracker
+from dm2.reference.height_map import ReferenceMap
 
 CELL = 0.25
 LAYER_MM = 0.8
@@ -176,7 +176,7 @@ def test_local_overbuild_inside_tolerance():
 def test_mean_curvature_of_a_sphere_and_open_boundary():
     import trimesh
 
-    from dm2.classify import boundary_vertices, mean_curvature
+    from dm2.defects.classify import boundary_vertices, mean_curvature
 
     s = trimesh.creation.icosphere(4, radius=5.0)
     h = mean_curvature(s.vertices, s.faces, smooth_iterations=0)

@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from dm2.config import MonitorConfig
-from dm2.realtime import OVER, UNDER, RealtimeDeviation
-from dm2.refmap import ReferenceMap
-from dm2.tsdf import SparseTSDF
+from dm2.core.config import MonitorConfig
+from dm2.defects.realtime import OVER, UNDER, RealtimeDeviation
+from dm2.fusion.tsdf.field import SparseTSDF
+from dm2.reference.height_map import ReferenceMap
 
 MON = MonitorConfig()
 CELL = 0.25
@@ -105,7 +105,7 @@ def test_fault_free_stream_raises_no_alarm():
 def test_sloped_reference_deviation_is_projected_on_its_normal_like_numpy():
     """The compiled comparison equals the formula in numpy: bilinear reference heights at the
     voxel columns, slopes by np.gradient, deviation (z - h) / sqrt(1 + |grad h|^2)."""
-    from dm2.refmap import bilinear_height
+    from dm2.reference.height_map import bilinear_height
 
     rng = np.random.default_rng(7)
     c = (np.arange(480) + 0.5) * CELL
@@ -164,7 +164,7 @@ def _patch_alarms_scipy(flags, kind, deviation_mm, alarmed, first_flag_s, link, 
 
 
 def test_alarm_patches_equal_scipy_closing_and_labelling():
-    from dm2.realtime_kernels import patch_alarms
+    from dm2.defects.realtime_kernels import patch_alarms
 
     rng = np.random.default_rng(12)
     yy, xx = np.mgrid[-4:5, -4:5]
@@ -194,7 +194,7 @@ def test_alarm_patches_equal_scipy_closing_and_labelling():
 def test_island_of_unobserved_columns_raises_no_alarm():
     """Unobserved columns bridged by the closing but walled off from the flagged ones by
     observed-normal columns form a patch of their own: it shows no defect, so no alarm."""
-    from dm2.realtime_kernels import patch_alarms
+    from dm2.defects.realtime_kernels import patch_alarms
 
     h, w = 30, 30
     flags = np.zeros((h, w), np.int8)

@@ -6,17 +6,17 @@ Slow (a full simulated build, fused and analysed): run with ``pytest -m slow``.
 import numpy as np
 import pytest
 
-from dm2.config import load_scenario, parse_scenario
-from dm2.defects import DefectMonitor
-from dm2.pipeline import Monitor
-from dm2.reference import NearNetReference
+from dm2.core.config import load_scenario, parse_scenario
+from dm2.defects.layer_analysis import DefectMonitor
+from dm2.fusion.fusion import Monitor
+from dm2.reference.model import NearNetReference
 from dm2.report.report_json import compare_with_truth
 
 pytestmark = pytest.mark.slow
 
 
 def _monitor_build(scenario):
-    from twin.simulate import Simulation
+    from twin.stream.simulate import Simulation
 
     sim = Simulation(scenario)
     mon = Monitor(sim.calibration, scenario.monitor, scenario.process)

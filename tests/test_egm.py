@@ -8,7 +8,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from dm2.frames import from_euler_deg
+from dm2.core.frames import from_euler_deg
+from dm2.core.messages import LayerMark, RobotState
 from dm2.live import egm_pb2
 from dm2.live.egm_source import (
     EgmDecodeError,
@@ -18,7 +19,6 @@ from dm2.live.egm_source import (
     encode_egm_robot,
 )
 from dm2.live.inbox import Inbox
-from dm2.messages import LayerMark, RobotState
 
 JOINTS = np.radians([10.0, -20.0, 30.0, 5.0, -64.0, 170.0])
 T = from_euler_deg([1712.5, -33.25, 1021.0], [12.0, -40.0, 175.0])

@@ -7,12 +7,12 @@ import math
 import numpy as np
 import pytest
 
-from dm2.config import CalibrationPerturbation, FaultConfig, ProcessConfig
-from dm2.frames import from_euler_deg, invert
-from dm2.messages import Calibration, Toolpath
-from twin.deposition import SprayModel
-from twin.faults import FaultSchedule, find_corners, perturbed_calibration
-from twin.heightfield import HeightField
+from dm2.core.config import CalibrationPerturbation, FaultConfig, ProcessConfig
+from dm2.core.frames import from_euler_deg, invert
+from dm2.core.messages import Calibration, Toolpath
+from twin.world.deposition import SprayModel
+from twin.world.faults import FaultSchedule, find_corners, perturbed_calibration
+from twin.world.heightfield import HeightField
 
 DT = 1.0 / 250.0
 

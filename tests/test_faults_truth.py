@@ -9,9 +9,9 @@ import pytest
 import trimesh
 from test_faults import _build_pad, _polygon_path
 
-from dm2.config import FaultConfig
-from twin.heightfield import HeightField
-from twin.truth import fault_truth, write_fault_truth, write_layer_surface
+from dm2.core.config import FaultConfig
+from twin.world.heightfield import HeightField
+from twin.world.truth import fault_truth, write_fault_truth, write_layer_surface
 
 
 def test_fault_truth_recovers_feed_drop_and_bump(tmp_path):

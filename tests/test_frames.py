@@ -1,4 +1,4 @@
-"""SE(3) algebra properties of dm2.frames (hypothesis-driven)."""
+"""SE(3) algebra properties of dm2.core.frames (hypothesis-driven)."""
 
 import numpy as np
 import pytest
@@ -6,7 +6,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from dm2 import frames
+from dm2.core import frames
 
 finite = st.floats(-1e3, 1e3, allow_nan=False, allow_infinity=False)
 vec3 = st.tuples(finite, finite, finite)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from twin.heightfield import HeightField
+from twin.world.heightfield import HeightField
 
 
 def _plane_field(a=0.1, b=0.05, c=1.0):

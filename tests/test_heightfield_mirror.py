@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from dm2.config import ProcessConfig
-from twin.deposition import SprayModel
-from twin.heightfield import HeightField
+from dm2.core.config import ProcessConfig
+from twin.world.deposition import SprayModel
+from twin.world.heightfield import HeightField
 
 
 def _same(a: HeightField, b: HeightField) -> bool:

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from dm2 import frames
-from twin import kinematics as kin
+from dm2.core import frames
+from twin.cell import kinematics as kin
 
 
 def test_fk_calibration_pose_and_axis_one():

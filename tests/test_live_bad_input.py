@@ -9,19 +9,19 @@ import dataclasses
 import numpy as np
 import pytest
 
+from dm2.core.messages import COUNTER_MODULO, Profile, RobotState
 from dm2.live.config import load_cell_file
 from dm2.live.runner import LiveRunner
-from dm2.messages import COUNTER_MODULO, Profile, RobotState
 
 DURATION_S = 5.0
 
 
 @pytest.fixture(scope="module")
 def twin(tmp_path_factory):
-    from dm2.config import load_scenario
+    from dm2.core.config import load_scenario
     from scenarios import resolve_scenario
-    from twin.serve import write_cell_files
-    from twin.simulate import Simulation
+    from twin.stream.serve import write_cell_files
+    from twin.stream.simulate import Simulation
 
     sc = load_scenario(resolve_scenario("pad")).model_copy(update={"duration_s": DURATION_S})
     sim = Simulation(sc)

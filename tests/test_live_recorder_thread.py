@@ -4,10 +4,10 @@ a full queue drops and counts instead of blocking; the clock aligner's Theil-Sen
 import numpy as np
 import pytest
 
+from dm2.core.messages import MessageError, Profile, RobotState
+from dm2.io.recording import read_recording
 from dm2.live.clock import _theil_sen_at
 from dm2.live.recorder import LiveRecorder, RecorderThread
-from dm2.messages import MessageError, Profile, RobotState
-from dm2.recording import read_recording
 
 
 def _state(k: int) -> RobotState:

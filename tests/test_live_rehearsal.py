@@ -9,14 +9,14 @@ import time
 
 import pytest
 
-from dm2.config import FaultConfig, load_scenario
+from dm2.core.config import FaultConfig, load_scenario
+from dm2.core.messages import LayerMark, Profile, RobotState
 from dm2.live.config import load_cell_file
 from dm2.live.egm_source import encode_egm_robot
 from dm2.live.runner import LiveRunner
 from dm2.live.tcp_frames import encode_frame
 from dm2.live.tcp_profiles import ProfileClient
-from dm2.messages import LayerMark, Profile, RobotState
-from dm2.session import MonitoringSession
+from dm2.pipeline.session import MonitoringSession
 from scenarios import resolve_scenario
 
 
@@ -30,7 +30,7 @@ def pad_with_bump(duration_s: float):
 def live_runner(sim, tmp_path, clock_tolerance_s: float):
     """A live runner on ephemeral loopback ports. The served twin shares one clock for poses
     and profiles; the tolerance band only has to exceed arrival jitter times the speed-up."""
-    from twin.serve import write_cell_files
+    from twin.stream.serve import write_cell_files
 
     cell_path = write_cell_files(sim, tmp_path / "cell", egm="127.0.0.1:0",
                                  profiles="127.0.0.1:0",
@@ -41,8 +41,8 @@ def live_runner(sim, tmp_path, clock_tolerance_s: float):
 
 
 def test_loopback_rehearsal_matches_in_process_run(tmp_path):
-    from twin.serve import serve_twin
-    from twin.simulate import Simulation
+    from twin.stream.serve import serve_twin
+    from twin.stream.simulate import Simulation
 
     sc = pad_with_bump(12.0)
     sim = Simulation(sc)
@@ -91,7 +91,7 @@ def test_loopback_rehearsal_matches_in_process_run(tmp_path):
 
 
 def test_socket_faults_are_counted_in_report_json(tmp_path):
-    from twin.simulate import Simulation
+    from twin.stream.simulate import Simulation
 
     sim = Simulation(pad_with_bump(3.0))
     msgs = list(sim.messages())
@@ -139,7 +139,7 @@ def test_socket_faults_are_counted_in_report_json(tmp_path):
 
 
 def _cell_and_out(sim, folder):
-    from twin.serve import write_cell_files
+    from twin.stream.serve import write_cell_files
 
     return load_cell_file(write_cell_files(sim, folder / "cell")), folder / "out"
 
@@ -151,8 +151,8 @@ def test_cell_file_for_an_accelerated_twin_scales_its_jitter_windows(tmp_path, s
     """Served at 10x, a millisecond of host jitter is 10 ms of stream time: the cell file
     widens the clock band and the reorder window by the speed-up (never below the real
     cell's); unpaced, the clock band is wide open. An explicit live entry wins."""
-    from twin.serve import write_cell_files
-    from twin.simulate import Simulation
+    from twin.stream.serve import write_cell_files
+    from twin.stream.simulate import Simulation
 
     sim = Simulation(pad_with_bump(0.5))
     assert sim.scenario.monitor.reorder_window_s == 0.5
@@ -174,8 +174,8 @@ def test_twin_served_before_its_monitor_waits_and_loses_nothing(tmp_path):
     """The rehearsal's usual order: the twin is started first (it writes the cell file the
     monitor needs). Its stream only starts once the monitor accepts, so every robot state
     and profile arrives, none sent into the void."""
-    from twin.serve import serve_twin, write_cell_files
-    from twin.simulate import Simulation
+    from twin.stream.serve import serve_twin, write_cell_files
+    from twin.stream.simulate import Simulation
 
     sc = pad_with_bump(1.0)
     sim = Simulation(sc)

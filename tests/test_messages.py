@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from dm2.messages import (
+from dm2.core.messages import (
     COUNTER_MODULO,
     Calibration,
     LayerMark,

@@ -10,11 +10,11 @@ import typer
 from test_monitor_scene import Scene, make_calibration, raster_run
 from typer.testing import CliRunner
 
-from dm2.calibration_io import calibration_to_toml, write_calibration_toml
 from dm2.cli.main import app
-from dm2.messages import LayerMark
-from dm2.recording_writer import RecordingWriter
-from dm2.surface import read_ply
+from dm2.core.calibration_io import calibration_to_toml, write_calibration_toml
+from dm2.core.messages import LayerMark
+from dm2.fusion.surface import read_ply
+from dm2.io.recording_writer import RecordingWriter
 
 SCENE = Scene(boxes=[((50, 50, 0), (66, 66, 6))])
 

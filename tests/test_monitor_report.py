@@ -9,7 +9,7 @@ import pytest
 from typer.testing import CliRunner
 
 from dm2.cli.main import app
-from dm2.config import parse_scenario
+from dm2.core.config import parse_scenario
 from dm2.toolpath.formats import read_csv, write_csv
 
 BUMP_XY = (57.0, 60.0)
@@ -17,7 +17,7 @@ BUMP_XY = (57.0, 60.0)
 
 @pytest.fixture(scope="module")
 def recording(tmp_path_factory):
-    from twin.simulate import simulate
+    from twin.stream.simulate import simulate
 
     sc = parse_scenario({
         "name": "pad_bump_short", "seed": 5, "part": {"generator": "pad"}, "duration_s": 30.0,
@@ -44,7 +44,7 @@ def test_monitor_reports_the_bump_track(tmp_path, recording):
 
 
 def test_a_toolpath_the_robot_did_not_follow_is_refused_before_any_work(tmp_path, recording):
-    from dm2.recording import read_recording
+    from dm2.io.recording import read_recording
 
     tp = read_recording(recording).toolpath
     moved = type(tp)(tp.position_O + [25.0, 0.0, 0.0], tp.axis_O, tp.speed_mm_s, tp.kind,

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from dm2.frames import from_euler_deg, invert, look_at, make_T
-from dm2.messages import Calibration, Profile, RobotState
+from dm2.core.frames import from_euler_deg, invert, look_at, make_T
+from dm2.core.messages import Calibration, Profile, RobotState
 
 STANDOFF_MM = 30.0
 SPOT_B = np.array([1000.0, 0.0, 500.0])

@@ -11,9 +11,9 @@ import trimesh
 from typer.testing import CliRunner
 
 from dm2.cli.main import app
-from dm2.surface import read_ply
+from dm2.fusion.surface import read_ply
 
-pytest.importorskip("twin.simulate")
+pytest.importorskip("twin.stream.simulate")
 
 
 @pytest.mark.slow

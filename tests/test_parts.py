@@ -5,7 +5,7 @@ import pytest
 import shapely
 import trimesh
 
-from dm2.config import ConfigError, PartConfig
+from dm2.core.config import ConfigError, PartConfig
 from dm2.toolpath.contours import corner_angles_deg
 from dm2.toolpath.slicing import slice_mesh
 from scenarios.parts import build_part, seven_sided_outline

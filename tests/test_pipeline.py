@@ -7,11 +7,11 @@ import pytest
 from scipy.spatial import cKDTree
 from test_monitor_scene import Scene, make_calibration, raster_lines, raster_run
 
-import dm2.pipeline as pipeline_mod
-from dm2.config import MonitorConfig, ProcessConfig
-from dm2.messages import LayerMark, Toolpath
-from dm2.pipeline import Monitor
-from dm2.registration import register_profiles
+import dm2.fusion.fusion as pipeline_mod
+from dm2.core.config import MonitorConfig, ProcessConfig
+from dm2.core.messages import LayerMark, Toolpath
+from dm2.fusion.fusion import Monitor
+from dm2.fusion.registration import register_profiles
 
 
 @pytest.fixture(scope="module")

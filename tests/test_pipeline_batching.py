@@ -7,11 +7,11 @@ import pytest
 from test_monitor_scene import Scene, make_calibration, raster_run
 from test_pipeline import _two_layers
 
-from dm2.config import MonitorConfig, ProcessConfig
-from dm2.messages import Profile, RobotState, Toolpath
-from dm2.pipeline import Monitor
-from dm2.registration import profile_frames, register_profiles, spot_B
-from dm2.tsdf import SparseTSDF
+from dm2.core.config import MonitorConfig, ProcessConfig
+from dm2.core.messages import Profile, RobotState, Toolpath
+from dm2.fusion.fusion import Monitor
+from dm2.fusion.registration import profile_frames, register_profiles, spot_B
+from dm2.fusion.tsdf.field import SparseTSDF
 
 
 @pytest.fixture(scope="module")

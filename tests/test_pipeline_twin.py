@@ -8,16 +8,16 @@ import pytest
 import trimesh
 from scipy.spatial import cKDTree
 
-from dm2.config import MonitorConfig, parse_scenario
-from dm2.frames import invert
-from dm2.messages import RobotState
-from dm2.pipeline import Monitor
-from dm2.registration import register_profile
+from dm2.core.config import MonitorConfig, parse_scenario
+from dm2.core.frames import invert
+from dm2.core.messages import RobotState
+from dm2.fusion.fusion import Monitor
+from dm2.fusion.registration import register_profile
 
-twin_cell = pytest.importorskip("twin.cell")
-from twin.heightfield import HeightField  # noqa: E402
-from twin.occluders import nozzle_occluder  # noqa: E402
-from twin.profiler import VirtualProfiler  # noqa: E402
+twin_cell = pytest.importorskip("twin.cell.cell")
+from twin.profiler.occluders import nozzle_occluder  # noqa: E402
+from twin.profiler.sensor import VirtualProfiler  # noqa: E402
+from twin.world.heightfield import HeightField  # noqa: E402
 
 
 def test_twin_profiles_of_a_static_part_reconstruct_within_a_quarter_millimetre():

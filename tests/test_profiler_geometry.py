@@ -5,19 +5,19 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dm2.config import CellConfig, NoiseConfig, SensorConfig
-from dm2.frames import apply, from_euler_deg, invert, make_T
-from twin.heightfield import HeightField
-from twin.occluders import CylinderOccluder, nozzle_occluder
-from twin.profiler import (
+from dm2.core.config import CellConfig, NoiseConfig, SensorConfig
+from dm2.core.frames import apply, from_euler_deg, invert, make_T
+from twin.profiler.model import (
     CAMERA_BLOCKED,
     CAMERA_SHADOW,
     LASER_BLOCKED,
     NO_SURFACE,
     TOO_DARK,
     VALID,
-    VirtualProfiler,
 )
+from twin.profiler.occluders import CylinderOccluder, nozzle_occluder
+from twin.profiler.sensor import VirtualProfiler
+from twin.world.heightfield import HeightField
 
 SENSORS = SensorConfig()
 QUIET = NoiseConfig(range_sigma_mm=0.0, min_intensity=0.0)

@@ -7,11 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dm2.config import NoiseConfig, SensorConfig
-from dm2.frames import from_euler_deg, make_T
-from twin.heightfield import HeightField
-from twin.occluders import CylinderOccluder
-from twin.profiler import (
+from dm2.core.config import NoiseConfig, SensorConfig
+from dm2.core.frames import from_euler_deg, make_T
+from twin.profiler.model import (
     BACK_FACING,
     CAMERA_BLOCKED,
     CAMERA_SHADOW,
@@ -19,8 +17,10 @@ from twin.profiler import (
     NO_SURFACE,
     TOO_DARK,
     VALID,
-    VirtualProfiler,
 )
+from twin.profiler.occluders import CylinderOccluder
+from twin.profiler.sensor import VirtualProfiler
+from twin.world.heightfield import HeightField
 
 T_B_O = from_euler_deg([1250.0, -40.0, 820.0], [30.0, 4.0, -3.0])
 NOISY = NoiseConfig(range_sigma_mm=0.03, speckle_sigma_mm=0.02, dropout_prob=0.05,

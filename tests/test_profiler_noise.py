@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from dm2.config import NoiseConfig, SensorConfig
-from dm2.frames import from_euler_deg, look_at
-from twin.heightfield import HeightField
-from twin.profiler import DROPOUT, VALID, VirtualProfiler
+from dm2.core.config import NoiseConfig, SensorConfig
+from dm2.core.frames import from_euler_deg, look_at
+from twin.profiler.model import DROPOUT, VALID
+from twin.profiler.sensor import VirtualProfiler
+from twin.world.heightfield import HeightField
 
 SENSORS = SensorConfig()
 T_B_O = from_euler_deg([1300.0, 20.0, 780.0], [-20.0, 0.0, 2.0])

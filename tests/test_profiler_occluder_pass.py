@@ -2,8 +2,8 @@
 
 import numpy as np
 
-from dm2.frames import apply, from_euler_deg, invert
-from twin.occluders import CylinderOccluder
+from dm2.core.frames import apply, from_euler_deg, invert
+from twin.profiler.occluders import CylinderOccluder
 
 
 def test_blocks_matches_hit_t_on_random_rays():

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dm2.config import SensorConfig
-from dm2.messages import COUNTER_MODULO
-from twin.profiler_trigger import trigger_schedule
+from dm2.core.config import SensorConfig
+from dm2.core.messages import COUNTER_MODULO
+from twin.profiler.trigger import trigger_schedule
 
 
 def test_cascade_stamps_are_exact():

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from dm2.messages import Toolpath
-from dm2.progress import ToolpathProgress
+from dm2.core.messages import Toolpath
+from dm2.reference.path_clock import ToolpathProgress
 
 
 def make_toolpath(points, speeds):

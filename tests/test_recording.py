@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from dm2.calibration_io import calibration_to_toml
-from dm2.frames import from_euler_deg, from_quat_abb
-from dm2.messages import Calibration, LayerMark, MessageError, Profile, RobotState
-from dm2.recording import read_recording
-from dm2.recording_writer import RecordingWriter
+from dm2.core.calibration_io import calibration_to_toml
+from dm2.core.frames import from_euler_deg, from_quat_abb
+from dm2.core.messages import Calibration, LayerMark, MessageError, Profile, RobotState
+from dm2.io.recording import read_recording
+from dm2.io.recording_writer import RecordingWriter
 
 N_POINTS = 640
 DURATION_S = 4.0

@@ -7,15 +7,15 @@ import re
 import numpy as np
 import pytest
 
-from dm2.calibration_io import (
+from dm2.core.calibration_io import (
     calibration_from_toml,
     calibration_to_toml,
     read_calibration_toml,
     write_calibration_toml,
 )
-from dm2.config import ConfigError
-from dm2.frames import from_euler_deg
-from dm2.messages import Calibration
+from dm2.core.config import ConfigError
+from dm2.core.frames import from_euler_deg
+from dm2.core.messages import Calibration
 
 
 def _cal(seed: int = 11) -> Calibration:

@@ -12,16 +12,16 @@ import pytest
 from typer.testing import CliRunner
 
 from dm2.cli.main import app
+from dm2.core.messages import RobotState
+from dm2.io.recording import read_recording
 from dm2.live.recorder import LiveRecorder
 from dm2.live.recover import recover_recording
-from dm2.messages import RobotState
-from dm2.recording import read_recording
 
 WRITER = """
 import sys, time
 import numpy as np
 from dm2.live.recorder import LiveRecorder
-from dm2.messages import RobotState
+from dm2.core.messages import RobotState
 w = LiveRecorder(sys.argv[1], attachments={"scenario.toml": b"name = 'k'"}, chunk_s=1.0)
 t0 = time.monotonic()
 k = 0
@@ -125,7 +125,7 @@ def test_recorder_pushes_chunks_to_disk_within_a_second(tmp_path):
     ('calibration = "missing.toml"\n', "calibration"),
 ])
 def test_cell_file_errors_name_the_field(tmp_path, text, field):
-    from dm2.config import ConfigError
+    from dm2.core.config import ConfigError
     from dm2.live.config import load_cell_file
 
     (tmp_path / "c.toml").write_text("")
@@ -139,10 +139,10 @@ def test_cell_file_errors_name_the_field(tmp_path, text, field):
 def test_live_monitor_refuses_a_folder_holding_a_cut_recording(tmp_path):
     """A crashed run's live.mcap.part is what `dm2 recover` needs: a new live run into that
     folder must not truncate it."""
-    from dm2.config import load_scenario
+    from dm2.core.config import load_scenario
     from scenarios import resolve_scenario
-    from twin.serve import write_cell_files
-    from twin.simulate import Simulation
+    from twin.stream.serve import write_cell_files
+    from twin.stream.simulate import Simulation
 
     sim = Simulation(load_scenario(resolve_scenario("pad")).model_copy(
         update={"duration_s": 0.5}))

@@ -6,11 +6,16 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from dm2.config import MonitorConfig, ProcessConfig
-from dm2.frames import invert, make_T
-from dm2.messages import Calibration, LayerMark, RobotState
-from dm2.reference import NearNetReference, deposition_efficiency, plume_sigma_mm, volume_rate_mm3_s
-from dm2.refmap import ReferenceMap
+from dm2.core.config import MonitorConfig, ProcessConfig
+from dm2.core.frames import invert, make_T
+from dm2.core.messages import Calibration, LayerMark, RobotState
+from dm2.reference.height_map import ReferenceMap
+from dm2.reference.model import (
+    NearNetReference,
+    deposition_efficiency,
+    plume_sigma_mm,
+    volume_rate_mm3_s,
+)
 
 SPOT_B = np.array([1300.0, 0.0, 870.0])  # nozzle exit at z 900, pointing down, standoff 30
 T_B_N = make_T(Rotation.from_euler("x", 180, degrees=True), [1300.0, 0.0, 900.0])
@@ -129,7 +134,7 @@ def test_angle_from_surface_uses_the_local_slope():
 
 
 def test_layers_split_by_toolpath_without_marks():
-    from dm2.messages import Toolpath
+    from dm2.core.messages import Toolpath
 
     proc = ProcessConfig()
     pts = np.array([[10.0, 40.0, 0.0], [110.0, 40.0, 0.0], [110.0, 80.0, 0.8],

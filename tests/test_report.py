@@ -8,9 +8,9 @@ import pytest
 import trimesh
 from test_deviation import CELL, MON, gaussian, pad_heights, top_surface
 
-from dm2.config import ExpectConfig, ExpectTrack
-from dm2.defects import DefectMonitor
-from dm2.refmap import ReferenceMap
+from dm2.core.config import ExpectConfig, ExpectTrack
+from dm2.defects.layer_analysis import DefectMonitor
+from dm2.reference.height_map import ReferenceMap
 from dm2.report import REPORT_SCHEMA, check_output_dir, write_report
 from dm2.report.meshes import read_ply_vertex_fields
 
@@ -107,8 +107,8 @@ def test_unwritable_output_is_refused_before_work(tmp_path):
 
 
 def test_expectations_no_tracks_global_and_local(monitored):
+    from dm2.defects.track import Track
     from dm2.report.report_json import check_expectations
-    from dm2.track import Track
 
     local = Track(id=7, kind="local_underbuild", first_layer=1, last_layer=1)
     res = check_expectations([local], ExpectConfig(no_tracks=True))

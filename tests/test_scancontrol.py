@@ -11,6 +11,7 @@ import types
 import numpy as np
 import pytest
 
+from dm2.core.messages import COUNTER_MODULO
 from dm2.live.inbox import Inbox
 from dm2.live.scancontrol import (
     BYTES_PER_POINT,
@@ -19,7 +20,6 @@ from dm2.live.scancontrol import (
     ScanControlUnavailable,
     load_wrapper,
 )
-from dm2.messages import COUNTER_MODULO
 
 X_SCALE_MM = 0.005  # the fake sensor's raw -> mm scaling (exact in binary floating point)
 Z_OFFSET_MM = 100.0
@@ -198,9 +198,9 @@ def test_missing_wrapper_gives_setup_instructions(monkeypatch):
 
 
 def _cell(tmp_path):
-    from dm2.calibration_io import write_calibration_toml
+    from dm2.core.calibration_io import write_calibration_toml
+    from dm2.core.messages import Calibration
     from dm2.live.config import load_cell_file
-    from dm2.messages import Calibration
 
     T = np.eye(4)
     write_calibration_toml(Calibration({"S1": T, "S2": T, "S3": T}, T, T),

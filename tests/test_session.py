@@ -3,15 +3,15 @@
 import numpy as np
 import pytest
 
-from dm2.config import parse_scenario
-from dm2.session import MonitoringSession
+from dm2.core.config import parse_scenario
+from dm2.pipeline.session import MonitoringSession
 
 FAULT_START_S = 20.0
 
 
 @pytest.fixture(scope="module")
 def feed_step_session():
-    from twin.simulate import Simulation
+    from twin.stream.simulate import Simulation
 
     sc = parse_scenario({
         "name": "pad_feed_step", "seed": 3, "part": {"generator": "pad"},
@@ -55,7 +55,7 @@ def test_layer_analysis_tracks_the_global_overbuild_from_the_fault_layer(feed_st
 def bump_session(tmp_path_factory):
     import json
 
-    from twin.simulate import Simulation
+    from twin.stream.simulate import Simulation
 
     sc = parse_scenario({
         "name": "pad_bump", "seed": 3, "part": {"generator": "pad"},

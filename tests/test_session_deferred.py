@@ -6,16 +6,16 @@ import threading
 import numpy as np
 import pytest
 
-import dm2.session as session_mod
-import dm2.surface as surface_mod
-from dm2.config import load_scenario
-from dm2.session import MonitoringSession
+import dm2.fusion.surface as surface_mod
+import dm2.pipeline.session as session_mod
+from dm2.core.config import load_scenario
+from dm2.pipeline.session import MonitoringSession
 from scenarios import resolve_scenario
 
 
 @pytest.fixture(scope="module")
 def pad_stream():
-    from twin.simulate import Simulation
+    from twin.stream.simulate import Simulation
 
     sc = load_scenario(resolve_scenario("pad")).model_copy(update={"duration_s": 14.0})
     sim = Simulation(sc)

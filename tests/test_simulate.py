@@ -8,10 +8,10 @@ import tomllib
 import numpy as np
 import pytest
 
-from dm2.config import parse_scenario
-from dm2.frames import apply, invert
-from dm2.messages import LayerMark, Profile, RobotState
-from dm2.recording import read_recording
+from dm2.core.config import parse_scenario
+from dm2.core.frames import apply, invert
+from dm2.core.messages import LayerMark, Profile, RobotState
+from dm2.io.recording import read_recording
 
 DURATION_S = 1.2
 
@@ -29,7 +29,7 @@ def _scenario(**over):
 
 @pytest.fixture(scope="module")
 def sim_and_messages():
-    from twin.simulate import Simulation
+    from twin.stream.simulate import Simulation
 
     sim = Simulation(_scenario())
     return sim, list(sim.messages())
@@ -73,7 +73,7 @@ def test_profiles_see_the_plate_where_the_robot_holds_it(sim_and_messages):
     sim, msgs = sim_and_messages
     hf = sim.final_heightfield
     cal = sim.true_calibration
-    from dm2.frames import PoseInterpolator
+    from dm2.core.frames import PoseInterpolator
 
     interp = PoseInterpolator(sim.motion.t_s[:400], sim.motion.T_B_O[:400])
     residuals, n_valid = [], 0
@@ -94,7 +94,7 @@ def test_profiles_see_the_plate_where_the_robot_holds_it(sim_and_messages):
 
 
 def test_robot_noise_moves_only_the_reported_pose():
-    from twin.simulate import Simulation
+    from twin.stream.simulate import Simulation
 
     sigma = 0.2
     sim = Simulation(_scenario(duration_s=0.4, noise={"robot_repeatability_mm": sigma}))
@@ -108,7 +108,7 @@ def test_robot_noise_moves_only_the_reported_pose():
 
 
 def test_recording_replays_the_in_process_stream(sim_and_messages, tmp_path):
-    from twin.simulate import simulate
+    from twin.stream.simulate import simulate
 
     sim, msgs = sim_and_messages
     out = tmp_path / "run.mcap"

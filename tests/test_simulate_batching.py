@@ -8,11 +8,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dm2.config import parse_scenario
-from dm2.messages import LayerMark, Profile, RobotState
-from twin.simulate import HEIGHTFIELD_CELL_MM, Simulation
-from twin.simulate_reference import per_sample_messages
-from twin.simulate_split import chunk_runs
+from dm2.core.config import parse_scenario
+from dm2.core.messages import LayerMark, Profile, RobotState
+from tests.oracles.simulate_numpy import per_sample_messages
+from twin.stream.simulate import Simulation
+from twin.stream.threads import chunk_runs
+from twin.world.heightfield import HEIGHTFIELD_CELL_MM
 
 
 def _scenario():
@@ -31,7 +32,7 @@ def _scenario():
 
 def _per_sample_stream(sim: Simulation):
     """The plain per-sample loop (the reference) and the height field it grew."""
-    from twin.heightfield import HeightField
+    from twin.world.heightfield import HeightField
 
     plate = sim.scenario.cell.plate_size_mm
     hf = HeightField((plate[0], plate[1]), HEIGHTFIELD_CELL_MM, plate[2])

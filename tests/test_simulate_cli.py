@@ -9,8 +9,8 @@ import numpy as np
 from typer.testing import CliRunner
 
 from dm2.cli.main import app
-from dm2.messages import LayerMark, Profile
-from dm2.recording import read_recording
+from dm2.core.messages import LayerMark, Profile
+from dm2.io.recording import read_recording
 
 runner = CliRunner()
 

@@ -10,9 +10,9 @@ import threading
 import numpy as np
 import pytest
 
-from dm2.config import parse_scenario
-from twin.simulate import Simulation
-from twin.simulate_reference import per_sample_messages
+from dm2.core.config import parse_scenario
+from tests.oracles.simulate_numpy import per_sample_messages
+from twin.stream.simulate import Simulation
 
 
 def _same(a, b) -> bool:
@@ -70,7 +70,7 @@ def test_a_stream_stopped_early_stops_its_worker():
 
 
 def test_chunk_worker_hands_results_in_order_and_its_error_to_the_consumer():
-    from twin.simulate_split import ChunkWorker
+    from twin.stream.threads import ChunkWorker
 
     def produce(c):
         if c == 5:

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dm2.messages import MessageError
-from dm2.surface import SurfaceExtractor, SurfaceMesh, read_ply
-from dm2.tsdf import SparseTSDF
+from dm2.core.messages import MessageError
+from dm2.fusion.surface import SurfaceExtractor, SurfaceMesh, read_ply
+from dm2.fusion.tsdf.field import SparseTSDF
 
 
 def _fused_plane(z=0.3, extent=40.0, seed=0, tsdf=None):

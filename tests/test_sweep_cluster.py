@@ -21,7 +21,7 @@ def client():
 
 def _base():
     from dm2.bench.suites import apply_overrides
-    from dm2.config import load_scenario
+    from dm2.core.config import load_scenario
     from scenarios import scenario_dir
 
     sc = load_scenario(scenario_dir() / "suites" / "smoke" / "bump.toml").to_toml_dict()

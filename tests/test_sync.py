@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 from test_monitor_scene import Scene, make_calibration, raster_run
 
-from dm2.config import MonitorConfig, ProcessConfig
-from dm2.frames import PoseInterpolator, from_euler_deg, pose_error
-from dm2.messages import Calibration, Profile, RobotState
-from dm2.pipeline import Monitor
-from dm2.posebuffer import PoseBuffer
-from dm2.sync import StreamSync
+from dm2.core.config import MonitorConfig, ProcessConfig
+from dm2.core.frames import PoseInterpolator, from_euler_deg, pose_error
+from dm2.core.messages import Calibration, Profile, RobotState
+from dm2.fusion.fusion import Monitor
+from dm2.fusion.posebuffer import PoseBuffer
+from dm2.fusion.sync import StreamSync
 
 
 def test_pose_buffer_matches_slerp_and_respects_the_gap():

@@ -8,10 +8,10 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from dm2.core.messages import COUNTER_MODULO, Profile
 from dm2.live.inbox import Inbox
 from dm2.live.tcp_frames import FrameParser, decode_body, encode_frame
 from dm2.live.tcp_profiles import ProfileClient, ProfileServer
-from dm2.messages import COUNTER_MODULO, Profile
 
 
 def profile(k: int, n: int = 50, sensor: str = "S1") -> Profile:

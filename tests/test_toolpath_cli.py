@@ -6,7 +6,7 @@ import trimesh
 from typer.testing import CliRunner
 
 from dm2.cli.main import app
-from dm2.config import PartConfig, load_scenario
+from dm2.core.config import PartConfig, load_scenario
 from dm2.toolpath import generate_toolpath
 from dm2.toolpath.formats import read_csv
 from scenarios import resolve_scenario
@@ -90,6 +90,6 @@ def test_bad_input_exits_2_and_writes_nothing(tmp_path, case, needle):
 
 
 def test_build_part_errors_name_the_field():
-    from dm2.config import ConfigError
+    from dm2.core.config import ConfigError
     with pytest.raises(ConfigError, match="part.params.wall_mm"):
         build_part(PartConfig(generator="seven_sided", params={"wall_mm": 40.0}), (120, 120, 6))

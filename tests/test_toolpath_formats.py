@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from dm2.config import ToolpathConfig
-from dm2.messages import Toolpath
+from dm2.core.config import ToolpathConfig
+from dm2.core.messages import Toolpath
 from dm2.toolpath import generate_toolpath
 from dm2.toolpath.formats import read_csv, read_rapid, write_csv, write_rapid
 

@@ -6,8 +6,8 @@ import shapely
 import trimesh
 from shapely.geometry import LineString
 
-from dm2.config import PartConfig, ToolpathConfig
-from dm2.messages import KIND_CODE
+from dm2.core.config import PartConfig, ToolpathConfig
+from dm2.core.messages import KIND_CODE
 from dm2.toolpath import generate_toolpath
 from dm2.toolpath.slicing import slice_mesh
 from scenarios.parts import build_part

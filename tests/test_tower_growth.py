@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
-from dm2.config import ProcessConfig
-from twin.deposition import SprayModel, deposition_efficiency, volume_rate_mm3_s
-from twin.heightfield import HeightField
+from dm2.core.config import ProcessConfig
+from twin.world.deposition import SprayModel, deposition_efficiency, volume_rate_mm3_s
+from twin.world.heightfield import HeightField
 
 DT = 1.0 / 250.0
 DOWN = np.array([0.0, 0.0, -1.0])

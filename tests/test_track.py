@@ -2,8 +2,8 @@
 
 import numpy as np
 
-from dm2.segment import Region
-from dm2.track import RegionTracker
+from dm2.defects.segment import Region
+from dm2.defects.track import RegionTracker
 
 
 def region(layer, x0, x1, kind="overbuild", area=None, height=0.5, y=(10.0, 14.0)):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dm2.tsdf import SparseTSDF
+from dm2.fusion.tsdf.field import SparseTSDF
 
 
 def _plane_rays(n, z, rng, tilt=(0.0, -50.0, 80.0), extent=40.0):

@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dm2 import tsdf as tsdf_mod
-from dm2 import tsdf_kernels as K
-from dm2.tsdf import SparseTSDF
+from dm2.fusion.tsdf import field as tsdf_mod
+from dm2.fusion.tsdf import kernels as K
+from dm2.fusion.tsdf.field import SparseTSDF
 
 
 def _assert_same_field(a: SparseTSDF, b: SparseTSDF) -> None:
@@ -88,7 +88,7 @@ def test_small_batches_use_the_serial_kernel_and_threads_is_validated(monkeypatc
 def test_full_staging_areas_commit_and_resume_with_the_same_field(monkeypatch):
     """When a thread's staging area fills up, its staged blocks are committed and it goes on
     from the ray where it stopped: still the serial kernel's field."""
-    from dm2 import tsdf_split
+    from dm2.fusion.tsdf import threads as tsdf_split
 
     rng = np.random.default_rng(11)
     o, p, act = _wavy_rays(40_000, rng)

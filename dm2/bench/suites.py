@@ -12,7 +12,7 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from dm2.config import Scenario, parse_scenario
+from dm2.core.config import Scenario, parse_scenario
 
 
 @dataclass(frozen=True)
@@ -120,7 +120,7 @@ def apply_overrides(data: dict, overrides: list[str]) -> dict:
 
 def load_suite_scenario(path: str | Path, overrides: list[str] = ()) -> Scenario:
     """Read a scenario file and apply overrides; errors name the file and field."""
-    from dm2.config import ConfigError, load_scenario
+    from dm2.core.config import ConfigError, load_scenario
 
     path = Path(path)
     if not overrides:

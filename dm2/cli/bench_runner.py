@@ -1,8 +1,9 @@
 """Run one scenario in process: the twin, the monitoring session and the report, in one call.
 
 :func:`run_scenario` is the body of ``dm2 run`` and of every bench and sweep case: it builds
-the twin's :class:`twin.simulate.Simulation`, streams its messages into a
-:class:`dm2.session.MonitoringSession` (optionally recording them to MCAP), writes the report
+the twin's :class:`twin.stream.simulate.Simulation`, streams its messages into a
+:class:`dm2.pipeline.session.MonitoringSession` (optionally recording them to MCAP), writes the
+report
 with the twin's fault truth and the scenario's ``[expect]`` section, and measures how far each
 layer's reconstructed surface lies from the twin's true surface of the same layer.
 
@@ -23,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2.config import Scenario
+from dm2.core.config import Scenario
 
 log = logging.getLogger(__name__)
 
@@ -67,7 +68,7 @@ def stream_session(sim, session, scratch: Path, record: bool,
     """
     writer = None
     if record:
-        from dm2.recording_writer import RecordingWriter
+        from dm2.io.recording_writer import RecordingWriter
 
         writer = RecordingWriter(scratch / "run.mcap", attachments=sim.attachments())
         writer.write_static_tf(sim.calibration)
@@ -99,19 +100,19 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
         and tracks.csv only (the bench's default: the pictures cost more than the monitor)
     progress : called with (process seconds done, total) while the twin runs
     on_stream_end : called once the stream is consumed, before the report is written
-    calibration : dm2.messages.Calibration the pipeline uses instead of the one the scenario
+    calibration : dm2.core.messages.Calibration the pipeline uses instead of the one the scenario
         hands it (e.g. a solved hand-eye calibration against a perturbed ``calibration_error``)
 
     Raises
     ------
-    twin.kinematics.ReachError : the toolpath leaves the robot's reach (nothing written)
+    twin.cell.kinematics.ReachError : the toolpath leaves the robot's reach (nothing written)
     ValueError : ``run_dir`` cannot be written (nothing written)
     """
+    from dm2.core.toml_write import dump_toml
+    from dm2.pipeline.session import MonitoringSession
     from dm2.report import check_output_dir, write_report
     from dm2.report.report_json import build_report, write_tracks_csv
-    from dm2.session import MonitoringSession
-    from dm2.toml_write import dump_toml
-    from twin.simulate import Simulation
+    from twin.stream.simulate import Simulation
 
     t_start = time.perf_counter()
     run_dir = check_output_dir(run_dir)
@@ -168,7 +169,7 @@ def reconstruction_errors(results, truth_dir: Path) -> dict[int, dict]:
     import open3d as o3d
     import trimesh
 
-    from dm2.classify import CLASS_NAMES
+    from dm2.defects.classify import CLASS_NAMES
 
     unobserved = CLASS_NAMES.index("unobserved")
     out: dict[int, dict] = {}
@@ -215,7 +216,7 @@ def _read_json(path: Path):
 def score_scenario_run(run: ScenarioRun) -> dict:
     """:func:`dm2.bench.scoring.score_run` of a finished run, with its scenario's settings."""
     from dm2.bench.scoring import score_run
-    from dm2.reference import plume_sigma_mm
+    from dm2.reference.model import plume_sigma_mm
 
     sc = run.scenario
     return score_run(run.report, run.fault_truth,
@@ -233,7 +234,7 @@ def sweep_case(scenario_dict: dict, source: str) -> dict:
     floats are rounded to :data:`SWEEP_DECIMALS` decimals, below which the summation order of
     vectorised and threaded kernels (memory alignment, thread count) may differ between runs.
     """
-    from dm2.config import parse_scenario
+    from dm2.core.config import parse_scenario
 
     sc = parse_scenario(scenario_dict, source)
     with tempfile.TemporaryDirectory(prefix="dm2-sweep-") as tmp:

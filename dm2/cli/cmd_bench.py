@@ -195,7 +195,7 @@ def sweep(
     """
     from dm2.bench.suites import apply_overrides
     from dm2.bench.sweep import plot_sweep, run_sweep, summarize_sweep, sweep_cases
-    from dm2.config import load_scenario, parse_scenario
+    from dm2.core.config import load_scenario, parse_scenario
     from scenarios import resolve_scenario
 
     with bad_input_exits():

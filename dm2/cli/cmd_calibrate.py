@@ -37,7 +37,7 @@ def _estimates_table(result, title: str, truth=None):
     from rich.markup import escape
     from rich.table import Table
 
-    from dm2.frames import pose_error
+    from dm2.core.frames import pose_error
 
     table = Table(title=title, caption=escape(
         "t: translation [mm], r: rotation [deg], sigma: 1-sigma from the Jacobian, RMS: "
@@ -75,8 +75,8 @@ def _estimates_table(result, title: str, truth=None):
 
 
 def _write_outputs(out: Path, result, prior, artifact, summary: dict) -> Path:
-    from dm2.calibration_io import write_calibration_toml
-    from dm2.messages import Calibration
+    from dm2.core.calibration_io import write_calibration_toml
+    from dm2.core.messages import Calibration
 
     T_F_O = prior.T_F_O
     if result.mount_estimated and artifact.work_object:
@@ -165,9 +165,9 @@ def calibrate(
 def _rehearse(scenario, art, poses, noise_mm, robot_noise_mm, seed, max_tilt_deg, offset_mm,
               mount_error_mm):
     from calib.planning import PlanOptions
-    from dm2.config import load_scenario
+    from dm2.core.config import load_scenario
     from scenarios import resolve_scenario
-    from twin.rehearsal import RehearsalConfig, rehearse_calibration
+    from twin.stream.rehearsal import RehearsalConfig, rehearse_calibration
 
     sc = load_scenario(resolve_scenario(scenario))
     plan = PlanOptions(max_tilt_deg=max_tilt_deg)
@@ -183,8 +183,8 @@ def _rehearse(scenario, art, poses, noise_mm, robot_noise_mm, seed, max_tilt_deg
 
 
 def _recorded(recording: Path, prior: Path | None):
-    from dm2.calibration_io import read_calibration_toml
-    from dm2.recording import read_recording
+    from dm2.core.calibration_io import read_calibration_toml
+    from dm2.io.recording import read_recording
 
     if not recording.exists():
         raise FileNotFoundError(f"{recording}: no such recording")

@@ -75,7 +75,7 @@ def serve_twin(
     Example: `dm2 serve-twin pad --write-cell cell/ --speed 5` with
     `dm2 monitor --live cell/cell.toml --out runs/live` in another shell.
     """
-    from dm2.config import load_scenario
+    from dm2.core.config import load_scenario
     from dm2.live.config import parse_host_port
     from scenarios import resolve_scenario
 
@@ -85,10 +85,10 @@ def serve_twin(
         sc = load_scenario(resolve_scenario(scenario))
         if duration_s is not None:
             sc = sc.model_copy(update={"duration_s": duration_s})
-    from twin.kinematics import ReachError
-    from twin.serve import serve_twin as serve
-    from twin.serve import write_cell_files
-    from twin.simulate import Simulation
+    from twin.cell.kinematics import ReachError
+    from twin.stream.serve import serve_twin as serve
+    from twin.stream.serve import write_cell_files
+    from twin.stream.simulate import Simulation
 
     try:
         sim = Simulation(sc)

@@ -17,9 +17,9 @@ log = logging.getLogger(__name__)
 
 def _load_inputs(run: Path, calibration: Path | None, toolpath: Path | None):
     """Open the recording and resolve calibration, toolpath and configuration."""
-    from dm2.calibration_io import read_calibration_toml
-    from dm2.config import CellConfig, MonitorConfig, ProcessConfig, parse_scenario
-    from dm2.recording import read_recording
+    from dm2.core.calibration_io import read_calibration_toml
+    from dm2.core.config import CellConfig, MonitorConfig, ProcessConfig, parse_scenario
+    from dm2.io.recording import read_recording
     from dm2.toolpath.formats import read_csv
 
     rec = read_recording(run)
@@ -51,10 +51,10 @@ def check_toolpath_matches(rec, cal, tp, process, tp_name, n_states: int = 500,
     """
     from scipy.spatial import cKDTree
 
-    from dm2.frames import invert
-    from dm2.layers import resample_toolpath
-    from dm2.messages import RobotState
-    from dm2.registration import spot_B
+    from dm2.core.frames import invert
+    from dm2.core.messages import RobotState
+    from dm2.fusion.layers import resample_toolpath
+    from dm2.fusion.registration import spot_B
 
     spot = spot_B(cal, process.standoff_mm)
     spots = []
@@ -113,9 +113,9 @@ def monitor(
         fail("give a recording to replay, or --live CELL.toml")
     from rich.table import Table
 
+    from dm2.core.toml_write import dump_toml
+    from dm2.pipeline.session import MonitoringSession
     from dm2.report import check_output_dir, write_report
-    from dm2.session import MonitoringSession
-    from dm2.toml_write import dump_toml
 
     t_start = time.perf_counter()
     with bad_input_exits():

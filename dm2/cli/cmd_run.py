@@ -62,8 +62,8 @@ def run(
 
     Example: `dm2 run` or `dm2 run pad --out runs/pad`
     """
-    from dm2.calibration_io import read_calibration_toml
-    from dm2.config import ConfigError, load_scenario
+    from dm2.core.calibration_io import read_calibration_toml
+    from dm2.core.config import ConfigError, load_scenario
     from dm2.report import check_output_dir
     from scenarios import resolve_scenario
 
@@ -81,7 +81,7 @@ def run(
     note_cold_kernel_cache()
 
     from dm2.cli.bench_runner import run_scenario
-    from twin.kinematics import ReachError
+    from twin.cell.kinematics import ReachError
 
     with Progress(TextColumn("[progress.description]{task.description}"), BarColumn(),
                   TextColumn("{task.completed:.0f}/{task.total:.0f} s process"),

@@ -27,7 +27,7 @@ def simulate(
     """
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
-    from dm2.config import load_scenario
+    from dm2.core.config import load_scenario
     from scenarios import resolve_scenario
 
     with bad_input_exits():
@@ -39,9 +39,9 @@ def simulate(
             raise FileNotFoundError(f"--out {out}: folder {out.parent} does not exist")
     if gui:
         _require_display()
-    from twin.kinematics import ReachError
-    from twin.simulate import Simulation
-    from twin.simulate import simulate as run_simulation
+    from twin.cell.kinematics import ReachError
+    from twin.stream.simulate import Simulation
+    from twin.stream.simulate import simulate as run_simulation
 
     with bad_input_exits():
         try:
@@ -71,12 +71,12 @@ class _GuiView:
     """Mirror the recorded robot states in pybullet's GUI (every tenth state)."""
 
     def __init__(self, cell):
-        from twin.pybullet_cell import PybulletCell
+        from twin.cell.pybullet_cell import PybulletCell
 
         self.cell = PybulletCell(cell, gui=True)
 
     def on_message(self, msg) -> None:
-        from dm2.messages import RobotState
+        from dm2.core.messages import RobotState
 
         if isinstance(msg, RobotState) and msg.seq % 10 == 0:
             self.cell.set_joints(msg.joints_rad)

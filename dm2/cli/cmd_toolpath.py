@@ -13,7 +13,7 @@ from dm2.cli.common import app, bad_input_exits, console
 
 def _load_part(part_or_scenario: str):
     """(mesh_O, ToolpathConfig, label) from an STL path or a scenario name/file."""
-    from dm2.config import CellConfig, ConfigError, PartConfig, ToolpathConfig, load_scenario
+    from dm2.core.config import CellConfig, ConfigError, PartConfig, ToolpathConfig, load_scenario
     from scenarios import resolve_scenario
     from scenarios.parts import build_part
 
@@ -48,7 +48,7 @@ def toolpath(
     plot: Path | None = typer.Option(None, "--plot", help="Also write a PNG (top view)."),
 ) -> None:
     """Plan the continuous (C3D-style) toolpath of a part: infill, edges, overhangs, skips."""
-    from dm2.messages import TOOLPATH_KINDS
+    from dm2.core.messages import TOOLPATH_KINDS
     from dm2.toolpath import generate_toolpath
     from dm2.toolpath.formats import write_csv, write_rapid
     from dm2.toolpath.plot import plot_toolpath

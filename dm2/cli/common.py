@@ -74,8 +74,8 @@ def fail(message: str, code: int = EXIT_BAD_INPUT) -> None:
 @contextmanager
 def bad_input_exits():
     """Turn the project's input errors into a clear message and exit code 2."""
-    from dm2.config import ConfigError
-    from dm2.messages import MessageError
+    from dm2.core.config import ConfigError
+    from dm2.core.messages import MessageError
 
     try:
         yield

@@ -1,7 +1,7 @@
 """A monitoring session with what a live run adds: per-layer reports, transport drop counts,
 out-of-range points and sensor dropouts.
 
-:class:`LayerAnalysis` wraps :class:`~dm2.session.MonitoringSession` (the same object
+:class:`LayerAnalysis` wraps :class:`~dm2.pipeline.session.MonitoringSession` (the same object
 ``dm2 run`` drives in process, so a live run and an in-process run of the same stream give the
 same layers and tracks), gives the fusion monitor the plate's box so points far outside count
 ``out_of_range``, notes sensors silent for longer than allowed (``sensor_dropout`` events) and,
@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2.messages import Profile
+from dm2.core.messages import Profile
 
 log = logging.getLogger(__name__)
 
@@ -43,11 +43,11 @@ class LayerAnalysis:
 
     Parameters
     ----------
-    calibration : dm2.messages.Calibration
-    monitor_cfg, process : dm2.config MonitorConfig and ProcessConfig
+    calibration : dm2.core.messages.Calibration
+    monitor_cfg, process : dm2.core.config MonitorConfig and ProcessConfig
     plate_size_mm : (Lx, Ly, thickness) [mm]; points outside the plate's box (plus a margin,
         up to ``MAX_PART_HEIGHT_MM``) count ``out_of_range``
-    toolpath : optional dm2.messages.Toolpath (layer changes when there are no marks)
+    toolpath : optional dm2.core.messages.Toolpath (layer changes when there are no marks)
     out_dir : folder for the report (rewritten after each layer) or None
     config_toml : resolved configuration text written beside the report
     max_sensor_gap_s : float [s], a sensor silent longer than this counts ``sensor_dropout``
@@ -60,7 +60,7 @@ class LayerAnalysis:
     def __init__(self, calibration, monitor_cfg, process, plate_size_mm, toolpath=None,
                  out_dir: str | Path | None = None, config_toml: str | None = None,
                  max_sensor_gap_s: float = 1.0, meta: dict | None = None, live: bool = False):
-        from dm2.session import MonitoringSession
+        from dm2.pipeline.session import MonitoringSession
 
         Lx, Ly, th = (float(v) for v in plate_size_mm)
         m = OUT_OF_RANGE_MARGIN_MM

@@ -34,7 +34,7 @@ from collections import deque
 import numpy as np
 from numba import njit
 
-from dm2.messages import Profile
+from dm2.core.messages import Profile
 
 log = logging.getLogger(__name__)
 

@@ -4,14 +4,14 @@ Example::
 
     schema = 1
     name = "cold-spray cell 1"
-    calibration = "calibration.toml"      # dm2.calibration_io format, relative to this file
+    calibration = "calibration.toml"      # dm2.core.calibration_io format, relative to this file
     toolpath = "toolpath.csv"             # optional: layer changes without controller marks
     plate_size_mm = [120.0, 120.0, 6.0]
 
-    [process]                             # dm2.config.ProcessConfig
+    [process]                             # dm2.core.config.ProcessConfig
     standoff_mm = 30.0
 
-    [monitor]                             # dm2.config.MonitorConfig
+    [monitor]                             # dm2.core.config.MonitorConfig
     voxel_mm = 0.5
 
     [live]
@@ -25,7 +25,7 @@ Example::
     sensor_id = "S1"                      # wrapper (dm2.live.scancontrol), besides bridges
     interface = "192.168.0.11"
 
-Every model rejects unknown keys; errors are :class:`~dm2.config.ConfigError` naming the file
+Every model rejects unknown keys; errors are :class:`~dm2.core.config.ConfigError` naming the file
 and the field.
 """
 
@@ -37,7 +37,7 @@ from typing import Literal
 
 from pydantic import Field, ValidationError, field_validator, model_validator
 
-from dm2.config import (
+from dm2.core.config import (
     SCHEMA_VERSION,
     ConfigError,
     MonitorConfig,

@@ -7,7 +7,7 @@ degrees, position in mm, orientation as a unit quaternion ``u0..u3`` (``u0`` = w
 
 The stamp of a state is ``feedBack.time`` when the controller sends it, else the unwrapped
 header ``tm``. A RAPID program may report the current layer index in
-``RAPIDfromRobot.digVal[0]``; a change of that value becomes a :class:`~dm2.messages.LayerMark`
+``RAPIDfromRobot.digVal[0]``; a change of that value becomes a :class:`~dm2.core.messages.LayerMark`
 stamped like the state that carries it (emitted just before it).
 
 The listener takes every datagram queued after the one it waited for in a single call
@@ -28,11 +28,11 @@ import time
 import numpy as np
 from google.protobuf.message import DecodeError
 
-from dm2.frames import to_quat_abb
+from dm2.core.frames import to_quat_abb
+from dm2.core.messages import LayerMark, RobotState
 from dm2.live import egm_pb2
 from dm2.live.inbox import Inbox
 from dm2.live.udp_batch import DatagramBatch
-from dm2.messages import LayerMark, RobotState
 
 log = logging.getLogger(__name__)
 

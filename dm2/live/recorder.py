@@ -1,6 +1,6 @@
 """Crash-safe live recording: MCAP chunks closed and pushed to the OS at least every second.
 
-:class:`LiveRecorder` is a :class:`~dm2.recording_writer.RecordingWriter` that, besides closing a
+:class:`LiveRecorder` is a :class:`~dm2.io.recording_writer.RecordingWriter` that, besides closing a
 chunk after ``chunk_s`` of message time, also closes it after ``chunk_s`` of wall time and
 flushes Python's file buffer each time, so a process killed with SIGKILL leaves every chunk
 but the one in progress on disk (at most about ``chunk_s`` of messages lost). The file stays
@@ -15,9 +15,9 @@ import threading
 import time
 from collections import deque
 
-from dm2.messages import MessageError, RobotState
-from dm2.recording import stamp_to_ns
-from dm2.recording_writer import RecordingWriter
+from dm2.core.messages import MessageError, RobotState
+from dm2.io.recording import stamp_to_ns
+from dm2.io.recording_writer import RecordingWriter
 
 log = logging.getLogger(__name__)
 

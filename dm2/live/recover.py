@@ -4,7 +4,7 @@ The file is read record by record (:class:`mcap.stream_reader.StreamReader`, chu
 decompressed) up to the first damaged or missing record; every complete schema, channel,
 message, attachment and metadata record before that point is copied, unchanged, into a new
 file with chunk indexes and a summary, so ordinary MCAP readers (and
-:func:`dm2.recording.read_recording`) open it.
+:func:`dm2.io.recording.read_recording`) open it.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from mcap.records import Attachment, Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
-from dm2.recording import MCAP_MAGIC
+from dm2.io.recording import MCAP_MAGIC
 
 log = logging.getLogger(__name__)
 

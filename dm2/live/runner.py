@@ -40,11 +40,11 @@ import time
 from collections import OrderedDict, deque
 from pathlib import Path
 
+from dm2.core.messages import LayerMark, MessageError, Profile, RobotState
 from dm2.live.analysis import LayerAnalysis
 from dm2.live.clock import ClockAligner
 from dm2.live.config import CellFile, parse_host_port
 from dm2.live.inbox import Inbox
-from dm2.messages import LayerMark, MessageError, Profile, RobotState
 
 log = logging.getLogger(__name__)
 
@@ -66,7 +66,7 @@ class LiveRunner:
 
     def __init__(self, cell: CellFile, out_dir: str | Path, *, cell_toml: str | None = None,
                  record: bool = True):
-        from dm2.calibration_io import calibration_to_toml, read_calibration_toml
+        from dm2.core.calibration_io import calibration_to_toml, read_calibration_toml
 
         self.cell = cell
         self.out_dir = Path(out_dir)

@@ -23,7 +23,7 @@ resolution, selects the ``PROFILE`` transfer format, sets internal triggering (a
 idle time when given), registers a buffer callback and starts the transfer. Every buffer the
 SDK hands over (``resolution * 64`` bytes: four reflections of 16 bytes per point, the last 16
 bytes of the buffer holding the profile's timestamp block) becomes one
-:class:`~dm2.messages.Profile`:
+:class:`~dm2.core.messages.Profile`:
 
 - ``xz_S`` [mm] from ``convert_profile_2_values`` (first reflection; x along the line, z the
   distance from the sensor, the sensor frame of this project);
@@ -49,8 +49,8 @@ import time
 
 import numpy as np
 
+from dm2.core.messages import COUNTER_MODULO, MessageError, Profile
 from dm2.live.inbox import Inbox
-from dm2.messages import COUNTER_MODULO, MessageError, Profile
 
 log = logging.getLogger(__name__)
 
@@ -110,7 +110,7 @@ class ClockUnwrapper:
 
 
 class ProfileConverter:
-    """Raw ``PROFILE`` buffers of one sensor -> :class:`~dm2.messages.Profile`.
+    """Raw ``PROFILE`` buffers of one sensor -> :class:`~dm2.core.messages.Profile`.
 
     Parameters
     ----------

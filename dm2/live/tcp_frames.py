@@ -32,7 +32,7 @@ import zlib
 
 import numpy as np
 
-from dm2.messages import COUNTER_MODULO, SENSOR_IDS, MessageError, Profile
+from dm2.core.messages import COUNTER_MODULO, SENSOR_IDS, MessageError, Profile
 
 log = logging.getLogger(__name__)
 

@@ -14,9 +14,9 @@ import socket
 import threading
 import time
 
+from dm2.core.messages import Profile
 from dm2.live.inbox import Inbox
 from dm2.live.tcp_frames import MAX_FRAME_BYTES, FrameParser, encode_frame
-from dm2.messages import Profile
 
 log = logging.getLogger(__name__)
 

@@ -47,12 +47,12 @@ def write_report(out_dir: str | Path, results, tracks, *, config_toml: str | Non
     Parameters
     ----------
     out_dir : target folder (replaced if it exists)
-    results : list of dm2.defects.LayerResult
-    tracks : list of dm2.track.Track
-    config_toml : the resolved configuration text (``dm2.toml_write.dump_toml``), written as-is
+    results : list of dm2.defects.layer_analysis.LayerResult
+    tracks : list of dm2.defects.track.Track
+    config_toml : the resolved configuration text (``dm2.core.toml_write.dump_toml``), written as-is
     dropped, timing : dicts copied into report.json
     fault_truth : dict/list of injected faults to compare the tracks with (or None)
-    expect : dm2.config.ExpectConfig to check (or None)
+    expect : dm2.core.config.ExpectConfig to check (or None)
     map_layers : layers to render as PNG deviation maps (default: up to 6 spread evenly,
         always including the last)
     limit_mm : colour range of the deviation maps and PLY colours [mm]

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2.deviation import LayerDeviation
-from dm2.refmap import ReferenceMap
+from dm2.defects.deviation import LayerDeviation
+from dm2.reference.height_map import ReferenceMap
 
 CLASS_RGB = np.array([[200, 200, 200],   # normal
                       [215, 48, 39],     # overbuild

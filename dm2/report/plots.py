@@ -6,9 +6,9 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2.deviation import LayerDeviation
-from dm2.segment import Region
-from dm2.track import Track
+from dm2.defects.deviation import LayerDeviation
+from dm2.defects.segment import Region
+from dm2.defects.track import Track
 
 
 def _pyplot():

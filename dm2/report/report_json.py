@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2.track import Track
+from dm2.defects.track import Track
 
 REPORT_SCHEMA = "dm2.report/1"
 # which track kind an injected fault is expected to produce (sign of the fault's effect)
@@ -78,7 +78,7 @@ def _first_layer(fault: dict):
 def compare_with_truth(tracks: list[Track], faults: list[dict], within_mm: float = 10.0) -> list:
     """For each injected fault: whether a track of the expected kind explains it.
 
-    A fault entry is a dict as twin.truth writes it (``kind``, ``sign``, ``layers``,
+    A fault entry is a dict as twin.world.truth writes it (``kind``, ``sign``, ``layers``,
     ``region_O`` with ``bbox`` / ``centers``) or a scenario-style fault (``kind``,
     ``center_O_mm``, ``layers`` [first, last], ``factor``). A track matches when its kind
     family equals the expected one (global or local), it lasts to the fault's first layer or
@@ -138,7 +138,8 @@ def build_report(results, tracks: list[Track], *, dropped: dict | None = None,
                  sections: dict | None = None) -> dict:
     """The report.json content (top-level: schema, meta, layers, tracks, dropped, timing, ...).
 
-    ``results`` is a list of dm2.defects.LayerResult; ``fault_truth`` a dict with ``faults``
+    ``results`` is a list of dm2.defects.layer_analysis.LayerResult; ``fault_truth`` a dict with
+    ``faults``
     (or a list of fault dicts) as written by the twin.
     """
     layers = []

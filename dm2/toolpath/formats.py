@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from dm2.messages import KIND_CODE, TOOLPATH_KINDS, Toolpath
+from dm2.core.messages import KIND_CODE, TOOLPATH_KINDS, Toolpath
 
 CSV_COLUMNS = ("index", "x_mm", "y_mm", "z_mm", "ax", "ay", "az", "speed_mm_s", "kind", "layer",
                "spray_on", "zone_mm")

@@ -37,8 +37,8 @@ import logging
 import numpy as np
 import trimesh
 
-from dm2.config import ToolpathConfig
-from dm2.messages import KIND_CODE, TOOLPATH_KINDS, Toolpath
+from dm2.core.config import ToolpathConfig
+from dm2.core.messages import KIND_CODE, TOOLPATH_KINDS, Toolpath
 from dm2.toolpath.contours import contour_loops, corner_angles_deg, open_loop_near
 from dm2.toolpath.infill import raster_segments
 from dm2.toolpath.linking import DOWN_O, PathBuilder, Region, order_raster
@@ -122,7 +122,7 @@ def generate_toolpath(mesh_O: trimesh.Trimesh, cfg: ToolpathConfig) -> Toolpath:
     Parameters
     ----------
     mesh_O : watertight trimesh in the work-object frame O [mm], base at z = 0
-    cfg : dm2.config.ToolpathConfig
+    cfg : dm2.core.config.ToolpathConfig
 
     Returns
     -------

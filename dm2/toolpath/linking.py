@@ -12,7 +12,7 @@ import numpy as np
 import shapely
 from shapely.geometry import LineString, Point
 
-from dm2.messages import KIND_CODE
+from dm2.core.messages import KIND_CODE
 from dm2.toolpath.polyline import drop_repeats
 
 LINK_FACTOR = 2.5  # raster ends closer than this many spacings (inside the region) are joined

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import shapely
 
-from dm2.messages import KIND_CODE
+from dm2.core.messages import KIND_CODE
 
 
 def overhang_regions(regions, min_mm: float) -> list:

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2.messages import TOOLPATH_KINDS, Toolpath
+from dm2.core.messages import TOOLPATH_KINDS, Toolpath
 
 KIND_COLOURS = {"infill": "tab:blue", "edge": "red", "skip": "green", "overhang": "cyan"}
 

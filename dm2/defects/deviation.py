@@ -1,0 +1,224 @@
+"""Signed deviation of a measured surface mesh from the near-net reference (paper sec. 6.2).
+
+The distance is the closest distance of each measured vertex to the reference surface (the
+reference height map triangulated on its cell centres; an exact point-triangle search bounded by
+the vertical distance, in a numba kernel).
+Its sign comes from the side of the reference height map the vertex lies on (above: positive =
+more material than the reference), never from inside/outside of an open mesh.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit, prange
+
+from dm2.defects.classify import classify_vertices
+from dm2.reference.height_map import ReferenceMap
+
+log = logging.getLogger(__name__)
+
+MAX_SEARCH_MM = 20.0  # closest-point search radius cap (deviations beyond are vertical)
+
+
+def _surface_arrays(surface):
+    """``(vertices_O, faces, weight)`` of a dm2.fusion.surface.SurfaceMesh-like object,
+    validated."""
+    v = np.ascontiguousarray(surface.vertices_O, dtype=np.float64)
+    f = np.ascontiguousarray(surface.faces, dtype=np.int64)
+    if v.ndim != 2 or v.shape[1] != 3:
+        raise ValueError(f"surface.vertices_O: expected (n, 3), got {v.shape}")
+    if f.size and (f.ndim != 2 or f.shape[1] != 3 or f.min() < 0 or f.max() >= len(v)):
+        raise ValueError(f"surface.faces: expected (m, 3) indices into {len(v)} vertices")
+    f = f.reshape(-1, 3)
+    w = getattr(surface, "weight", None)
+    w = np.full(len(v), np.inf) if w is None else np.asarray(w, dtype=np.float64).reshape(-1)
+    if w.shape[0] != v.shape[0]:
+        raise ValueError(f"surface.weight: expected ({len(v)},), got {w.shape}")
+    return v, f, w
+
+
+@njit(cache=True, inline="always")
+def _closest_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
+    """Closest point of triangle abc to p (Ericson, Real-Time Collision Detection 5.1.5)."""
+    abx, aby, abz = bx - ax, by - ay, bz - az
+    acx, acy, acz = cx - ax, cy - ay, cz - az
+    apx, apy, apz = px - ax, py - ay, pz - az
+    d1 = abx * apx + aby * apy + abz * apz
+    d2 = acx * apx + acy * apy + acz * apz
+    if d1 <= 0.0 and d2 <= 0.0:
+        return ax, ay, az
+    bpx, bpy, bpz = px - bx, py - by, pz - bz
+    d3 = abx * bpx + aby * bpy + abz * bpz
+    d4 = acx * bpx + acy * bpy + acz * bpz
+    if d3 >= 0.0 and d4 <= d3:
+        return bx, by, bz
+    vc = d1 * d4 - d3 * d2
+    if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
+        t = d1 / (d1 - d3)
+        return ax + t * abx, ay + t * aby, az + t * abz
+    cpx, cpy, cpz = px - cx, py - cy, pz - cz
+    d5 = abx * cpx + aby * cpy + abz * cpz
+    d6 = acx * cpx + acy * cpy + acz * cpz
+    if d6 >= 0.0 and d5 <= d6:
+        return cx, cy, cz
+    vb = d5 * d2 - d1 * d6
+    if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
+        t = d2 / (d2 - d6)
+        return ax + t * acx, ay + t * acy, az + t * acz
+    va = d3 * d6 - d5 * d4
+    if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
+        t = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        return bx + t * (cx - bx), by + t * (cy - by), bz + t * (cz - bz)
+    den = 1.0 / (va + vb + vc)
+    v = vb * den
+    w = vc * den
+    return ax + abx * v + acx * w, ay + aby * v + acy * w, az + abz * v + acz * w
+
+
+@njit(cache=True, parallel=True)
+def _closest_on_heightmap(points, h, cell, max_r):
+    """Signed closest distance and closest points of ``points`` (n, 3) to the triangulated
+    height map (cell centres; squares split a-b-d / a-d-c). The vertical distance to the
+    surface bounds the search; the sign is the side of the surface (+ above)."""
+    ny, nx = h.shape
+    n = points.shape[0]
+    dist = np.empty(n)
+    foot = np.empty((n, 3))
+    for k in prange(n):
+        px, py, pz = points[k, 0], points[k, 1], points[k, 2]
+        fx = min(max(px / cell - 0.5, 0.0), nx - 1.0)
+        fy = min(max(py / cell - 0.5, 0.0), ny - 1.0)
+        i0 = min(int(fx), nx - 2)
+        j0 = min(int(fy), ny - 2)
+        tx, ty = fx - i0, fy - j0
+        ha, hb, hc, hd = h[j0, i0], h[j0, i0 + 1], h[j0 + 1, i0], h[j0 + 1, i0 + 1]
+        if tx >= ty:  # triangle a-b-d
+            hz = ha + tx * (hb - ha) + ty * (hd - hb)
+        else:  # triangle a-d-c
+            hz = ha + ty * (hc - ha) + tx * (hd - hc)
+        side = 1.0 if pz >= hz else -1.0
+        qx = (fx + 0.5) * cell
+        qy = (fy + 0.5) * cell
+        off = math.sqrt((qx - px) ** 2 + (qy - py) ** 2)  # outside the map: clamp distance
+        best2 = (pz - hz) ** 2 + off * off
+        bx, by, bz = qx, qy, hz
+        r = min(math.sqrt(best2), max_r)
+        ia = max(int(math.floor((px - r) / cell - 0.5)), 0)
+        ib = min(int(math.floor((px + r) / cell - 0.5)), nx - 2)
+        ja = max(int(math.floor((py - r) / cell - 0.5)), 0)
+        jb = min(int(math.floor((py + r) / cell - 0.5)), ny - 2)
+        for j in range(ja, jb + 1):
+            y0 = (j + 0.5) * cell
+            y1 = y0 + cell
+            for i in range(ia, ib + 1):
+                x0 = (i + 0.5) * cell
+                x1 = x0 + cell
+                a = h[j, i]
+                b = h[j, i + 1]
+                c = h[j + 1, i]
+                d = h[j + 1, i + 1]
+                for t in range(2):
+                    if t == 0:
+                        cx_, cy_, cz_ = _closest_on_triangle(px, py, pz, x0, y0, a, x1, y0, b,
+                                                             x1, y1, d)
+                    else:
+                        cx_, cy_, cz_ = _closest_on_triangle(px, py, pz, x0, y0, a, x1, y1, d,
+                                                             x0, y1, c)
+                    d2 = (cx_ - px) ** 2 + (cy_ - py) ** 2 + (cz_ - pz) ** 2
+                    if d2 < best2:
+                        best2 = d2
+                        bx, by, bz = cx_, cy_, cz_
+        dist[k] = side * math.sqrt(best2)
+        foot[k, 0], foot[k, 1], foot[k, 2] = bx, by, bz
+    return dist, foot
+
+
+def closest_on_reference(points_O: np.ndarray, reference: ReferenceMap):
+    """Signed closest distance [mm] (n,) and closest reference points ``foot_O`` (n, 3).
+
+    The reference surface is the map's cell-centre grid split into triangles; the search for
+    the closest triangle is bounded by the vertical distance (numba, parallel over points).
+    """
+    p = np.ascontiguousarray(points_O, dtype=np.float64).reshape(-1, 3)
+    if len(p) == 0:
+        return np.zeros(0), np.zeros((0, 3))
+    return _closest_on_heightmap(p, reference.heights_mm, reference.cell_mm, MAX_SEARCH_MM)
+
+
+def signed_deviation(surface, reference: ReferenceMap) -> np.ndarray:
+    """Per-vertex signed distance [mm] (n,) of ``surface`` to ``reference``.
+
+    Parameters
+    ----------
+    surface : object with ``vertices_O`` (n, 3) [mm] (e.g. dm2.fusion.surface.SurfaceMesh)
+    reference : ReferenceMap, the near-net reference of the same layer / time
+
+    Returns
+    -------
+    (n,) float64 [mm], positive where the part is above the reference (overbuild).
+    """
+    d, _ = closest_on_reference(np.asarray(surface.vertices_O, dtype=np.float64), reference)
+    return d
+
+
+@dataclass(frozen=True)
+class LayerDeviation:
+    """Deviation map of one layer (or one moment) and its per-vertex classes.
+
+    Attributes
+    ----------
+    layer : int
+    vertices_O : (n, 3) float64 [mm], measured surface vertices
+    faces : (m, 3) int64, triangles
+    weight : (n,) float64, fusion weight per vertex (observation confidence)
+    signed_distance_mm : (n,) float64 [mm], + above the reference
+    foot_O : (n, 3) float64 [mm], closest point on the reference per vertex
+    class_code : (n,) int8, codes of dm2.defects.classify.CLASS_NAMES
+    local_metric : (n,) float64, normalised curvature-weighted deviation (dimensionless)
+    mean_curvature : (n,) float64 [1/mm], + convex
+    vertex_area_mm2 : (n,) float64 [mm^2], barycentric area per vertex
+    stamp_s : float [s]
+    """
+
+    layer: int
+    vertices_O: np.ndarray
+    faces: np.ndarray
+    weight: np.ndarray
+    signed_distance_mm: np.ndarray
+    foot_O: np.ndarray
+    class_code: np.ndarray
+    local_metric: np.ndarray
+    mean_curvature: np.ndarray
+    vertex_area_mm2: np.ndarray
+    stamp_s: float = 0.0
+
+    @property
+    def n_vertices(self) -> int:
+        return int(self.vertices_O.shape[0])
+
+    def vertex_areas(self) -> np.ndarray:
+        """One third of the area of every incident triangle, per vertex [mm^2] (n,)."""
+        return self.vertex_area_mm2
+
+
+def layer_deviation(surface, reference: ReferenceMap, monitor_cfg, layer: int | None = None,
+                    stamp_s: float | None = None) -> LayerDeviation:
+    """Signed deviation and classification of a measured surface against a reference.
+
+    ``monitor_cfg`` supplies ``delta_global_mm``, ``delta_local`` and ``min_weight``.
+    """
+    v, f, w = _surface_arrays(surface)
+    d, foot = closest_on_reference(v, reference)
+    normals = getattr(surface, "normals_O", None)
+    classes = classify_vertices(v, f, w, d, monitor_cfg, normals_O=normals,
+                                reference_curvature=reference.mean_curvature_at(foot[:, :2]))
+    layer = reference.layer if layer is None else int(layer)
+    log.debug("layer %d: %d vertices, deviation %.3f..%.3f mm", layer, len(v),
+              float(d.min()) if len(d) else 0.0, float(d.max()) if len(d) else 0.0)
+    return LayerDeviation(layer, v, f, w, d, foot, classes.class_code, classes.local_metric,
+                          classes.mean_curvature, classes.vertex_area_mm2,
+                          float(reference.stamp_s if stamp_s is None else stamp_s))

@@ -1,0 +1,123 @@
+"""Registration of profiles into the work-object frame (paper eq 1).
+
+``points_O = T_O_B @ T_B_S @ points_S`` with ``T_B_O(t) = T_B_F(t) @ T_F_O``; the laser's
+emission point (the origin of ``S``) is carried along so the TSDF can cast each ray from it.
+The deposition spot follows the nozzle axis: ``spot_B = origin(T_B_N) + standoff * z_N`` and
+``spot_O = T_O_B @ spot_B``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from dm2.core.frames import invert
+from dm2.core.messages import Calibration
+
+
+def spot_B(calibration: Calibration, standoff_mm: float) -> np.ndarray:
+    """Deposition spot ``(3,)`` [mm] in ``B``: ``standoff_mm`` along +z_N from the nozzle exit."""
+    T = calibration.T_B_N
+    return T[:3, 3] + float(standoff_mm) * T[:3, 2]
+
+
+def profile_points_S(xz_S: np.ndarray) -> np.ndarray:
+    """Laser-plane points ``(n, 2)`` [mm] as 3-D points ``(n, 3)`` in ``S`` (``y_S = 0``)."""
+    xz = np.asarray(xz_S, dtype=np.float64)
+    out = np.zeros((xz.shape[0], 3))
+    out[:, 0] = xz[:, 0]
+    out[:, 2] = xz[:, 1]
+    return out
+
+
+def T_O_S_at(T_B_F: np.ndarray, T_F_O: np.ndarray, T_B_S: np.ndarray) -> np.ndarray:
+    """``T_O_S = inv(T_B_F @ T_F_O) @ T_B_S`` for one pose (4, 4) or a stack (k, 4, 4)."""
+    T_B_O = np.asarray(T_B_F) @ np.asarray(T_F_O)
+    return invert(T_B_O) @ np.asarray(T_B_S)
+
+
+def register_profile(xz_S: np.ndarray, T_O_S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Points ``(n, 3)`` [mm] in ``O`` and the sensor origin ``(3,)`` [mm] in ``O``."""
+    xz = np.asarray(xz_S, dtype=np.float64)
+    R = T_O_S[:3, :3]
+    pts = np.outer(xz[:, 0], R[:, 0]) + np.outer(xz[:, 1], R[:, 2]) + T_O_S[:3, 3]
+    return pts, T_O_S[:3, 3].copy()
+
+
+def nozzle_axis_O(T_B_O: np.ndarray, calibration: Calibration, standoff_mm: float
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Deposition spot ``(3,)`` [mm] and unit spray direction ``(3,)`` in ``O`` at ``T_B_O``."""
+    T_O_B = invert(T_B_O)
+    spot = T_O_B[:3, :3] @ spot_B(calibration, standoff_mm) + T_O_B[:3, 3]
+    axis = T_O_B[:3, :3] @ calibration.T_B_N[:3, 2]
+    return spot, axis
+
+
+def distance_to_axis(points_O: np.ndarray, spot_O: np.ndarray, axis_O: np.ndarray) -> np.ndarray:
+    """Distance ``(n,)`` [mm] of each point from the nozzle axis line through ``spot_O``."""
+    rel = np.asarray(points_O) - spot_O
+    along = rel @ axis_O
+    return np.sqrt(np.maximum(np.einsum("ij,ij->i", rel, rel) - along * along, 0.0))
+
+
+@njit(cache=True)
+def profile_frames(T_B_F, T_F_O, T_B_S, sensor_index, spot_B, axis_B):
+    """Per-profile frames of a batch, each computed alone (the same bits whatever the batch).
+
+    Parameters
+    ----------
+    T_B_F : (k, 4, 4) float64, flange pose at each profile's stamp
+    T_F_O : (4, 4) float64, work object on the flange
+    T_B_S : (m, 4, 4) float64, the calibrated sensor poses
+    sensor_index : (k,) int64, row of ``T_B_S`` that took each profile
+    spot_B, axis_B : (3,) float64, deposition spot [mm] and unit spray axis in ``B``
+
+    Returns
+    -------
+    T_O_S : (k, 4, 4) float64, ``inv(T_B_F @ T_F_O) @ T_B_S``
+    spot_O, axis_O : (k, 3) float64, deposition spot [mm] and spray axis in ``O``
+    """
+    k = T_B_F.shape[0]
+    T_O_S = np.zeros((k, 4, 4))
+    spot_O = np.empty((k, 3))
+    axis_O = np.empty((k, 3))
+    T_B_O = np.empty((4, 4))
+    T_O_B = np.zeros((4, 4))
+    for j in range(k):
+        for r in range(4):
+            for c in range(4):
+                acc = 0.0
+                for m in range(4):
+                    acc += T_B_F[j, r, m] * T_F_O[m, c]
+                T_B_O[r, c] = acc
+        for r in range(3):  # rigid inverse: R^T, -R^T t
+            for c in range(3):
+                T_O_B[r, c] = T_B_O[c, r]
+            T_O_B[r, 3] = -(T_B_O[0, r] * T_B_O[0, 3] + T_B_O[1, r] * T_B_O[1, 3]
+                            + T_B_O[2, r] * T_B_O[2, 3])
+        T_O_B[3, 3] = 1.0
+        s = sensor_index[j]
+        for r in range(4):
+            for c in range(4):
+                acc = 0.0
+                for m in range(4):
+                    acc += T_O_B[r, m] * T_B_S[s, m, c]
+                T_O_S[j, r, c] = acc
+        for r in range(3):
+            spot_O[j, r] = T_O_B[r, 0] * spot_B[0] + T_O_B[r, 1] * spot_B[1] \
+                + T_O_B[r, 2] * spot_B[2] + T_O_B[r, 3]
+            axis_O[j, r] = T_O_B[r, 0] * axis_B[0] + T_O_B[r, 1] * axis_B[1] \
+                + T_O_B[r, 2] * axis_B[2]
+    return T_O_S, spot_O, axis_O
+
+
+def register_profiles(xz_S: np.ndarray, offsets: np.ndarray, T_O_S: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Points ``(n, 3)`` [mm] in ``O`` and their rays' origins ``(n, 3)`` of a profile batch
+    (``xz_S (n, 2)``, ``offsets (k + 1,)``, ``T_O_S (k, 4, 4)``), with the arithmetic of
+    :func:`dm2.fusion.tsdf.kernels.fuse_profiles`."""
+    counts = np.diff(np.asarray(offsets, dtype=np.int64))
+    xz = np.asarray(xz_S, dtype=np.float64)
+    R = np.repeat(np.asarray(T_O_S)[:, :3, :3], counts, axis=0)
+    origins = np.repeat(np.asarray(T_O_S)[:, :3, 3], counts, axis=0)
+    return origins + R[:, :, 0] * xz[:, :1] + R[:, :, 2] * xz[:, 1:], origins

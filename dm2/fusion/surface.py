@@ -1,0 +1,284 @@
+"""Surface extraction from the sparse TSDF: incremental marching cubes, per-vertex weight.
+
+The field is cut into chunks of ``CHUNK_BLOCKS**3`` blocks. Each chunk is gathered into a dense
+sub-volume with a one-voxel apron on its upper faces and triangulated with
+``skimage.measure.marching_cubes``, only in cubes whose eight corners were observed with weight
+``>= min_weight``. Chunk meshes are cached; an update re-meshes only the chunks whose blocks
+(or apron) were touched since the last extraction; :meth:`SurfaceExtractor.premesh` meshes
+touched chunks ahead of time (a live loop's idle moments) so the next update has less to do,
+with the same result. Vertices shared by neighbouring chunks are merged
+when the chunks are assembled (only vertices on chunk faces are compared).
+
+:meth:`SurfaceExtractor.gather` splits an update in two: on the fusion thread it only copies
+the small dense TSDF/weight boxes of the chunks to re-mesh (:class:`ChunkVolume`) and returns
+a :class:`PendingSurface`; marching cubes and assembly run when its :meth:`~PendingSurface.
+result` is first asked for, on whichever thread asks (a live session's worker). The field may
+go on changing meanwhile: the copies are the field at the gather, so the surface is the one an
+immediate :meth:`~SurfaceExtractor.update` would have returned.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+from scipy.ndimage import map_coordinates
+
+from dm2.fusion.surface_mesh import SurfaceMesh, read_ply
+from dm2.fusion.tsdf import kernels as K
+from dm2.fusion.tsdf.field import SparseTSDF
+from dm2.fusion.tsdf.kernels import BLOCK
+
+__all__ = ["CHUNK_BLOCKS", "ChunkVolume", "PendingSurface", "SurfaceExtractor", "SurfaceMesh",
+           "mesh_volume", "read_ply"]
+
+CHUNK_BLOCKS = 4
+_MISSING = object()
+
+
+def _chunks_of(blocks: np.ndarray) -> list[tuple[int, int, int]]:
+    """Chunks whose mesh depends on ``blocks (k, 3)``, in a fixed order (a block is also the
+    upper apron of the chunks below/behind it)."""
+    chunks: set = set()
+    if len(blocks):
+        base = np.floor_divide(blocks, CHUNK_BLOCKS)
+        at_low = (blocks - base * CHUNK_BLOCKS) == 0
+        for dx in (0, 1):
+            for dy in (0, 1):
+                for dz in (0, 1):
+                    shift = np.array([dx, dy, dz])
+                    sel = np.all(at_low | (shift == 0), axis=1)
+                    for c in map(tuple, (base[sel] - shift).tolist()):
+                        chunks.add(c)
+    return list(chunks)
+
+
+def mesh_volume(d: np.ndarray, w: np.ndarray, origin: np.ndarray, voxel_mm: float,
+                truncation_mm: float, min_weight: float):
+    """Marching cubes of one chunk's dense box; None when it holds no observed surface.
+
+    Parameters
+    ----------
+    d, w : (n+1, n+1, n+1) float32, signed distance [mm] and weight (``d`` is modified)
+    origin : (3,) int, the box's first voxel index
+    voxel_mm, truncation_mm, min_weight : the field's voxel edge, truncation and the weight
+        a cube's eight corners need to be meshed
+
+    Returns
+    -------
+    (vertices_O (k, 3) [mm], faces (f, 3) int64, weight (k,) float32, normals_O (k, 3),
+    on_border (k,) bool) or None
+    """
+    from skimage.measure import marching_cubes
+
+    n = d.shape[0] - 1
+    d[w <= 0] = truncation_mm  # never updated: free space, never exactly level
+    seen = w >= min_weight  # skimage meshes a cube only if all 8 corners are masked
+    if not (np.any(d[seen] < 0) and np.any(d[seen] > 0)):
+        return None
+    vox = voxel_mm
+    try:
+        verts, faces, normals, _ = marching_cubes(d, 0.0, spacing=(vox, vox, vox),
+                                                  gradient_direction="descent", mask=seen,
+                                                  allow_degenerate=False)
+    except (ValueError, RuntimeError):
+        return None  # no zero crossing inside the observed cubes
+    # keep only triangles inside cubes whose eight corners were all observed
+    cube = seen[:-1, :-1, :-1] & seen[1:, :-1, :-1] & seen[:-1, 1:, :-1] & seen[:-1, :-1, 1:] \
+        & seen[1:, 1:, :-1] & seen[1:, :-1, 1:] & seen[:-1, 1:, 1:] & seen[1:, 1:, 1:]
+    centre = verts[faces].mean(axis=1) / vox
+    ijk = np.clip(np.floor(centre).astype(np.int64), 0, n - 1)
+    faces = faces[cube[ijk[:, 0], ijk[:, 1], ijk[:, 2]]]
+    if not len(faces):
+        return None
+    used = np.unique(faces)
+    remap = np.full(len(verts), -1, dtype=np.int64)
+    remap[used] = np.arange(len(used))
+    verts, normals, faces = verts[used], normals[used], remap[faces]
+    wv = map_coordinates(w, (verts / vox).T, order=1, mode="nearest").astype(np.float32)
+    verts_O = verts + (origin + 0.5) * vox  # voxel centres sit at (i + 0.5) * voxel
+    # vertices on the chunk's faces are shared with a neighbour; only they are merged
+    g = verts / vox
+    border = np.any((np.abs(g) < 1e-4) | (np.abs(g - n) < 1e-4), axis=1)
+    return verts_O, faces.astype(np.int64), wv, -normals.astype(np.float64), border
+
+
+class ChunkVolume:
+    """A chunk's dense TSDF/weight box copied at a gather, meshed once, on first use."""
+
+    __slots__ = ("_args", "_mesh", "_lock")
+
+    def __init__(self, d, w, origin, voxel_mm, truncation_mm, min_weight):
+        self._args = (d, w, origin, voxel_mm, truncation_mm, min_weight)
+        self._mesh = None
+        self._lock = threading.Lock()
+
+    def mesh(self):
+        """The chunk's mesh tuple (see :func:`mesh_volume`) or None."""
+        with self._lock:
+            if self._args is not None:
+                self._mesh, self._args = mesh_volume(*self._args), None  # frees the copies
+            return self._mesh
+
+
+def _resolved(part):
+    return part.mesh() if isinstance(part, ChunkVolume) else part
+
+
+class PendingSurface:
+    """The surface of one gather: chunk meshes and chunk volumes still to mesh.
+
+    :meth:`result` meshes the volumes and assembles the surface on the calling thread, once
+    (later calls, from any thread, return the same :class:`SurfaceMesh`).
+    """
+
+    def __init__(self, parts: list, voxel_mm: float):
+        self._parts = parts
+        self._voxel_mm = float(voxel_mm)
+        self._surface: SurfaceMesh | None = None
+        self._lock = threading.Lock()
+
+    @property
+    def n_to_mesh(self) -> int:
+        """Chunks still to mesh (0 once resolved)."""
+        if self._parts is None:
+            return 0
+        return sum(isinstance(p, ChunkVolume) for p in self._parts)
+
+    def result(self) -> SurfaceMesh:
+        with self._lock:
+            if self._surface is None:
+                self._surface = assemble([_resolved(p) for p in self._parts], self._voxel_mm)
+                self._parts = None
+            return self._surface
+
+
+def assemble(parts: list, voxel_mm: float) -> SurfaceMesh:
+    """Join chunk mesh tuples (None entries skipped) into one surface, merging the vertices
+    chunks share on their faces."""
+    parts = [m for m in parts if m is not None]
+    if not parts:
+        return SurfaceMesh.empty()
+    offs = np.cumsum([0] + [len(p[0]) for p in parts])
+    verts = np.concatenate([p[0] for p in parts])
+    faces = np.concatenate([p[1] + o for p, o in zip(parts, offs[:-1], strict=True)])
+    weight = np.concatenate([p[2] for p in parts])
+    normals = np.concatenate([p[3] for p in parts])
+    # merge vertices duplicated on chunk borders (only border vertices can be: a sort of
+    # that small subset, not of the whole surface)
+    on_border = np.flatnonzero(np.concatenate([p[4] for p in parts]))
+    key = np.round(verts[on_border] / (1e-4 * voxel_mm)).astype(np.int64)
+    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    target = np.arange(len(verts))
+    target[on_border] = on_border[first][inverse.ravel()]  # each copy -> its first copy
+    kept = np.ones(len(verts), dtype=bool)
+    kept[on_border] = False
+    kept[on_border[first]] = True
+    new_index = np.cumsum(kept) - 1
+    faces = new_index[target[faces]]
+    keep = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & \
+        (faces[:, 0] != faces[:, 2])
+    nrm = normals[kept]
+    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
+    return SurfaceMesh(verts[kept], faces[keep], weight[kept], nrm)
+
+
+class SurfaceExtractor:
+    """Incremental marching cubes over a :class:`SparseTSDF`.
+
+    Parameters
+    ----------
+    tsdf : the field to triangulate
+    min_weight : cubes with any corner weight below this are left open (not observed)
+    """
+
+    def __init__(self, tsdf: SparseTSDF, min_weight: float = 1.0):
+        self.tsdf = tsdf
+        self.min_weight = float(min_weight)
+        self._chunks: dict[tuple[int, int, int], object] = {}  # mesh tuple, None or volume
+        self._first = True
+        # pre-meshing (see premesh): block slots whose touch marks it consumed, chunks still
+        # to mesh, and chunk meshes made ahead of the next update that are still current
+        self._consumed = np.zeros(0, dtype=np.bool_)
+        self._todo: dict[tuple[int, int, int], None] = {}
+        self._premeshed: dict[tuple[int, int, int], tuple | None] = {}
+
+    def update(self) -> SurfaceMesh:
+        """Re-mesh chunks touched since the last call and return the whole surface."""
+        return self.gather().result()
+
+    def gather(self) -> PendingSurface:
+        """What :meth:`update` does up to marching cubes: copy the boxes of the chunks touched
+        since the last call (meshes made by :meth:`premesh` are taken as they are); the
+        returned surface is meshed and assembled when asked for."""
+        n = self.tsdf.n_blocks
+        fresh = np.flatnonzero(self.tsdf.touched[:n])
+        for c in _chunks_of(K.unpack_keys(self.tsdf.block_keys[fresh])):
+            self._premeshed.pop(c, None)  # touched after it was pre-meshed
+        self.tsdf.touched[fresh] = False
+        consumed = np.zeros(n, dtype=np.bool_)
+        m = min(n, self._consumed.shape[0])
+        consumed[:m] = self._consumed[:m]
+        consumed[fresh] = True
+        self._consumed[:] = False
+        blocks = K.unpack_keys(self.tsdf.block_keys[np.flatnonzero(consumed)])
+        if self._first:  # a new extractor meshes everything observed so far
+            blocks, self._first = self.tsdf.block_coords(), False
+        if len(blocks):
+            for c in _chunks_of(blocks):
+                m = self._premeshed.pop(c, _MISSING)
+                self._chunks[c] = self._volume(np.array(c)) if m is _MISSING else m
+        self._premeshed.clear()
+        self._todo.clear()
+        return PendingSurface(self._chunks_in_order(), self.tsdf.voxel_mm)
+
+    def premesh(self, stop=None) -> bool:
+        """Mesh the touched chunks ahead of the next :meth:`update`, which then only meshes
+        what was touched afterwards; the surface it returns is the same. Chunks touched since
+        the previous call (the active region, touched again by the next profiles) wait for a
+        later call.
+
+        ``stop()`` is asked before each chunk (a few ms each); True makes it return False at
+        once (call again later). Returns True when only the recently touched chunks wait.
+        """
+        n = self.tsdf.n_blocks
+        fresh = np.flatnonzero(self.tsdf.touched[:n])
+        if self._first:  # the first update meshes every block
+            blocks = self.tsdf.block_coords() if not self._premeshed and not self._todo else \
+                K.unpack_keys(self.tsdf.block_keys[fresh])
+        else:
+            blocks = K.unpack_keys(self.tsdf.block_keys[fresh])
+        self.tsdf.touched[fresh] = False
+        if self._consumed.shape[0] < n:
+            grown = np.zeros(self.tsdf.touched.shape[0], dtype=np.bool_)
+            grown[: self._consumed.shape[0]] = self._consumed
+            self._consumed = grown
+        self._consumed[fresh] = True
+        hot = _chunks_of(blocks)
+        for c in hot:
+            self._premeshed.pop(c, None)
+            self._todo[c] = None
+        hot = set(hot)  # touched since the last call: likely touched again, meshed next call
+        for c in [c for c in self._todo if c not in hot]:
+            if stop is not None and stop():
+                return False
+            del self._todo[c]
+            self._premeshed[c] = self._volume(np.array(c)).mesh()
+        return True
+
+    def _volume(self, chunk: np.ndarray) -> ChunkVolume:
+        """Copy one chunk's dense box (with its one-voxel upper apron)."""
+        n = CHUNK_BLOCKS * BLOCK
+        origin = chunk * n
+        d, w = self.tsdf.dense(origin, (n + 1, n + 1, n + 1))
+        return ChunkVolume(d, w, origin, self.tsdf.voxel_mm, self.tsdf.truncation_mm,
+                           self.min_weight)
+
+    def assemble(self) -> SurfaceMesh:
+        """The surface from the chunk meshes cached now (volumes still pending are meshed)."""
+        return assemble([_resolved(p) for p in self._chunks_in_order()], self.tsdf.voxel_mm)
+
+    def _chunks_in_order(self) -> list:
+        """The chunks' meshes or volumes sorted by chunk coordinates: the surface's vertex
+        order then depends only on the field, not on the order blocks were allocated in."""
+        return [self._chunks[c] for c in sorted(self._chunks)]

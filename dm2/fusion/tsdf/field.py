@@ -1,0 +1,266 @@
+"""Sparse truncated signed distance field with adaptive weights (paper section 5.1, eqs 2-5).
+
+Storage
+-------
+Voxels of edge ``voxel_mm`` are grouped in blocks of 8**3 voxels that are allocated only where a
+ray has passed (like VDB leaf nodes). Block rows live in growable preallocated arrays
+(``voxels`` of shape ``(capacity, 512, 2)`` float32: signed distance and weight side by side)
+found through an open-addressing hash of the block coordinates; memory is ``~4 KiB`` per
+observed block plus the hash table.
+
+Update
+------
+Every measured point ``p`` with its sensor origin ``o`` (both in ``O``) updates the voxels its ray
+crosses within ``truncation_mm`` of ``p`` with the projective signed distance ``d`` (positive in
+front of the surface, towards the sensor) by the weighted running average of eqs 2-3::
+
+    D_t = (W_{t-1} D_{t-1} + w_t d_t) / (W_{t-1} + w_t),    W_t = W_{t-1} + w_t
+
+Weight functions (eqs 4-5). The paper writes ``w(d)`` with ``d`` measured *behind* the point
+(``d < 0`` in front). We keep that reading: ``w_I`` is 1 in front of the point and falls
+linearly to 0 at ``truncation_mm`` behind it (measurements are less certain inside the part);
+the paper leaves ``w_A`` on ``0 < d < delta`` open, we take 1 there, so fresh deposition is
+trusted over the whole band.
+
+Weight cap (our addition)
+-------------------------
+The paper's running average gives every past measurement equal say, so a surface that keeps
+growing is averaged with its own history and lags behind. Before a voxel in the *active* region
+(within ``active_radius_mm`` of the nozzle axis) is updated, its stored weight is clipped to
+``weight_cap``; each new measurement then moves ``D`` by at least ``1 / (weight_cap + 1)`` of the
+way, so a 1 mm rise is followed within a few sensor passes. Voxels in the *inactive* region keep
+accumulating weight (up to ``max_weight``), which averages sensor noise down and keeps the
+finished surface still. ``weight_cap`` therefore trades noise (higher) against lag (lower).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+
+import numpy as np
+
+from dm2.fusion.tsdf import kernels as K
+from dm2.fusion.tsdf.dense import gather_dense
+from dm2.fusion.tsdf.threads import SplitBuffers, fuse_split
+
+log = logging.getLogger(__name__)
+
+MAX_WEIGHT = 1.0e4  # weight of inactive voxels saturates here (float32 stays exact enough)
+_NO_BOUNDS = np.zeros(3)
+# Batches with fewer points are fused by the serial kernel (thread hand-off would dominate).
+MIN_SPLIT_POINTS = 4096
+
+
+class SparseTSDF:
+    """Sparse block TSDF in the work-object frame ``O``.
+
+    Parameters
+    ----------
+    voxel_mm : float [mm], voxel edge (0 < voxel_mm <= 2)
+    truncation_mm : float [mm], half width of the band updated around each measured point
+    weight_cap : float, stored weight is clipped to this before an active-region update
+    initial_blocks : int, preallocated block rows (grows by doubling)
+    threads : int, 1 or 2 (default: 2 where the machine has 2 or more cores). With 2, batches
+        of at least ``MIN_SPLIT_POINTS`` points are fused by two threads that own alternate
+        block columns; every voxel is bit-identical to the one-thread result (block slots are
+        allocated in another, still deterministic, order).
+    """
+
+    def __init__(self, voxel_mm: float = 0.5, truncation_mm: float = 1.5,
+                 weight_cap: float = 8.0, initial_blocks: int = 1024,
+                 threads: int | None = None):
+        if not 0 < voxel_mm <= 2.0:
+            raise ValueError(f"SparseTSDF.voxel_mm: {voxel_mm} outside (0, 2] mm")
+        if truncation_mm <= 0:
+            raise ValueError(f"SparseTSDF.truncation_mm: must be > 0, got {truncation_mm}")
+        if weight_cap <= 0:
+            raise ValueError(f"SparseTSDF.weight_cap: must be > 0, got {weight_cap}")
+        self.voxel_mm = float(voxel_mm)
+        self.truncation_mm = float(truncation_mm)
+        self.weight_cap = float(weight_cap)
+        if threads is None:
+            threads = 2 if (os.cpu_count() or 1) >= 2 else 1
+        if threads not in (1, 2):
+            raise ValueError(f"SparseTSDF.threads: 1 or 2, got {threads}")
+        self.threads = int(threads)
+        # CPU seconds of the two-thread path so far: serial commits of staged blocks, thread 0,
+        # thread 1, and the threaded phases' critical path (the slower thread of each run)
+        self.split_cpu_s = np.zeros(4)
+        self._split_buffers = SplitBuffers()
+        cap = max(64, int(initial_blocks))
+        self.voxels = np.zeros((cap, K.BLOCK_VOXELS, 2), dtype=np.float32)
+        self.block_keys = np.full(cap, K.EMPTY, dtype=np.int64)
+        self.touched = np.zeros(cap, dtype=np.bool_)
+        self._state = np.zeros(1, dtype=np.int64)  # number of allocated blocks
+        self._table_keys, self._table_slots = K.rebuild_hash(self.block_keys, 0,
+                                                             _pow2_at_least(4 * cap))
+
+    # ----------------------------------------------------------------------------- properties
+    @property
+    def n_blocks(self) -> int:
+        return int(self._state[0])
+
+    @property
+    def tsdf_mm(self) -> np.ndarray:
+        """Signed distances ``(capacity, 512)`` float32 [mm] of the block rows (a view)."""
+        return self.voxels[:, :, 0]
+
+    @property
+    def weight(self) -> np.ndarray:
+        """Weights ``(capacity, 512)`` float32 of the block rows (a view)."""
+        return self.voxels[:, :, 1]
+
+    @property
+    def block_mm(self) -> float:
+        return self.voxel_mm * K.BLOCK
+
+    def nbytes(self) -> int:
+        """Bytes held by the field's arrays."""
+        return int(self.voxels.nbytes + self.block_keys.nbytes
+                   + self.touched.nbytes + self._table_keys.nbytes + self._table_slots.nbytes)
+
+    def block_coords(self) -> np.ndarray:
+        """Integer coordinates ``(n_blocks, 3)`` of the allocated blocks."""
+        return K.unpack_keys(self.block_keys[: self.n_blocks])
+
+    # ------------------------------------------------------------------------------- update
+    def integrate(self, origins_O: np.ndarray, points_O: np.ndarray,
+                  active: np.ndarray | None = None) -> None:
+        """Fuse rays from ``origins_O (n, 3)`` [mm] to measured ``points_O (n, 3)`` [mm].
+
+        ``active (n,) bool`` marks rays whose point lies in the active deposition region.
+        Points must be finite (the pipeline drops NaN points before this).
+        """
+        o = np.ascontiguousarray(origins_O, dtype=np.float64)
+        p = np.ascontiguousarray(points_O, dtype=np.float64)
+        if o.shape != p.shape or p.ndim != 2 or p.shape[1] != 3:
+            raise ValueError(f"SparseTSDF.integrate: origins {o.shape} and points {p.shape} "
+                             "must both be (n, 3)")
+        a = np.zeros(p.shape[0], dtype=np.bool_) if active is None else \
+            np.ascontiguousarray(active, dtype=np.bool_)
+        if a.shape != (p.shape[0],):
+            raise ValueError(f"SparseTSDF.integrate: active {a.shape} != ({p.shape[0]},)")
+        if self.threads == 2 and p.shape[0] >= MIN_SPLIT_POINTS:
+            off = np.array([0, p.shape[0]], dtype=np.int64)
+            none = np.zeros((0, 3))
+            fuse_split(self, False, o, p, a, p, off, np.zeros((0, 4, 4)), none, none, 0.0,
+                       _NO_BOUNDS, _NO_BOUNDS, False, np.zeros(2, dtype=np.int64), MAX_WEIGHT)
+            return
+        start = 0
+        while start < p.shape[0]:
+            start = K.integrate_rays(o, p, a, self.voxel_mm, self.truncation_mm,
+                                     self.weight_cap, MAX_WEIGHT, self._table_keys,
+                                     self._table_slots, self.block_keys, self.voxels,
+                                     self.touched, self._state, start)
+            if start < p.shape[0]:
+                self._grow()
+
+    def integrate_profiles(self, xz_S: np.ndarray, offsets: np.ndarray, T_O_S: np.ndarray,
+                           spot_O: np.ndarray, axis_O: np.ndarray, active_radius_mm: float,
+                           bounds_O: tuple | None = None) -> tuple[int, int]:
+        """Register profiles into ``O`` (eq 1) and fuse them, in one pass without temporaries.
+
+        Parameters
+        ----------
+        xz_S : (n, 2) float64 [mm], laser-plane points of all profiles, finite, in stream order
+        offsets : (k + 1,) int64, profile ``j`` owns ``xz_S[offsets[j]:offsets[j + 1]]``
+        T_O_S : (k, 4, 4) float64, sensor pose of each profile in ``O`` at its stamp
+        spot_O, axis_O : (k, 3) float64, deposition spot [mm] and unit spray axis at its stamp
+        active_radius_mm : float [mm], points this close to the nozzle axis are active
+        bounds_O : optional ``(lo (3,), hi (3,))`` [mm]; points outside are not fused
+
+        Returns
+        -------
+        (fused, out_of_range) : numbers of points fused and of points skipped (behind the
+        sensor, ``z <= 0``, or outside ``bounds_O``)
+        """
+        xz = np.ascontiguousarray(xz_S, dtype=np.float64)
+        off = np.ascontiguousarray(offsets, dtype=np.int64)
+        k = off.shape[0] - 1
+        T = np.ascontiguousarray(T_O_S, dtype=np.float64)
+        spot = np.ascontiguousarray(spot_O, dtype=np.float64)
+        axis = np.ascontiguousarray(axis_O, dtype=np.float64)
+        if xz.ndim != 2 or xz.shape[1] != 2 or k < 0 or T.shape != (k, 4, 4) or \
+                spot.shape != (k, 3) or axis.shape != (k, 3) or \
+                (k and (off[0] != 0 or off[-1] != xz.shape[0] or np.any(np.diff(off) < 0))):
+            raise ValueError(f"SparseTSDF.integrate_profiles: xz_S {xz.shape}, offsets "
+                             f"{off.shape}, T_O_S {T.shape}, spot_O {spot.shape}, axis_O "
+                             f"{axis.shape} do not describe one batch of profiles")
+        use_bounds = bounds_O is not None
+        lo, hi = (np.asarray(bounds_O[0], np.float64), np.asarray(bounds_O[1], np.float64)) \
+            if use_bounds else (_NO_BOUNDS, _NO_BOUNDS)
+        counts = np.zeros(2, dtype=np.int64)
+        r2 = float(active_radius_mm) ** 2
+        start, n = 0, xz.shape[0]
+        if self.threads == 2 and n >= MIN_SPLIT_POINTS:
+            none = np.zeros((0, 3))
+            fuse_split(self, True, none, none, np.zeros(0, np.bool_), xz, off, T, spot, axis,
+                       r2, lo, hi, use_bounds, counts, MAX_WEIGHT)
+            start = n
+        while start < n:
+            start = K.fuse_profiles(xz, off, T, spot, axis, r2, lo, hi, use_bounds, start,
+                                    self.voxel_mm, self.truncation_mm, self.weight_cap,
+                                    MAX_WEIGHT, self._table_keys, self._table_slots,
+                                    self.block_keys, self.voxels, self.touched, self._state,
+                                    counts)
+            if start < n:
+                self._grow()
+        return int(counts[1]), int(counts[0])
+
+    def _grow(self, extra: int = 0) -> None:
+        """Room for ``extra`` more blocks plus one ray's worth: the block arrays and the hash
+        table (kept at most half full) double until they fit."""
+        need = self.n_blocks + int(extra) + K.MAX_NEW_BLOCKS_PER_RAY
+        cap = self.voxels.shape[0]
+        if need > cap:
+            new_cap = cap
+            while need > new_cap:
+                new_cap *= 2
+            log.debug("SparseTSDF: growing block storage %d -> %d blocks", cap, new_cap)
+            self.voxels = _resized(self.voxels, new_cap, 0.0)
+            self.block_keys = _resized(self.block_keys, new_cap, K.EMPTY)
+            self.touched = _resized(self.touched, new_cap, False)
+        table = self._table_keys.shape[0]
+        if need <= table // 2 and extra:
+            return  # the table has room: no rebuild
+        while need > table // 2:
+            table *= 2
+        self._table_keys, self._table_slots = K.rebuild_hash(self.block_keys, self.n_blocks,
+                                                             table)
+
+    # ------------------------------------------------------------------------------ queries
+    def take_touched(self) -> np.ndarray:
+        """Coordinates ``(k, 3)`` of blocks updated since the last call; clears the marks."""
+        idx = np.flatnonzero(self.touched[: self.n_blocks])
+        self.touched[idx] = False
+        return K.unpack_keys(self.block_keys[idx])
+
+    def dense(self, origin_voxel: np.ndarray, shape) -> tuple[np.ndarray, np.ndarray]:
+        """Dense sub-volume from voxel index ``origin_voxel (3,)``: ``(tsdf_mm, weight)`` of
+        ``shape (nx, ny, nz)`` float32; unobserved voxels hold ``+truncation_mm`` and weight 0."""
+        return gather_dense(self._table_keys, self._table_slots, self.voxels,
+                            np.asarray(origin_voxel, dtype=np.int64),
+                            np.asarray(shape, dtype=np.int64), np.float32(self.truncation_mm))
+
+    def sample(self, points_O: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Nearest-voxel ``(tsdf_mm (n,), weight (n,))`` at ``points_O (n, 3)`` [mm]."""
+        p = np.asarray(points_O, dtype=np.float64).reshape(-1, 3)
+        v = np.floor(p / self.voxel_mm).astype(np.int64)
+        d = np.full(len(p), self.truncation_mm, dtype=np.float32)
+        w = np.zeros(len(p), dtype=np.float32)
+        for i, vi in enumerate(v):
+            dd, ww = self.dense(vi, (1, 1, 1))
+            d[i], w[i] = dd[0, 0, 0], ww[0, 0, 0]
+        return d, w
+
+
+def _pow2_at_least(n: int) -> int:
+    return 1 << max(6, int(np.ceil(np.log2(max(n, 1)))))
+
+
+def _resized(a: np.ndarray, rows: int, fill) -> np.ndarray:
+    out = np.zeros((rows,) + a.shape[1:], dtype=a.dtype) if fill == 0 else \
+        np.full((rows,) + a.shape[1:], fill, dtype=a.dtype)
+    out[: a.shape[0]] = a
+    return out

@@ -1,0 +1,207 @@
+"""MCAP recordings of the pipeline's message stream, readable by ROS 2 tools and Foxglove.
+
+Topics (ROS 2 schemas, CDR; see :mod:`dm2.io.ros_messages` for layouts and units):
+
+==================  ================================  =========================================
+topic               type                              content
+==================  ================================  =========================================
+``/scan/S1..S3``    sensor_msgs/msg/PointCloud2       one profile, frame_id ``S1..``, metres
+``/joint_states``   sensor_msgs/msg/JointState        ``RobotState.joints_rad``
+``/tf``             tf2_msgs/msg/TFMessage            ``T_B_F`` (frame_id ``B``, child ``F``)
+``/tf_static``      tf2_msgs/msg/TFMessage            ``B->N``, ``B->S1..S3``, ``F->O``
+``/dm2/layer``      dm2_msgs/msg/LayerMark            layer index at its start stamp
+==================  ================================  =========================================
+
+Every message's MCAP ``log_time`` and ``publish_time`` equal its header stamp in nanoseconds.
+ROS 2 headers carry no sequence number, so the 24-bit profile ``counter`` and the robot
+state's ``seq`` travel, losslessly, in the MCAP message record's ``sequence`` field. A
+``RobotState`` is written as a ``/joint_states`` and a ``/tf`` message with the same stamp and
+sequence; the reader pairs them back. Attachments make a recording self-contained:
+``scenario.toml``, ``toolpath.csv`` (canonical CSV) and ``calibration.toml``
+(:mod:`dm2.core.calibration_io`). Chunks close after about ``chunk_s`` of data (default 1 s), so a
+crash loses at most about a second; the file is written as ``<path>.part`` and renamed on
+:meth:`dm2.io.recording_writer.RecordingWriter.close`; reading is
+:func:`read_recording`.
+"""
+
+from __future__ import annotations
+
+import logging
+import struct
+import tempfile
+from collections import Counter
+from collections.abc import Iterator
+from pathlib import Path
+
+from mcap.exceptions import McapError
+from mcap.reader import NonSeekingReader, make_reader
+
+from dm2.core.messages import SENSOR_IDS, Calibration, LayerMark, MessageError, Profile, RobotState
+from dm2.io import ros_messages as ros
+
+log = logging.getLogger(__name__)
+
+SCENARIO_ATTACHMENT = "scenario.toml"
+TOOLPATH_ATTACHMENT = "toolpath.csv"
+CALIBRATION_ATTACHMENT = "calibration.toml"
+MEDIA_TYPES = {".toml": "application/toml", ".csv": "text/csv", ".json": "application/json"}
+SCAN_TOPICS = {sid: f"/scan/{sid}" for sid in SENSOR_IDS}
+JOINT_TOPIC, TF_TOPIC, TF_STATIC_TOPIC, LAYER_TOPIC = ("/joint_states", "/tf", "/tf_static",
+                                                      "/dm2/layer")
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+def stamp_to_ns(stamp_s: float) -> int:
+    """Nanoseconds of a stamp in seconds (rounded to the nearest ns; must be >= 0)."""
+    if not stamp_s >= 0.0:
+        raise MessageError(f"stamp_s: recordings need stamps >= 0 s, got {stamp_s!r}")
+    return round(stamp_s * 1e9)
+
+
+def ns_to_stamp(stamp_ns: int) -> float:
+    return stamp_ns / 1e9
+
+
+class Recording:
+    """A recording opened for reading (see :func:`read_recording`).
+
+    Attributes
+    ----------
+    attachments : dict name -> bytes
+    scenario_toml : str or None, the scenario the recording was made from
+    skipped : Counter of reasons -> messages that could not be turned into pipeline messages
+    """
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.skipped: Counter = Counter()
+        self.attachments: dict[str, bytes] = {}
+        self.complete = True
+        with open(path, "rb") as f:
+            if f.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
+                raise ValueError(f"{path}: not an MCAP file (bad magic bytes)")
+            f.seek(0)
+            try:
+                reader = make_reader(f)
+                self.summary = reader.get_summary()
+                atts = list(reader.iter_attachments())
+            except Exception as exc:  # noqa: BLE001 - any damage to the summary: read linearly
+                log.warning("%s: no summary (%s); reading it linearly", path, exc)
+                self.complete, self.summary = False, None
+                atts = self._linear_attachments(f)
+        self.attachments = {a.name: bytes(a.data) for a in atts}
+
+    @staticmethod
+    def _linear_attachments(f) -> list:
+        f.seek(0)
+        out = []
+        try:
+            out.extend(NonSeekingReader(f).iter_attachments())
+        except (McapError, EOFError, ValueError, struct.error):
+            pass
+        return out
+
+    @property
+    def scenario_toml(self) -> str | None:
+        data = self.attachments.get(SCENARIO_ATTACHMENT)
+        return data.decode() if data is not None else None
+
+    @property
+    def calibration(self) -> Calibration | None:
+        """From ``calibration.toml`` if attached, else from ``/tf_static``, else None."""
+        from dm2.core.calibration_io import calibration_from_toml
+
+        data = self.attachments.get(CALIBRATION_ATTACHMENT)
+        if data is not None:
+            return calibration_from_toml(data.decode(), f"{self.path}:{CALIBRATION_ATTACHMENT}")
+        return self.static_calibration()
+
+    def static_calibration(self) -> Calibration | None:
+        """The calibration as ``/tf_static`` holds it (None if incomplete or absent)."""
+        poses = {}
+        for _schema, _channel, message in self._iter_raw([TF_STATIC_TOPIC]):
+            for _ns, parent, child, T in ros.decode_tf(message.data):
+                poses[(parent, child)] = T
+        sensors = {sid: poses[("B", sid)] for sid in SENSOR_IDS if ("B", sid) in poses}
+        if ("B", "N") not in poses or ("F", "O") not in poses or not sensors:
+            return None
+        return Calibration(T_B_S=sensors, T_F_O=poses[("F", "O")], T_B_N=poses[("B", "N")])
+
+    @property
+    def toolpath(self):
+        """The attached toolpath (:class:`~dm2.core.messages.Toolpath`) or None."""
+        data = self.attachments.get(TOOLPATH_ATTACHMENT)
+        if data is None:
+            return None
+        from dm2.toolpath.formats import read_csv
+
+        with tempfile.TemporaryDirectory() as tmp:
+            p = Path(tmp) / TOOLPATH_ATTACHMENT
+            p.write_bytes(data)
+            return read_csv(p)
+
+    def _iter_raw(self, topics=None):
+        with open(self.path, "rb") as f:
+            if self.complete:
+                yield from make_reader(f).iter_messages(topics=topics, log_time_order=True)
+                return
+            try:
+                yield from NonSeekingReader(f).iter_messages(topics=topics,
+                                                             log_time_order=False)
+            except (McapError, EOFError, ValueError, struct.error) as exc:
+                log.warning("%s: stopped at a truncated record (%s)", self.path,
+                            str(exc) or type(exc).__name__)
+
+    def messages(self) -> Iterator[Profile | RobotState | LayerMark]:
+        """Pipeline messages in stamp order (a RobotState once its joints and pose both came)."""
+        scan_ids = {t: sid for sid, t in SCAN_TOPICS.items()}
+        pending_joints: dict[int, tuple] = {}
+        pending_tf: dict[int, tuple] = {}
+        for _schema, channel, message in self._iter_raw():
+            topic = channel.topic
+            try:
+                if topic in scan_ids:
+                    ns, frame_id, xz, valid, inten = ros.decode_cloud(message.data)
+                    yield Profile(scan_ids[topic], ns_to_stamp(ns), message.sequence, xz, valid,
+                                  inten)
+                elif topic == JOINT_TOPIC:
+                    ns, _names, pos = ros.decode_joint_state(message.data)
+                    state = self._pair(ns, message.sequence, pending_tf, pending_joints, pos)
+                    if state is not None:
+                        yield state
+                elif topic == TF_TOPIC:
+                    for ns, parent, child, T in ros.decode_tf(message.data):
+                        if (parent, child) == ("B", "F"):
+                            state = self._pair(ns, message.sequence, pending_joints,
+                                               pending_tf, T, joints_first=False)
+                            if state is not None:
+                                yield state
+                elif topic == LAYER_TOPIC:
+                    ns, layer = ros.decode_layer_mark(message.data)
+                    yield LayerMark(ns_to_stamp(ns), layer)
+            except (ros.CdrError, MessageError, ValueError) as exc:
+                self.skipped[f"{topic}: {type(exc).__name__}"] += 1
+                log.debug("%s: skipped a %s message: %s", self.path, topic, exc)
+        unpaired = len(pending_joints) + len(pending_tf)
+        if unpaired:
+            self.skipped["robot state without both /joint_states and /tf"] += unpaired
+
+    @staticmethod
+    def _pair(ns, seq, other: dict, mine: dict, value, joints_first: bool = True):
+        partner = other.pop(ns, None)
+        if partner is None:
+            mine[ns] = (seq, value)
+            return None
+        joints, T = (value, partner[1]) if joints_first else (partner[1], value)
+        return RobotState(ns_to_stamp(ns), seq, joints, T)
+
+
+def read_recording(path: str | Path) -> Recording:
+    """Open an MCAP recording. Raises FileNotFoundError / ValueError naming the file."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: recording not found")
+    try:
+        return Recording(path)
+    except McapError as exc:
+        raise ValueError(f"{path}: not a readable MCAP recording: {exc}") from None

@@ -1,0 +1,308 @@
+"""A monitoring session: the whole pipeline from messages to per-layer defect results.
+
+:class:`MonitoringSession` wires the stages of the paper's sections 5 and 6 for one build:
+every message goes to the fusion :class:`~dm2.fusion.fusion.Monitor`; robot states also grow the
+near-net :class:`~dm2.reference.model.NearNetReference` along the executed motion; when the monitor
+closes a layer, that layer's surface is compared with the reference of the same layer
+(:class:`~dm2.defects.layer_analysis.DefectMonitor`: deviation, classification, segmentation,
+tracking).
+
+The reference follows the executed path at the nominal process (:mod:`dm2.reference.feed`,
+:mod:`dm2.reference.path_clock`): with a toolpath, each robot state advances the reference's clock
+by the
+programmed time of the path it covered (or, with ``reference_clock = "executed"``, by the
+controller's time while the spray spot progresses), so a robot that stops and keeps spraying
+(a corner dwell, a reorientation stop) grows the part but not the reference.
+Without a toolpath the reference integrates the controller's own clock.
+
+After every fused frame set (three profiles) the active region of the measured TSDF is compared
+with the reference as of the same instant (:mod:`dm2.defects.realtime`), so a defect raises an alarm
+within a second of process time, before its layer ends; robot states are held back until the
+profiles they bracket are fused, so the reference never runs ahead of the measurement.
+
+Live streams put fusion first: ``feed(msg, defer=True)`` only fuses and notes that a comparison
+is due; :meth:`MonitoringSession.catch_up` (called by the live loop whenever its inbox is empty)
+integrates the held-back robot states in slices of :data:`STATE_SLICE`, runs the comparison at
+the newest fused profile (frame sets that arrived while the loop was busy are compared once,
+together) and pre-meshes the surface chunks touched so far, so a layer end only meshes the last
+fraction of a second. The reference integrates states one by one whatever the slicing, and the
+surface is the same whenever chunks are meshed, so deferred and immediate feeding give the same
+layer results and tracks; ``analysis_thread=True`` runs the layer analysis (deviation,
+segmentation, tracking) on a worker thread, in layer order, off the fusion path.
+
+The same object serves the twin in process, recordings and live sources: it only sees
+messages. The reference of layer ``L`` is taken when the stream reports the start of layer
+``L + 1`` (a ``LayerMark``), so it holds exactly the deposition of layers ``0..L``; streams
+without layer marks take it when the monitor closes the layer.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import deque
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from dm2.core.config import MonitorConfig, ProcessConfig
+from dm2.core.messages import Calibration, LayerMark, RobotState, Toolpath
+from dm2.defects.layer_analysis import DefectMonitor, LayerResult
+from dm2.defects.realtime import RealtimeDeviation
+from dm2.fusion.fusion import LayerSurface, Monitor
+from dm2.pipeline.layer_worker import LayerWorker
+from dm2.reference.feed import ReferenceFeed
+from dm2.reference.model import NearNetReference
+
+log = logging.getLogger(__name__)
+
+FRAME_SET = 3  # profiles per real-time comparison (the three cascaded profilers)
+STATE_BACKLOG = 2500  # states buffered at most while no profile is fused (10 s at 250 Hz)
+STATE_SLICE = 25  # robot states per reference update while catching up (0.1 s at 250 Hz)
+PREMESH_EVERY_S = 0.25  # [s] wall, pre-meshing of touched surface chunks at most this often
+
+
+@dataclass
+class SessionTiming:
+    """Wall seconds spent per stage, summed over the run."""
+
+    fusion_s: float = 0.0
+    reference_s: float = 0.0
+    analysis_s: float = 0.0
+    realtime_s: float = 0.0
+    messages: int = 0
+    extra: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return {"fusion_s": self.fusion_s, "reference_s": self.reference_s,
+                "analysis_s": self.analysis_s, "realtime_s": self.realtime_s,
+                "messages": self.messages, **self.extra}
+
+
+class MonitoringSession:
+    """Messages in, per-layer :class:`~dm2.defects.layer_analysis.LayerResult` out.
+
+    Parameters
+    ----------
+    calibration : the calibration the pipeline trusts (``T_B_S``, ``T_F_O``, ``T_B_N``)
+    monitor_cfg : fusion and deviation settings
+    process : nominal process parameters (for the near-net reference and the active region)
+    plate_size_mm : (Lx, Ly[, thickness]) [mm], extent of the reference height map
+    toolpath : optional; splits layers when the stream carries no layer marks
+    on_layer : optional callback ``f(LayerResult)`` when a layer has been analysed (from the
+        worker thread with ``analysis_thread``)
+    analysis_thread : analyse finished layers on a worker thread (live runs); :meth:`finish`
+        waits for it, so the results are the same
+    """
+
+    def __init__(self, calibration: Calibration, monitor_cfg: MonitorConfig,
+                 process: ProcessConfig, plate_size_mm=(120.0, 120.0),
+                 toolpath: Toolpath | None = None,
+                 on_layer: Callable[[LayerResult], None] | None = None,
+                 analysis_thread: bool = False):
+        self.cfg = monitor_cfg
+        self.on_layer = on_layer
+        self.reference = NearNetReference(process, monitor_cfg, calibration,
+                                          size_mm=tuple(plate_size_mm[:2]))
+        self.defects = DefectMonitor(monitor_cfg)
+        self.monitor = Monitor(calibration, monitor_cfg, process, toolpath=toolpath,
+                               on_layer_done=self._layer_done, defer_meshing=analysis_thread)
+        self.timing = SessionTiming()
+        self.states = ReferenceFeed(self.reference, toolpath, monitor_cfg.reference_clock,
+                                    monitor_cfg.dwell_speed_mm_s)
+        self.realtime = RealtimeDeviation(monitor_cfg, size_mm=tuple(plate_size_mm[:2]))
+        self._rt_profiles = 0
+        self._rt_latency_s: list[float] = []
+        self._finished = False
+        self._last_premesh = 0.0
+        # reference steps due at a stamp, in stream order: ("mark", layer) ends the reference
+        # of layer - 1; ("layer", LayerSurface) takes a finished layer's reference and hands
+        # the layer to the analysis (deferred feeding runs them when catching up)
+        self._ops: deque = deque()
+        self._marked_layer = self.reference.layer
+        self._defer_layers = bool(analysis_thread)
+        self._worker = LayerWorker(self._analyse) if analysis_thread else None
+
+    @property
+    def results(self) -> list[LayerResult]:
+        return self.defects.results
+
+    @property
+    def tracks(self):
+        return self.defects.tracker.tracks
+
+    @property
+    def dropped(self) -> dict[str, int]:
+        out = dict(self.monitor.dropped)
+        if self.reference.gaps_skipped:
+            out["reference_pose_gap"] = int(self.reference.gaps_skipped)
+        return out
+
+    def feed(self, msg, defer: bool = False) -> None:
+        """Take one message (Profile, RobotState or LayerMark).
+
+        ``defer=True`` fuses only: the reference update and the real-time comparison wait for
+        :meth:`catch_up` (layer ends still take the reference of the finished layer at once).
+        """
+        self.timing.messages += 1
+        if isinstance(msg, RobotState):
+            self.states.push(msg.stamp_s, msg.T_B_F)
+        elif isinstance(msg, LayerMark) and msg.layer > self._marked_layer:
+            self._marked_layer = msg.layer
+            self._ops.append((msg.stamp_s, "mark", msg.layer))
+            if not defer:
+                self._advance(upto_s=msg.stamp_s)
+        t0 = time.perf_counter()
+        self.monitor.feed(msg)
+        self.timing.fusion_s += time.perf_counter() - t0
+        if defer:
+            return
+        if self.monitor.profiles_fused - self._rt_profiles >= FRAME_SET:
+            self._realtime()
+        elif len(self.states) >= STATE_BACKLOG:  # a stream of poses without profiles
+            self._advance()
+
+    @property
+    def behind(self) -> bool:
+        """True while a deferred comparison or a backlog of robot states waits."""
+        return (self.monitor.profiles_fused - self._rt_profiles >= FRAME_SET
+                or len(self.states) >= STATE_BACKLOG or bool(self._ops))
+
+    def catch_up(self, should_yield: Callable[[], bool] | None = None) -> bool:
+        """Run the work ``feed(..., defer=True)`` left: reference updates in slices, then one
+        real-time comparison at the newest fused profile, then surface pre-meshing.
+
+        ``should_yield()`` is asked between slices; when it returns True the method returns
+        False at once (call again later). Returns True when nothing is left.
+        """
+        def stop() -> bool:
+            return should_yield is not None and should_yield()
+
+        if self.monitor.profiles_fused - self._rt_profiles >= FRAME_SET:
+            upto = self.monitor.last_fused_stamp_s
+            while not self._advance(upto_s=upto, max_states=STATE_SLICE):
+                if stop():
+                    return False
+            self._realtime()
+        while self._ops and np.isfinite(self._ops[0][0]):
+            self._advance(upto_s=self._ops[0][0], max_states=STATE_SLICE)
+            if stop():
+                return False
+        while len(self.states) >= STATE_BACKLOG:
+            self._advance(max_states=STATE_SLICE)
+            if stop():
+                return False
+        now = time.perf_counter()
+        if now - self._last_premesh >= PREMESH_EVERY_S and not stop():
+            t0 = time.perf_counter()
+            done = self.monitor.extractor.premesh(stop)
+            self.timing.fusion_s += time.perf_counter() - t0
+            if done:
+                self._last_premesh = now
+            return done
+        return True
+
+    def feed_all(self, messages: Iterable) -> None:
+        for m in messages:
+            self.feed(m)
+
+    def finish(self) -> list[LayerResult]:
+        """Flush everything, close the last layer and end the tracks."""
+        if not self._finished:
+            self._advance()
+            t0 = time.perf_counter()
+            self.monitor.finish()
+            self.timing.fusion_s += time.perf_counter() - t0
+            self._advance()
+            if self._worker is not None:
+                self._worker.join()
+            self.defects.finish()
+            self._finished = True
+        return self.results
+
+    def _advance(self, upto_s: float = np.inf, max_states: int | None = None) -> bool:
+        """Integrate the robot states up to ``upto_s``, running the reference steps due on the
+        way in order; with ``max_states`` it returns False after that many states or after one
+        step (call again). True when nothing stamped up to ``upto_s`` is left."""
+        while self._ops and self._ops[0][0] <= upto_s:
+            if not self._flush_states(upto_s=self._ops[0][0], max_states=max_states):
+                return False
+            _, kind, what = self._ops.popleft()
+            if kind == "mark":
+                self.reference.end_layer(what - 1)
+                self.reference.layer = what
+            else:
+                self._take_layer(what)
+            if max_states is not None:
+                return False
+        return self._flush_states(upto_s=upto_s, max_states=max_states)
+
+    def _flush_states(self, upto_s: float = np.inf, max_states: int | None = None) -> bool:
+        t0 = time.perf_counter()
+        done = self.states.flush(upto_s, max_states)
+        self.timing.reference_s += time.perf_counter() - t0
+        return done
+
+    def _realtime(self) -> None:
+        """Compare the active region with the reference as of the newest fused profile."""
+        self._rt_profiles = self.monitor.profiles_fused
+        stamp = self.monitor.last_fused_stamp_s
+        self._advance(upto_s=stamp)
+        if self.states.last_T_B_F is None:
+            return
+        t0 = time.perf_counter()
+        spot_O, _ = self.reference.spot_O(self.states.last_T_B_F)
+        frame = self.realtime.update_from_tsdf(self.monitor.tsdf, spot_O, stamp,
+                                               self.reference)
+        for alarm in frame.alarms:
+            log.warning("real-time: %s of %.1f mm2 at (%.1f, %.1f) mm, %.2f s after its first "
+                        "flag", alarm.kind, alarm.area_mm2, *alarm.centroid_xy_O,
+                        alarm.stamp_s - alarm.first_flag_s)
+        dt = time.perf_counter() - t0
+        self.timing.realtime_s += dt
+        self._rt_latency_s.append(dt)
+
+    def realtime_summary(self) -> dict:
+        """Real-time deviation alarms and per-frame-set latency, for the report."""
+        lat = np.asarray(self._rt_latency_s)
+        return {
+            "frame_sets": int(lat.size),
+            "latency_ms_p50": float(np.percentile(lat, 50) * 1e3) if lat.size else None,
+            "latency_ms_p99": float(np.percentile(lat, 99) * 1e3) if lat.size else None,
+            "alarms": [{"stamp_s": a.stamp_s, "kind": a.kind, "area_mm2": a.area_mm2,
+                        "centroid_xy_O_mm": [float(c) for c in a.centroid_xy_O],
+                        "first_flag_s": a.first_flag_s,
+                        "delay_s": a.stamp_s - a.first_flag_s} for a in self.realtime.alarms],
+        }
+
+    def _layer_done(self, done: LayerSurface) -> None:
+        if self._worker is None and done.surface.vertices_O.shape[0] == 0:
+            log.warning("layer %d: no surface was reconstructed; skipped", done.layer)
+            return
+        self._ops.append((done.stamp_s if np.isfinite(done.stamp_s) else np.inf, "layer", done))
+        if not self._defer_layers:
+            self._advance(upto_s=self._ops[-1][0])
+
+    def _take_layer(self, done: LayerSurface) -> None:
+        """The finished layer's reference (states flushed up to its last profile), then its
+        analysis (here, or queued for the worker)."""
+        ref = self.reference.layers.get(done.layer)
+        if ref is None:  # no layer marks in the stream: take the reference now
+            ref = self.reference.end_layer(done.layer)
+        stamp = None if not np.isfinite(done.stamp_s) else done.stamp_s
+        if self._worker is None:
+            self._analyse(done, ref, stamp)
+        else:  # meshed (done.surface) and analysed on the worker
+            self._worker.submit(done, ref, stamp)
+
+    def _analyse(self, done: LayerSurface, ref, stamp) -> None:
+        t0 = time.perf_counter()
+        surface = done.surface
+        if surface.vertices_O.shape[0] == 0:
+            log.warning("layer %d: no surface was reconstructed; skipped", done.layer)
+            return
+        result = self.defects.analyse_layer(surface, ref, done.layer, stamp)
+        self.timing.analysis_s += time.perf_counter() - t0
+        if self.on_layer is not None:
+            self.on_layer(result)

@@ -1,0 +1,73 @@
+"""Ground truth beside a twin run: the true top surface after each layer and each fault's
+effect, measured against a fault-free run of the same scenario and seed."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+
+
+def nominal_layer_heights(sim, last_segment: int, layers: list[int]) -> dict:
+    """Heights (ny, nx) [mm] after each of ``layers`` of the fault-free run of ``sim`` (a
+    :class:`twin.stream.simulate.Simulation`; same seed, no corner dwell), which stops where the
+    faulty run's toolpath move ``last_segment`` ends."""
+    from twin.cell.motion import execute_toolpath
+    from twin.world.deposition import SprayModel
+    from twin.world.heightfield import HEIGHTFIELD_CELL_MM, HeightField
+
+    motion = sim.motion
+    if any(f.kind == "corner_dwell" for f in sim.scenario.faults):
+        motion = execute_toolpath(sim.toolpath, sim.cell, rate_hz=sim.cell.robot_state_hz,
+                                  accel_mm_s2=sim.cell.accel_mm_s2)
+    plate = sim.scenario.cell.plate_size_mm
+    hf = HeightField(size_mm=(plate[0], plate[1]), cell_mm=HEIGHTFIELD_CELL_MM,
+                     thickness_mm=plate[2])
+    spray = SprayModel(sim.scenario.process, seed=sim.scenario.seed)
+    n = int(np.searchsorted(motion.segment, last_segment, side="right"))
+    dt = 1.0 / sim.cell.robot_state_hz
+    layer = np.asarray(motion.layer[:n])
+    ends = np.flatnonzero(np.append(layer[1:] != layer[:-1], True)) + 1 if n else np.zeros(0)
+    out, wanted, a = {}, set(layers), 0
+    # one batched deposition per layer: the same bits as one deposit call per motion sample
+    for b in ends.astype(int).tolist():
+        spray.deposit_samples(hf, motion.position_O[a:b], motion.axis_O[a:b], dt,
+                              spray_on=motion.spray_on[a:b])
+        if int(layer[b - 1]) in wanted:
+            out[int(layer[b - 1])] = hf.heights_mm.copy()
+        a = b
+    return out
+
+
+class TruthWriter:
+    """Ground truth beside a run: the true top surface after each layer (PLY in O) and
+    ``faults.json``, each fault's effect measured against a fault-free run with the same seed.
+    The truth of an earlier run in the same folder is removed first (a shorter run must not
+    leave stale layers beside its own); other files stay."""
+
+    def __init__(self, truth_dir, sim):
+        self.dir = Path(truth_dir)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        for p in self.dir.iterdir():
+            if re.fullmatch(r"layer_\d{3,}\.ply", p.name) or p.name == "faults.json":
+                p.unlink()
+        self.sim = sim
+        self.faulty: dict[int, np.ndarray] = {}
+
+    def layer(self, hf, layer: int) -> None:
+        from twin.world.truth import write_layer_surface
+
+        write_layer_surface(hf, self.dir / f"layer_{layer:03d}.ply")
+        self.faulty[layer] = hf.heights_mm.copy()
+
+    def finish(self, last_segment: int) -> None:
+        from twin.world.heightfield import HEIGHTFIELD_CELL_MM
+        from twin.world.truth import write_fault_truth
+
+        sc = self.sim.scenario
+        nominal = (nominal_layer_heights(self.sim, last_segment, sorted(self.faulty))
+                   if sc.faults else self.faulty)
+        write_fault_truth(self.dir / "faults.json", sc.faults, self.faulty, nominal,
+                          toolpath=self.sim.toolpath, cell_mm=HEIGHTFIELD_CELL_MM,
+                          area_threshold_mm=sc.monitor.delta_global_mm)

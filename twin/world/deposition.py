@@ -1,0 +1,215 @@
+"""Stochastic Gaussian cold-spray deposition onto the twin's height field, in the work object O.
+
+Model (the paper's eq. for the coating distribution, sampled instead of integrated):
+
+* **Mass.** Powder leaves the nozzle at ``feed_g_min / 60 * feed_factor`` [g/s]; with the powder
+  density ``powder_density_g_cm3`` (CP-Ti 4.51 g/cm^3 = 0.00451 g/mm^3) that is a volume rate
+  ``Q = feed_g_min / 60 / (density / 1000)`` [mm^3/s] (12 g/min of CP-Ti: 44.3 mm^3/s). It is
+  carried by *packets* of fixed volume ``Q / packets_per_s``; a motion step of ``dt_s`` draws
+  ``Poisson(packets_per_s * feed_factor * dt_s)`` packets (finite counts give shot noise, and
+  the residence time of the executed motion sets how much lands where).
+* **Plume.** Each packet leaves the nozzle exit (``standoff_mm + standoff_delta_mm`` behind the
+  spot along the spray axis) displaced across the jet by an isotropic 2-D Gaussian of standard
+  deviation ``sigma``, and travels along the axis to the current surface (exact ray cast).
+  ``sigma = (nozzle_exit_mm / 2 + s * tan(plume_half_angle_deg)) / 2`` at standoff ``s``: the
+  jet radius grows linearly from the exit radius with the divergence half-angle and is taken as
+  two standard deviations (6.55 mm exit, 30 mm standoff, 5 deg: sigma = 2.95 mm). When
+  ``plume_sigma_mm`` is set it is sigma at the nominal standoff and scales with the same law.
+  A tilted spray therefore paints an elliptical footprint, stretched by ``1 / cos(theta)``.
+* **Sticking.** The impact angle ``theta`` is the angle between the reversed jet and the surface
+  normal, a central difference over ``NORMAL_STEP_MM`` = 1.5 mm either side of the hit: the
+  macroscopic surface that an efficiency curve is measured against (a nozzle tilted over a flat
+  coupon), not the slope of the packets' own shot noise. One packet carries the volume of a few
+  hundred CP-Ti particles (0.002 to 0.005 mm^3 against 1.4e-5 mm^3 for a 30 um particle), so
+  the twin's surface is far rougher below a millimetre than a real deposit. A normal taken over
+  0.5 mm read that roughness as impact angle and the efficiency lost on its slopes fed it back:
+  a wide flat raster (26 g/min, 30 mm/s, 2 mm spacing) roughened without bound (rms 0.14 mm
+  after 8 passes, 1.4 mm after 48) and its growth per pass fell from 0.80 to 0.37 mm, which
+  stalled the twisted tower at about 40 mm. Over 1.5 mm either side the raster keeps 0.80 mm
+  per pass for 72 passes (rms 0.45 mm), while walls, corners and the jet's own footprint
+  (sigma about 3 mm) still set the angle (see ``benchmarks/tower_scale.py``).
+  A packet adds ``zeta(theta) * efficiency_factor`` of its volume, with
+  ``zeta(theta) = deposition_efficiency * cos^2(pi/2 * (theta / critical_angle)^2)`` for
+  ``theta < critical_angle`` and 0 beyond: flat near normal impact (zeta(15 deg) = 0.98 zeta(0)
+  at 75 deg critical angle), zeta(60 deg) = 0.29 zeta(0), smoothly to 0 with zero slope at the
+  critical angle. Rebounding material is lost.
+* **Splat.** The stuck volume is spread over the 5 x 5 cells around the hit with normalised
+  Gaussian weights (one cell sigma), so the height field gains exactly that volume.
+
+All randomness is one SplitMix64 stream per model seeded from ``seed``; same seed, same calls,
+same surface bit for bit.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from dm2.core.config import ProcessConfig
+from twin.world import deposition_kernels as DK
+from twin.world.heightfield import HeightField
+
+log = logging.getLogger(__name__)
+
+NORMAL_STEP_MM = 1.5  # half-width of the impact-angle normal's central difference [mm]
+
+
+def volume_rate_mm3_s(process: ProcessConfig) -> float:
+    """Powder volume leaving the nozzle at full feed [mm^3/s]."""
+    return process.feed_g_min / 60.0 / (process.powder_density_g_cm3 / 1000.0)
+
+
+def plume_sigma_mm(process: ProcessConfig, standoff_delta_mm: float = 0.0) -> float:
+    """Standard deviation [mm] of the plume across the jet at the (changed) standoff."""
+    tan_a = math.tan(math.radians(process.plume_half_angle_deg))
+    radius = 0.5 * process.nozzle_exit_mm
+    s = max(process.standoff_mm + standoff_delta_mm, 0.0)
+    sigma = 0.5 * (radius + s * tan_a)
+    if process.plume_sigma_mm is not None:
+        sigma *= process.plume_sigma_mm / (0.5 * (radius + process.standoff_mm * tan_a))
+    return sigma
+
+
+def deposition_efficiency(process: ProcessConfig, theta_rad) -> np.ndarray:
+    """``zeta(theta)`` for impact angles ``theta_rad`` (array) [rad]: fraction that sticks."""
+    theta = np.asarray(theta_rad, dtype=np.float64)
+    tc = math.radians(process.critical_angle_deg)
+    x = np.clip(theta / tc, 0.0, 1.0)
+    z = process.deposition_efficiency * np.cos(0.5 * np.pi * x * x) ** 2
+    return np.where(theta < tc, z, 0.0)
+
+
+class SprayModel:
+    """The cold-spray jet: deposits packets onto a :class:`HeightField`.
+
+    Parameters
+    ----------
+    process : ProcessConfig
+    seed : int, seeds this model's packet stream
+
+    Attributes
+    ----------
+    fed_volume_mm3 : float, total packet volume drawn so far (before sticking)
+    deposited_volume_mm3 : float, total volume added to height fields so far
+    missed_packets : int, packets that missed the plate
+    """
+
+    def __init__(self, process: ProcessConfig, seed: int = 0):
+        self.process = process
+        self.seed = int(seed)
+        self._state = np.array([np.uint64(self.seed & 0xFFFFFFFFFFFFFFFF)], dtype=np.uint64)
+        DK.next_u64(self._state)  # decorrelate small seeds
+        self.v_packet_mm3 = volume_rate_mm3_s(process) / process.packets_per_s
+        self._theta_c = math.radians(process.critical_angle_deg)
+        self._sigma_cache: dict[float, float] = {0.0: plume_sigma_mm(process)}
+        self.fed_volume_mm3 = 0.0
+        self.deposited_volume_mm3 = 0.0
+        self.missed_packets = 0
+
+    def sigma_mm(self, standoff_delta_mm: float = 0.0) -> float:
+        s = self._sigma_cache.get(standoff_delta_mm)
+        if s is None:
+            s = plume_sigma_mm(self.process, standoff_delta_mm)
+            self._sigma_cache[standoff_delta_mm] = s
+        return s
+
+    def deposit(self, hf: HeightField, spot_O, axis_O, dt_s: float, feed_factor: float = 1.0,
+                efficiency_factor: float = 1.0, standoff_delta_mm: float = 0.0) -> float:
+        """Spray for ``dt_s`` seconds at ``spot_O (3,)`` [mm] along unit ``axis_O (3,)``.
+
+        Mutates ``hf``; returns the deposited volume [mm^3].
+        """
+        spot = np.asarray(spot_O, dtype=np.float64)
+        axis = np.asarray(axis_O, dtype=np.float64)
+        if spot.shape != (3,) or axis.shape != (3,):
+            raise ValueError(f"SprayModel.deposit: spot_O and axis_O must be (3,), "
+                             f"got {spot.shape} and {axis.shape}")
+        if dt_s < 0 or feed_factor < 0 or efficiency_factor < 0:
+            raise ValueError("SprayModel.deposit: dt_s, feed_factor and efficiency_factor "
+                             "must be non-negative")
+        p = self.process
+        lam = p.packets_per_s * feed_factor * dt_s
+        vol, n, missed = DK.spray_step(
+            hf._h, hf._bmax, hf._zmax, hf._dirty, hf.cell_mm, hf.thickness_mm, self._state, lam,
+            spot, axis, self.sigma_mm(standoff_delta_mm), p.standoff_mm + standoff_delta_mm,
+            self.v_packet_mm3, p.deposition_efficiency * efficiency_factor, self._theta_c,
+            max(1, round(NORMAL_STEP_MM / hf.cell_mm)))
+        self.fed_volume_mm3 += n * self.v_packet_mm3
+        self.deposited_volume_mm3 += vol
+        self.missed_packets += missed
+        return vol
+
+    def deposit_samples(self, hf: HeightField, spot_O, axis_O, dt_s: float, spray_on=None,
+                        feed_factor=None, efficiency_factor=None,
+                        standoff_delta_mm=None) -> np.ndarray:
+        """Deposit along executed-motion samples: ``spot_O (m, 3)``, ``axis_O (m, 3)``.
+
+        Optional per-sample ``spray_on (m,)`` bool and factor arrays ``(m,)`` (or scalars).
+        Returns the deposited volume per sample (m,) [mm^3].
+        """
+        plan = self.plan_samples(spot_O, axis_O, dt_s, spray_on, feed_factor,
+                                 efficiency_factor, standoff_delta_mm)
+        return self.deposit_plan(hf, plan, 0, plan.lam.size)
+
+    def plan_samples(self, spot_O, axis_O, dt_s: float, spray_on=None, feed_factor=None,
+                     efficiency_factor=None, standoff_delta_mm=None) -> SamplePlan:
+        """The per-sample jet parameters of :meth:`deposit_samples`, worked out once for a
+        whole motion so that :meth:`deposit_plan` can deposit it run by run."""
+        spots = np.ascontiguousarray(spot_O, dtype=np.float64)
+        axes = np.ascontiguousarray(axis_O, dtype=np.float64)
+        if spots.ndim != 2 or spots.shape[1] != 3 or axes.shape != spots.shape:
+            raise ValueError(f"SprayModel.deposit_samples: spot_O and axis_O must be (m, 3), "
+                             f"got {spots.shape} and {axes.shape}")
+        m = spots.shape[0]
+        p = self.process
+        on = np.ones(m, bool) if spray_on is None else np.broadcast_to(spray_on, (m,))
+        ff = np.broadcast_to(1.0 if feed_factor is None else feed_factor, (m,))
+        ef = np.broadcast_to(1.0 if efficiency_factor is None else efficiency_factor, (m,))
+        sd = np.broadcast_to(0.0 if standoff_delta_mm is None else standoff_delta_mm, (m,))
+        if np.any(ff < 0) or np.any(ef < 0) or dt_s < 0:
+            raise ValueError("SprayModel.deposit_samples: dt_s and factors must be non-negative")
+        # same operation order as :meth:`deposit`, so batching changes no bit of the result
+        lam = np.where(on, p.packets_per_s * ff * dt_s, 0.0).astype(np.float64)
+        sigma = np.array([self.sigma_mm(float(d)) for d in sd]) if np.any(sd != 0) else \
+            np.full(m, self.sigma_mm(0.0))
+        return SamplePlan(spots, axes, lam, sigma,
+                          np.ascontiguousarray(p.standoff_mm + sd, dtype=np.float64),
+                          np.ascontiguousarray(p.deposition_efficiency * ef, dtype=np.float64))
+
+    def deposit_plan(self, hf: HeightField, plan: SamplePlan, a: int, b: int) -> np.ndarray:
+        """Deposit samples ``a:b`` of ``plan``; the deposited volume per sample (b - a,)."""
+        out = np.zeros(b - a)
+        counts = np.zeros(2, dtype=np.int64)
+        DK.spray_samples(hf._h, hf._bmax, hf._zmax, hf._dirty, hf.cell_mm, hf.thickness_mm,
+                         self._state, plan.lam[a:b], plan.spots_O[a:b], plan.axes_O[a:b],
+                         plan.sigma_mm[a:b], plan.back_mm[a:b], self.v_packet_mm3,
+                         plan.zeta0[a:b], self._theta_c,
+                         max(1, round(NORMAL_STEP_MM / hf.cell_mm)), out, counts)
+        self.fed_volume_mm3 += int(counts[0]) * self.v_packet_mm3
+        self.deposited_volume_mm3 += float(out.sum())
+        self.missed_packets += int(counts[1])
+        return out
+
+
+@dataclass(frozen=True)
+class SamplePlan:
+    """Per-sample jet parameters for :meth:`SprayModel.deposit_plan` (made by ``plan_samples``).
+
+    Attributes
+    ----------
+    spots_O, axes_O : (m, 3) float64 [mm] / unit, spray spot and axis in O
+    lam : (m,) float64, expected packets per sample (0 where the spray is off)
+    sigma_mm : (m,) float64 [mm], plume standard deviation
+    back_mm : (m,) float64 [mm], nozzle exit distance behind the spot
+    zeta0 : (m,) float64, normal-impact deposition efficiency (with its fault factor)
+    """
+
+    spots_O: np.ndarray
+    axes_O: np.ndarray
+    lam: np.ndarray
+    sigma_mm: np.ndarray
+    back_mm: np.ndarray
+    zeta0: np.ndarray

@@ -1,0 +1,307 @@
+"""Numba kernels for the stochastic Gaussian spray (see :mod:`twin.world.deposition`).
+
+Randomness comes from a SplitMix64 generator whose 64-bit state lives in a numpy array owned
+by the :class:`twin.world.deposition.SprayModel`, so two models never share state and a seed fixes
+every packet bit for bit.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from twin.world.heightfield_kernels import BLOCK, bilinear_height, ray_one
+
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+_M1 = np.uint64(0xBF58476D1CE4E5B9)
+_M2 = np.uint64(0x94D049BB133111EB)
+
+
+@njit(cache=True)
+def next_u64(state):
+    state[0] += _GOLDEN
+    z = state[0]
+    z = (z ^ (z >> np.uint64(30))) * _M1
+    z = (z ^ (z >> np.uint64(27))) * _M2
+    return z ^ (z >> np.uint64(31))
+
+
+@njit(cache=True)
+def uniform(state):
+    """Uniform float in [0, 1)."""
+    return float(next_u64(state) >> np.uint64(11)) * (1.0 / 9007199254740992.0)
+
+
+@njit(cache=True)
+def poisson(state, lam):
+    """Poisson draw (Knuth below 10, Hoermann's PTRS transformed rejection above)."""
+    if lam <= 0.0:
+        return 0
+    if lam < 10.0:
+        limit = math.exp(-lam)
+        k = 0
+        p = uniform(state)
+        while p > limit:
+            k += 1
+            p *= uniform(state)
+        return k
+    slam = math.sqrt(lam)
+    loglam = math.log(lam)
+    b = 0.931 + 2.53 * slam
+    a = -0.059 + 0.02483 * b
+    invalpha = 1.1239 + 1.1328 / (b - 3.4)
+    vr = 0.9277 - 3.6224 / (b - 2.0)
+    while True:
+        u = uniform(state) - 0.5
+        v = uniform(state)
+        us = 0.5 - abs(u)
+        k = math.floor((2.0 * a / us + b) * u + lam + 0.43)
+        if us >= 0.07 and v <= vr:
+            return int(k)
+        if k < 0 or (us < 0.013 and v > us):
+            continue
+        if (math.log(v) + math.log(invalpha) - math.log(a / (us * us) + b)
+                <= -lam + k * loglam - math.lgamma(k + 1.0)):
+            return int(k)
+
+
+@njit(cache=True)
+def efficiency_curve(theta, theta_c):
+    """Relative deposition efficiency ``cos^2(pi/2 (theta/theta_c)^2)``, 0 beyond ``theta_c``."""
+    if theta >= theta_c:
+        return 0.0
+    x = theta / theta_c
+    c = math.cos(0.5 * math.pi * x * x)
+    return c * c
+
+
+@njit(cache=True)
+def _smoothed_normal(H, cell, x, y, k):
+    """Upward unit normal from central differences over +-k cells around ``(x, y)``."""
+    ny, nx = H.shape
+    i = min(max(int(x / cell), 0), nx - 1)
+    j = min(max(int(y / cell), 0), ny - 1)
+    i0 = max(i - k, 0)
+    i1 = min(i + k, nx - 1)
+    j0 = max(j - k, 0)
+    j1 = min(j + k, ny - 1)
+    gx = (H[j, i1] - H[j, i0]) / ((i1 - i0) * cell) if i1 > i0 else 0.0
+    gy = (H[j1, i] - H[j0, i]) / ((j1 - j0) * cell) if j1 > j0 else 0.0
+    n = math.sqrt(gx * gx + gy * gy + 1.0)
+    return -gx / n, -gy / n, 1.0 / n
+
+
+SPLAT_RADIUS_CELLS = 2  # a packet spreads over (2r+1)^2 cells
+SPLAT_SIGMA_CELLS = 1.0  # Gaussian spread of one packet's splat, in cells
+# exp(-d^2 / 2s^2) for d = 0 .. SPLAT_RADIUS_CELLS (a compile-time constant of the kernels)
+_SPLAT_G = np.exp(-np.arange(SPLAT_RADIUS_CELLS + 1.0) ** 2
+                  / (2.0 * SPLAT_SIGMA_CELLS * SPLAT_SIGMA_CELLS))
+
+
+@njit(cache=True, inline="always")
+def _splat_row(H, j, i, wy, d0, d1, d2, d3, d4, top):
+    """Add ``dk * wy`` to cell ``(j, i + k)``, k = 0..4; returns the highest height so far."""
+    h = H[j, i] + d0 * wy
+    H[j, i] = h
+    top = max(top, h)
+    h = H[j, i + 1] + d1 * wy
+    H[j, i + 1] = h
+    top = max(top, h)
+    h = H[j, i + 2] + d2 * wy
+    H[j, i + 2] = h
+    top = max(top, h)
+    h = H[j, i + 3] + d3 * wy
+    H[j, i + 3] = h
+    top = max(top, h)
+    h = H[j, i + 4] + d4 * wy
+    H[j, i + 4] = h
+    return max(top, h)
+
+
+@njit(cache=True)
+def _raise_bounds(bmax, zmax, dirty, j_lo, j_hi, i_lo, i_hi, top):
+    """Raise the bounds of the blocks holding nodes ``j_lo..j_hi x i_lo..i_hi`` (and the
+    field's top) to ``top``, and add the nodes to the changed-cell box ``dirty``."""
+    for bj in range(j_lo // BLOCK, (j_hi + 1) // BLOCK + 1):
+        for bi in range(i_lo // BLOCK, (i_hi + 1) // BLOCK + 1):
+            if top > bmax[bj, bi]:
+                bmax[bj, bi] = top
+    if top > zmax[0]:
+        zmax[0] = top
+    dirty[0] = min(dirty[0], j_lo)
+    dirty[1] = max(dirty[1], j_hi)
+    dirty[2] = min(dirty[2], i_lo)
+    dirty[3] = max(dirty[3], i_hi)
+
+
+@njit(cache=True)
+def _splat(H, bmax, zmax, dirty, cell, x, y, vol, w, unrolled=True):
+    """Add ``vol`` [mm^3] at ``(x, y)`` as a small Gaussian splat (sigma one cell, 5 x 5 cells).
+
+    A packet stands for many particles that flatten on impact; spreading it over a few cells
+    keeps single packets from building cell-sized spikes that then shadow their neighbours
+    (ballistic columnar growth, far rougher than a cold-spray deposit). Weights are normalised
+    over the cells that exist, so volume is conserved exactly. The Gaussian is separable, so
+    ``w`` (scratch, at least ``2 * (2 * SPLAT_RADIUS_CELLS + 1)`` floats) holds the x and the
+    y weights. Normalised weights only need ``exp(-(d - f)^2 / 2s^2)`` up to a common factor,
+    i.e. ``exp(-d^2 / 2s^2) * exp(f / s^2)^d`` for offset ``d`` from the nearest centre and
+    sub-cell offset ``f``: two exponentials per axis instead of five. The cells written are
+    added to the changed-cell box ``dirty`` ([j_min, j_max, i_min, i_max]). A splat with all
+    its cells on the grid takes an unrolled path of the same operations (the same bits; False
+    ``unrolled`` keeps the general path).
+    """
+    ny, nx = H.shape
+    u = x / cell - 0.5
+    v = y / cell - 0.5
+    ic = int(math.floor(u + 0.5))
+    jc = int(math.floor(v + 0.5))
+    r = SPLAT_RADIUS_CELLS
+    m = 2 * r + 1
+    inv2s2 = 1.0 / (2.0 * SPLAT_SIGMA_CELLS * SPLAT_SIGMA_CELLS)
+    ex = math.exp(2.0 * (u - ic) * inv2s2)
+    ey = math.exp(2.0 * (v - jc) * inv2s2)
+    exi = 1.0 / ex
+    eyi = 1.0 / ey
+    if unrolled and r == 2 and 2 <= ic < nx - 2 and 2 <= jc < ny - 2:  # all 25 on the grid
+        g1 = _SPLAT_G[1]
+        g2 = _SPLAT_G[2]
+        x0, x1, x3, x4 = g2 * (exi * exi), g1 * exi, g1 * ex, g2 * (ex * ex)
+        y0, y1, y3, y4 = g2 * (eyi * eyi), g1 * eyi, g1 * ey, g2 * (ey * ey)
+        sx = (((x0 + x1) + 1.0) + x3) + x4
+        sy = (((y0 + y1) + 1.0) + y3) + y4
+        dh = vol / (cell * cell * sx * sy)
+        d0, d1, d3, d4 = dh * x0, dh * x1, dh * x3, dh * x4  # (dh * wx) * wy, as below
+        top = -np.inf
+        top = _splat_row(H, jc - 2, ic - 2, y0, d0, d1, dh, d3, d4, top)
+        top = _splat_row(H, jc - 1, ic - 2, y1, d0, d1, dh, d3, d4, top)
+        top = _splat_row(H, jc, ic - 2, 1.0, d0, d1, dh, d3, d4, top)
+        top = _splat_row(H, jc + 1, ic - 2, y3, d0, d1, dh, d3, d4, top)
+        top = _splat_row(H, jc + 2, ic - 2, y4, d0, d1, dh, d3, d4, top)
+        _raise_bounds(bmax, zmax, dirty, jc - 2, jc + 2, ic - 2, ic + 2, top)
+        return
+    # w[:m] holds x, w[m:2m] holds y; centre first, then outwards in both directions
+    w[r] = 1.0 if 0 <= ic < nx else 0.0
+    w[m + r] = 1.0 if 0 <= jc < ny else 0.0
+    px = 1.0
+    nxp = 1.0
+    py = 1.0
+    nyp = 1.0
+    for d in range(1, r + 1):
+        g = _SPLAT_G[d]
+        px *= ex
+        nxp *= exi
+        py *= ey
+        nyp *= eyi
+        w[r + d] = g * px if ic + d < nx else 0.0
+        w[r - d] = g * nxp if ic - d >= 0 else 0.0
+        w[m + r + d] = g * py if jc + d < ny else 0.0
+        w[m + r - d] = g * nyp if jc - d >= 0 else 0.0
+    sx = 0.0
+    sy = 0.0
+    for d in range(m):
+        sx += w[d]
+        sy += w[m + d]
+    if sx <= 0.0 or sy <= 0.0:
+        return
+    dh = vol / (cell * cell * sx * sy)
+    top = -np.inf
+    for dj in range(-r, r + 1):
+        wy = w[m + dj + r]
+        if wy == 0.0:
+            continue
+        j = jc + dj
+        for di in range(-r, r + 1):
+            wx = w[di + r]
+            if wx == 0.0:
+                continue
+            i = ic + di
+            h = H[j, i] + dh * wx * wy
+            H[j, i] = h
+            if h > top:
+                top = h
+    # the splat's highest node bounds every block its nodes touch (a valid, slightly looser
+    # bound than node by node, for a fraction of the work)
+    _raise_bounds(bmax, zmax, dirty, max(jc - r, 0), min(jc + r, ny - 1), max(ic - r, 0),
+                  min(ic + r, nx - 1), top)
+
+
+@njit(cache=True, nogil=True)
+def spray_step(H, bmax, zmax, dirty, cell, thickness, state, lam, spot, axis, sigma, back_mm,
+               v_packet, zeta0, theta_c, normal_cells):
+    """Draw ``Poisson(lam)`` packets from the plume at ``spot`` along ``axis`` and deposit them.
+
+    Returns
+    -------
+    (deposited volume [mm^3], packets drawn, packets that missed the plate)
+    """
+    ax = axis[0]
+    ay = axis[1]
+    az = axis[2]
+    an = math.sqrt(ax * ax + ay * ay + az * az)
+    ax /= an
+    ay /= an
+    az /= an
+    # orthonormal basis (e1, e2) of the plane across the jet
+    if abs(az) < 0.9:
+        e1x, e1y, e1z = ay, -ax, 0.0
+    else:
+        e1x, e1y, e1z = 0.0, az, -ay
+    n1 = math.sqrt(e1x * e1x + e1y * e1y + e1z * e1z)
+    e1x /= n1
+    e1y /= n1
+    e1z /= n1
+    e2x = ay * e1z - az * e1y
+    e2y = az * e1x - ax * e1z
+    e2z = ax * e1y - ay * e1x
+    vertical = abs(ax) < 1e-12 and abs(ay) < 1e-12 and az < 0.0
+    n_packets = poisson(state, lam)
+    w = np.empty((2 * SPLAT_RADIUS_CELLS + 1) ** 2)
+    deposited = 0.0
+    missed = 0
+    for _ in range(n_packets):
+        u1 = 1.0 - uniform(state)
+        u2 = uniform(state)
+        r = sigma * math.sqrt(-2.0 * math.log(u1))
+        g1 = r * math.cos(2.0 * math.pi * u2)
+        g2 = r * math.sin(2.0 * math.pi * u2)
+        ox = spot[0] + g1 * e1x + g2 * e2x - back_mm * ax
+        oy = spot[1] + g1 * e1y + g2 * e2y - back_mm * ay
+        oz = spot[2] + g1 * e1z + g2 * e2z - back_mm * az
+        if vertical:  # straight down: the hit is the surface height under the packet
+            hz = bilinear_height(H, cell, ox, oy)
+            t = oz - hz if hz == hz else np.inf
+        else:
+            t = ray_one(H, bmax, cell, thickness, zmax[0], ox, oy, oz, ax, ay, az, np.inf)
+        if not t < np.inf:
+            missed += 1
+            continue
+        hx = ox + t * ax
+        hy = oy + t * ay
+        nx_, ny_, nz_ = _smoothed_normal(H, cell, hx, hy, normal_cells)
+        cos_t = -(ax * nx_ + ay * ny_ + az * nz_)
+        if cos_t <= 0.0:
+            continue
+        theta = math.acos(min(cos_t, 1.0))
+        vol = v_packet * min(zeta0 * efficiency_curve(theta, theta_c), 1.0)
+        if vol > 0.0:
+            _splat(H, bmax, zmax, dirty, cell, hx, hy, vol, w)
+            deposited += vol
+    return deposited, n_packets, missed
+
+
+@njit(cache=True, nogil=True)
+def spray_samples(H, bmax, zmax, dirty, cell, thickness, state, lam, spots, axes, sigma, back_mm,
+                  v_packet, zeta0, theta_c, normal_cells, out_vol, out_counts):
+    """:func:`spray_step` for each executed-motion sample ``k`` (``lam[k] == 0`` skips it)."""
+    for k in range(spots.shape[0]):
+        if lam[k] <= 0.0:
+            out_vol[k] = 0.0
+            continue
+        vol, n, missed = spray_step(H, bmax, zmax, dirty, cell, thickness, state, lam[k], spots[k],
+                                    axes[k], sigma[k], back_mm[k], v_packet, zeta0[k],
+                                    theta_c, normal_cells)
+        out_vol[k] = vol
+        out_counts[0] += n
+        out_counts[1] += missed
