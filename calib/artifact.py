@@ -35,6 +35,12 @@ Artifact TOML format
 
     [plate]                 # the plate occupies [0, Lx] x [0, Ly] x [-thickness, 0] in A
     size_mm = [120.0, 120.0, 6.0]
+    touch_mark_mm = [20.0, 20.0, 3.0]   # optional: seat point of the nozzle touch-off cone
+                                        # (the exit centre sits there; calib.touch_off)
+
+    [certificate]           # optional: expanded uncertainties of the certified geometry
+    radius_mm = 0.002       # sphere radii
+    position_mm = 0.005     # sphere centres, per axis
 
     [[spheres]]             # one table per sphere
     center_mm = [52.0, 54.0, 16.0]   # in A
@@ -67,6 +73,12 @@ class _Mount(_Model):
 
 class _Plate(_Model):
     size_mm: tuple[float, float, float] = (120.0, 120.0, 6.0)
+    touch_mark_mm: tuple[float, float, float] | None = None
+
+
+class _Certificate(_Model):
+    radius_mm: float = Field(0.0, ge=0)
+    position_mm: float = Field(0.0, ge=0)
 
 
 class _Sphere(_Model):
@@ -82,6 +94,7 @@ class _ArtifactFile(_Model):
     work_object: bool = False
     mount: _Mount | None = None
     plate: _Plate = _Plate()
+    certificate: _Certificate = _Certificate()
     spheres: tuple[_Sphere, ...] = Field(min_length=1)
 
     model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
@@ -101,6 +114,8 @@ class Artifact:
     post_radii_mm : (k,) float64 [mm], radius of the post under each sphere (0: none)
     plate_size_mm : (3,) float64 [mm], (Lx, Ly, thickness)
     work_object : bool, True when ``A`` is the work object ``O`` (so ``T_F_A`` is ``T_F_O``)
+    touch_mark_A : (3,) float64 [mm] or None, seat point of the nozzle touch-off cone
+    radius_uncertainty_mm, position_uncertainty_mm : float, the certificate's uncertainties
     """
 
     name: str
@@ -110,6 +125,9 @@ class Artifact:
     post_radii_mm: np.ndarray
     plate_size_mm: np.ndarray
     work_object: bool = False
+    touch_mark_A: np.ndarray | None = None
+    radius_uncertainty_mm: float = 0.0
+    position_uncertainty_mm: float = 0.0
 
     def __post_init__(self):
         c = np.asarray(self.centers_A, dtype=np.float64).reshape(-1, 3)
@@ -134,6 +152,11 @@ class Artifact:
             if T.shape != (4, 4) or not np.all(np.isfinite(T)):
                 raise ValueError("Artifact.T_F_A: expected a finite (4, 4) transform")
             values.append(("T_F_A", T))
+        if self.touch_mark_A is not None:
+            m = np.asarray(self.touch_mark_A, dtype=np.float64).reshape(-1)
+            if m.size != 3 or not np.all(np.isfinite(m)):
+                raise ValueError("Artifact.touch_mark_A: expected 3 finite numbers")
+            values.append(("touch_mark_A", m))
         for name, val in values:
             val = val.copy()
             val.setflags(write=False)
@@ -259,6 +282,10 @@ def parse_artifact(data: dict, source: str = "<artifact>") -> Artifact:
             post_radii_mm=np.array([s.post_radius_mm for s in f.spheres]),
             plate_size_mm=np.array(f.plate.size_mm),
             work_object=f.work_object,
+            touch_mark_A=None if f.plate.touch_mark_mm is None else np.array(
+                f.plate.touch_mark_mm),
+            radius_uncertainty_mm=f.certificate.radius_mm,
+            position_uncertainty_mm=f.certificate.position_mm,
         )
     except ValueError as exc:
         raise ConfigError(f"{source}: field 'spheres': {exc}") from None

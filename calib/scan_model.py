@@ -1,6 +1,7 @@
 """Geometric model of a laser profiler scanning the sphere artifact (prediction, no noise).
 
-The fan is emitted from the origin of ``S`` in the ``x_S``-``z_S`` plane; valid points lie in
+The fan is emitted from the origin of ``S`` in the ``x_S``-``z_S`` plane, its rays spaced evenly
+in ``x`` at ``z_end`` (the sensor's documented profile layout); valid points lie in
 the trapezoid ``z_S in [z_start, z_end]``, ``|x_S| <= width(z_S) / 2`` with the width growing
 linearly from ``x_width_start_mm`` to ``x_width_end_mm``, and must be seen by the
 triangulation camera at ``(0, camera_baseline_mm, 0)`` in ``S``. Occluders (the nozzle body)
@@ -39,11 +40,16 @@ class FanModel:
         return 0.5 * (self.x_width_start_mm + f * (self.x_width_end_mm - self.x_width_start_mm))
 
     def ray_dirs_S(self) -> np.ndarray:
-        """Unit ray directions (points, 3) of the fan, spanning the whole field of view."""
-        tan_max = max(self.half_width_mm(self.z_start_mm) / self.z_start_mm,
-                      self.half_width_mm(self.z_end_mm) / self.z_end_mm)
-        ang = np.linspace(-np.arctan(tan_max), np.arctan(tan_max), self.points)
-        return np.column_stack([np.sin(ang), np.zeros_like(ang), np.cos(ang)])
+        """Unit ray directions (points, 3) of the fan, ordered by increasing x_S.
+
+        As the sensor documents its profile (and the twin's profiler emits it), the points are
+        spaced evenly in x at the end of the measuring range, ``x_width_end_mm`` wide there;
+        that is not even in angle (the outer rays lie closer in angle).
+        """
+        half = 0.5 * self.x_width_end_mm
+        x = np.linspace(-half, half, self.points)
+        d = np.column_stack([x, np.zeros_like(x), np.full_like(x, self.z_end_mm)])
+        return d / np.linalg.norm(d, axis=1, keepdims=True)
 
     def in_view(self, xz_S: np.ndarray) -> np.ndarray:
         """(n,) bool: points inside the measuring trapezoid (NaN is outside)."""

@@ -63,6 +63,10 @@ class SolverOptions:
     # per-axis sigma of the flange position error at each pose (robot repeatability); > 0
     # adds one nuisance translation per pose, shared by every sensor seeing that pose
     robot_sigma_mm: float = 0.0
+    # co-estimate each sensor's range (z_S) scale: reported z = true z * (1 + error); the
+    # artifact's known radii make it observable once the spheres are cut across the range
+    estimate_z_scale: bool = False
+    z_scale_lever_mm: float = 100.0  # range that makes a scale comparable with mm
 
 
 @dataclass(frozen=True)
@@ -83,6 +87,13 @@ class SensorEstimate:
     n_profiles: int
     condition: float
     per_pose_rms_mm: dict = field(default_factory=dict)
+    z_gain: float = 1.0  # true z = reported z * z_gain (1: not estimated)
+    sigma_z_gain: float | None = None
+
+    @property
+    def z_scale_error(self) -> float:
+        """The sensor's range scale error as estimated: reported z / true z - 1."""
+        return 1.0 / self.z_gain - 1.0
 
 
 @dataclass(frozen=True)
@@ -101,8 +112,10 @@ class CalibrationResult:
 class _Problem:
     """Stacked points of all sensors and the residual / Jacobian of the sphere model."""
 
-    def __init__(self, observations: list[Observation], sensors: list[str], artifact: Artifact):
-        self.sensors, self.art = sensors, artifact
+    def __init__(self, observations: list[Observation], sensors: list[str], artifact: Artifact,
+                 z_scale: bool = False):
+        self.sensors, self.art, self.z_scale = sensors, artifact, z_scale
+        self.z_gain = np.ones(len(sensors))
         self.obs = [o for o in observations if o.sensor_id in sensors]
         sidx = {s: i for i, s in enumerate(sensors)}
         n = [len(o.xz_S) for o in self.obs]
@@ -113,11 +126,24 @@ class _Problem:
         T_F_B = invert(np.stack([o.T_B_F for o in self.obs])) if self.obs else np.zeros((0, 4, 4))
         self.R_FB, self.t_FB = T_F_B[:, :3, :3], T_F_B[:, :3, 3]
 
-    def points_F(self, T_B_S: list[np.ndarray], idx: np.ndarray):
+    def n_base(self, mount: bool) -> int:
+        """Index of the first z-scale parameter (after the sensors and the mount)."""
+        return 6 * len(self.sensors) + (6 if mount else 0)
+
+    def n_params(self, mount: bool) -> int:
+        return self.n_base(mount) + (len(self.sensors) if self.z_scale else 0)
+
+    def p_at(self, idx: np.ndarray, gain: np.ndarray | None = None) -> np.ndarray:
+        """Points (m, 3) in S with the range gains applied (``self.z_gain`` by default)."""
+        p = self.p_S[idx].copy()
+        p[:, 2] *= (self.z_gain if gain is None else gain)[self.sensor_idx[idx]]
+        return p
+
+    def points_F(self, T_B_S: list[np.ndarray], idx: np.ndarray, gain=None):
         R = np.stack([T[:3, :3] for T in T_B_S])
         t = np.stack([T[:3, 3] for T in T_B_S])
         si, oi = self.sensor_idx[idx], self.obs_idx[idx]
-        p_B = np.einsum("nij,nj->ni", R[si], self.p_S[idx]) + t[si]
+        p_B = np.einsum("nij,nj->ni", R[si], self.p_at(idx, gain)) + t[si]
         return np.einsum("nij,nj->ni", self.R_FB[oi], p_B) + self.t_FB[oi]
 
     def associate(self, T_B_S, T_F_A, gate_mm: np.ndarray):
@@ -134,16 +160,18 @@ class _Problem:
         S = len(self.sensors)
         Ts = [exp_se3(T0[s], x[6 * s:6 * s + 6]) for s in range(S)]
         T_FA = exp_se3(T_FA0, x[6 * S:6 * S + 6]) if mount else T_FA0
-        q_F = self.points_F(Ts, idx)
+        nb = self.n_base(mount)
+        gain = self.z_gain * (1.0 + x[nb:nb + S]) if self.z_scale else self.z_gain
+        q_F = self.points_F(Ts, idx, gain)
         c_A = self.art.centers_A[k]
         d = q_F - (c_A @ T_FA[:3, :3].T + T_FA[:3, 3])
         nd = np.linalg.norm(d, axis=1)
         res = nd - self.art.radii_mm[k]
         if not jac:
             return res
-        si, oi, p = self.sensor_idx[idx], self.obs_idx[idx], self.p_S[idx]
+        si, oi, p = self.sensor_idx[idx], self.obs_idx[idx], self.p_at(idx, gain)
         u_B = np.einsum("nji,nj->ni", self.R_FB[oi], d / nd[:, None])
-        J = np.zeros((len(idx), 6 * S + (6 if mount else 0)))
+        J = np.zeros((len(idx), self.n_params(mount)))
         for s in range(S):
             rows = si == s
             g0 = u_B[rows] @ T0[s][:3, :3]
@@ -151,12 +179,14 @@ class _Problem:
             J[rows, 6 * s:6 * s + 3] = np.cross(p[rows], g_S) @ right_jacobian_so3(
                 x[6 * s:6 * s + 3])
             J[rows, 6 * s + 3:6 * s + 6] = g0
+            if self.z_scale:  # d p_S / d x_s = (0, 0, z * gain_s)
+                J[rows, nb + s] = g_S[:, 2] * self.p_S[idx][rows, 2] * self.z_gain[s]
         if mount:
             h0 = (d / nd[:, None]) @ T_FA0[:3, :3]
             w = x[6 * S:6 * S + 3]
             h_A = h0 @ Rotation.from_rotvec(w).as_matrix()
             J[:, 6 * S:6 * S + 3] = np.cross(h_A, c_A) @ right_jacobian_so3(w)
-            J[:, 6 * S + 3:] = -h0
+            J[:, 6 * S + 3:6 * S + 6] = -h0
         return (res, J, u_B) if with_normals else (res, J)
 
 
@@ -210,7 +240,7 @@ def solve_calibration(observations: list[Observation], artifact: Artifact, prior
     groups = [sensors] if joint else [[s] for s in sensors]
     estimates, mount_result = {}, None
     for group in groups:
-        prob = _Problem(observations, group, artifact)
+        prob = _Problem(observations, group, artifact, opt.estimate_z_scale)
         result = _summarise(prob, *_solve_group(prob, artifact, prior_T_B_S, opt),
                             opt.estimate_mount)
         estimates.update(result.sensors)
@@ -230,7 +260,7 @@ def _solve_group(prob: _Problem, artifact: Artifact, prior_T_B_S: dict, opt: Sol
     k, inl = prob.associate(T0, T_FA0, gate[prob.sensor_idx])
     check_observed(prob, inl, opt)
     T0 = [_closed_form_start(prob, s, T0[s], T_FA0, k, inl, opt) for s in range(S)]
-    n_par = 6 * S + (6 if mount else 0)
+    n_par, nb = prob.n_params(mount), prob.n_base(mount)
     for rnd in range(opt.rounds):
         k, inl = prob.associate(T0, T_FA0, gate[prob.sensor_idx])
         idx = np.flatnonzero(inl)
@@ -244,6 +274,8 @@ def _solve_group(prob: _Problem, artifact: Artifact, prior_T_B_S: dict, opt: Sol
         T0 = [exp_se3(T0[s], x[6 * s:6 * s + 6]) for s in range(S)]
         if mount:
             T_FA0 = exp_se3(T_FA0, x[6 * S:6 * S + 6])
+        if prob.z_scale:
+            prob.z_gain = prob.z_gain * (1.0 + x[nb:nb + S])
         res = prob.residuals(T0, T_FA0, np.zeros(n_par), idx, kk, mount)
         for s in range(S):
             r_s = np.abs(res[prob.sensor_idx[idx] == s])
@@ -262,7 +294,7 @@ def _least_squares(prob: _Problem, T0, T_FA0, idx, k, mount: bool, opt: SolverOp
     With ``opt.robot_sigma_mm > 0`` and a noise estimate, each pose gets a translation
     ``e_p`` of the flange (first order: ``r -= u_B . e_p``) with a Gaussian prior of that sigma.
     """
-    n_core = 6 * len(prob.sensors) + (6 if mount else 0)
+    n_core = prob.n_params(mount)
     pose_of_obs = np.array([o.pose_index for o in prob.obs])
     poses, pose_col = np.unique(pose_of_obs[prob.obs_idx[idx]], return_inverse=True)
     P = poses.size if (opt.robot_sigma_mm > 0 and noise_mm) else 0
@@ -313,8 +345,11 @@ def _summarise(prob, T, T_FA, res, J, idx, inl, conds, mount) -> CalibrationResu
             residual_rms_mm=float(np.sqrt(np.mean(r_s ** 2))) if r_s.size else float("nan"),
             n_points=int(rows.sum()),
             n_outliers=int(np.sum((prob.sensor_idx == s) & ~inl)),
-            n_profiles=int(np.unique(o_s).size), condition=conds[s], per_pose_rms_mm=per_pose)
+            n_profiles=int(np.unique(o_s).size), condition=conds[s], per_pose_rms_mm=per_pose,
+            z_gain=float(prob.z_gain[s]),
+            sigma_z_gain=(float(sig[prob.n_base(mount) + s] * prob.z_gain[s]) if prob.z_scale
+                          else None))
     return CalibrationResult(
         sensors=out, T_F_A=T_FA, mount_estimated=mount,
         sigma_mount_rotation_deg=np.degrees(sig[6 * S:6 * S + 3]) if mount else None,
-        sigma_mount_translation_mm=sig[6 * S + 3:] if mount else None)
+        sigma_mount_translation_mm=sig[6 * S + 3:6 * S + 6] if mount else None)

@@ -17,6 +17,13 @@ as a unit quaternion in ABB order ``(qw, qx, qy, qz)``::
     translation_mm = [...]
     quaternion_wxyz = [...]
 
+    [provenance]            # optional: where each transform came from (free text)
+    T_B_N = "taken from the cell file"
+    T_F_O = "estimated: sphere artifact (work object), 24 poses"
+    S1 = "estimated: sphere artifact hand-eye solve"
+
+A provenance entry starts with ``estimated`` or ``taken`` (see :data:`PROVENANCE_KINDS`).
+
 Floats are written with ``repr`` so a file read back holds the same numbers bit for bit;
 translations survive exactly, rotations to float64 rounding (quaternion <-> matrix).
 Bad files raise :class:`~dm2.core.config.ConfigError` naming the file and the field.
@@ -45,23 +52,54 @@ def _pose_table(T: np.ndarray) -> dict:
     return {"translation_mm": [float(x) for x in t], "quaternion_wxyz": [float(x) for x in q]}
 
 
-def calibration_to_toml(cal: Calibration) -> str:
-    """The calibration as TOML text (see the module docstring for the format)."""
+PROVENANCE_KINDS = ("estimated", "taken")
+
+
+def _provenance_keys(cal_sensors) -> tuple[str, ...]:
+    return ("T_B_N", "T_F_O", *[sid for sid in SENSOR_IDS if sid in cal_sensors])
+
+
+def calibration_to_toml(cal: Calibration, provenance: dict[str, str] | None = None) -> str:
+    """The calibration as TOML text (see the module docstring for the format).
+
+    ``provenance`` maps ``T_B_N``, ``T_F_O`` and sensor ids to a text starting with
+    ``estimated`` or ``taken``; when given it must cover every transform of ``cal``.
+    """
     data = {
         "schema": CALIBRATION_SCHEMA,
         "T_B_N": _pose_table(cal.T_B_N),
         "T_F_O": _pose_table(cal.T_F_O),
         "sensors": {sid: _pose_table(cal.T_B_S[sid]) for sid in SENSOR_IDS if sid in cal.T_B_S},
     }
+    if provenance is not None:
+        _check_provenance("<provenance>", provenance, _provenance_keys(cal.T_B_S))
+        data["provenance"] = {k: provenance[k] for k in _provenance_keys(cal.T_B_S)}
     header = "# dm2 calibration: translations [mm], quaternions (qw, qx, qy, qz)\n"
     return header + dump_toml(data)
 
 
-def write_calibration_toml(cal: Calibration, path: str | Path) -> None:
+def _check_provenance(source: str, table, keys: tuple[str, ...]) -> dict[str, str]:
+    if not isinstance(table, dict):
+        raise ConfigError(f"{source}: field 'provenance': expected a table of texts")
+    for key, text in table.items():
+        if key not in keys:
+            raise ConfigError(f"{source}: field 'provenance.{key}': no such transform "
+                              f"(expected {', '.join(keys)})")
+        if not isinstance(text, str) or not text.startswith(PROVENANCE_KINDS):
+            raise ConfigError(f"{source}: field 'provenance.{key}': {text!r} does not start "
+                              f"with one of {', '.join(PROVENANCE_KINDS)}")
+    missing = [k for k in keys if k not in table]
+    if missing:
+        raise ConfigError(f"{source}: field 'provenance': missing {', '.join(missing)}")
+    return dict(table)
+
+
+def write_calibration_toml(cal: Calibration, path: str | Path,
+                           provenance: dict[str, str] | None = None) -> None:
     """Write ``cal`` to ``path`` as TOML (written to a temporary file, then renamed)."""
     path = Path(path)
     tmp = path.with_name(path.name + ".part")
-    tmp.write_text(calibration_to_toml(cal), encoding="utf-8")
+    tmp.write_text(calibration_to_toml(cal, provenance), encoding="utf-8")
     tmp.replace(path)
 
 
@@ -103,7 +141,7 @@ def calibration_from_toml(text: str, source: str = "<calibration>") -> Calibrati
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{source}: not valid TOML: {exc}") from None
     for key in data:
-        if key not in ("schema", "T_B_N", "T_F_O", "sensors"):
+        if key not in ("schema", "T_B_N", "T_F_O", "sensors", "provenance"):
             raise ConfigError(f"{source}: field '{key}': unknown key")
     schema = data.get("schema")
     if schema != CALIBRATION_SCHEMA:
@@ -121,6 +159,8 @@ def calibration_from_toml(text: str, source: str = "<calibration>") -> Calibrati
             raise ConfigError(f"{source}: field 'sensors.{sid}': unknown sensor id "
                               f"(expected one of {', '.join(SENSOR_IDS)})")
         T_B_S[sid] = _pose(source, f"sensors.{sid}", table)
+    if "provenance" in data:
+        _check_provenance(source, data["provenance"], _provenance_keys(T_B_S))
     try:
         return Calibration(T_B_S=T_B_S, T_F_O=_pose(source, "T_F_O", data["T_F_O"]),
                            T_B_N=_pose(source, "T_B_N", data["T_B_N"]))
@@ -136,3 +176,10 @@ def read_calibration_toml(path: str | Path) -> Calibration:
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read calibration file: {exc.strerror}") from None
     return calibration_from_toml(text, str(path))
+
+
+def read_calibration_provenance(path: str | Path) -> dict[str, str] | None:
+    """The ``[provenance]`` table of a calibration file (None when it has none)."""
+    path = Path(path)
+    read_calibration_toml(path)  # validates the whole file
+    return tomllib.loads(path.read_text(encoding="utf-8")).get("provenance")

@@ -3,7 +3,8 @@
 :meth:`twin.profiler.sensor.VirtualProfiler.trace` and ``measure`` run the numba kernels of
 :mod:`twin.profiler.kernels`; these functions are the same model written plainly (and cast on
 any surface object with ``raycast``, ``normals_at``, ``height_at``, ``size_mm`` and
-``thickness_mm``). The two give the same bits, which the tests check.
+``thickness_mm``, or with ``raycast`` and ``solid_normals_at``). The two give the same
+bits, which the tests check.
 """
 
 from __future__ import annotations
@@ -146,10 +147,14 @@ def _solid_normals(hf, points_O: np.ndarray) -> np.ndarray:
     """Outward unit normals ``(m, 3)`` of the plate-and-deposit solid at surface points.
 
     Points on the top surface take the exact bilinear-patch normal; points below it lie on
-    the plate's side faces or bottom and take that face's normal.
+    the plate's side faces or bottom and take that face's normal. A surface that is not a
+    height field (undercuts, e.g. :mod:`twin.profiler.artifact_surface`) gives its normals
+    itself through ``solid_normals_at(points_O)``.
     """
     if points_O.shape[0] == 0:
         return np.zeros((0, 3))
+    if hasattr(hf, "solid_normals_at"):
+        return np.asarray(hf.solid_normals_at(points_O), dtype=np.float64)
     normals = np.asarray(hf.normals_at(points_O[:, :2]), dtype=np.float64).copy()
     top_z = np.asarray(hf.height_at(points_O[:, :2]), dtype=np.float64)
     on_face = ~(points_O[:, 2] >= top_z - _FACE_TOL_MM)  # NaN height: just off the plate
