@@ -34,6 +34,7 @@ class CalibrationOutcome:
     touch_off : TouchOffResult or None
     holdout : dict (rms_mm, n_points, n_rejected, poses) of the held-out check, or None
     dropped : dict reason -> count of profiles without a flange pose
+    n_observations : int, profiles paired with a flange pose
     """
 
     result: CalibrationResult
@@ -42,6 +43,7 @@ class CalibrationOutcome:
     touch_off: TouchOffResult | None
     holdout: dict | None
     dropped: dict
+    n_observations: int
 
 
 def first_pass_refiner(artifact: Artifact, options: SolverOptions | None = None,
@@ -147,4 +149,4 @@ def solve_run(messages, artifact: Artifact, prior: Calibration, options: SolverO
         provenance[sid] = (f"estimated: sphere artifact hand-eye solve, {n_prof[sid]} profiles, "
                            f"residual RMS {est.residual_rms_mm:.4f} mm")
     cal = Calibration(T_B_S=result.T_B_S, T_F_O=T_F_O, T_B_N=T_B_N)
-    return CalibrationOutcome(result, cal, provenance, touch, holdout, dropped)
+    return CalibrationOutcome(result, cal, provenance, touch, holdout, dropped, len(obs))

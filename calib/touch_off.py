@@ -50,3 +50,56 @@ def nozzle_exit_from_touches(T_B_F: np.ndarray, T_F_A: np.ndarray, mark_A: np.nd
     scatter = pts.std(axis=0, ddof=1)
     return TouchOffResult(make_T(np.asarray(prior_T_B_N)[:3, :3], mean), mean, scatter,
                           scatter / np.sqrt(pts.shape[0]), int(pts.shape[0]))
+
+
+TOUCH_OFF_SCHEMA = 1
+TOUCH_OFF_ATTACHMENT = "touch_off.toml"
+
+
+def touch_off_to_toml(T_B_F: np.ndarray) -> str:
+    """Touch-off flange poses as TOML: ``schema = 1`` and ``[[touches]]`` tables with
+    ``translation_mm`` and ``quaternion_wxyz`` (ABB order), as a calibration run records them."""
+    from dm2.core.frames import to_quat_abb
+    from dm2.core.toml_write import dump_toml
+
+    touches = []
+    for T in np.asarray(T_B_F, dtype=np.float64).reshape(-1, 4, 4):
+        t, q = to_quat_abb(T)
+        touches.append({"translation_mm": [float(v) for v in t],
+                        "quaternion_wxyz": [float(v) for v in q]})
+    return ("# nozzle touch-off: flange poses at each contact [mm]\n"
+            + dump_toml({"schema": TOUCH_OFF_SCHEMA, "touches": touches}))
+
+
+def touch_off_from_toml(text: str, source: str = "<touch-off>") -> np.ndarray:
+    """Flange poses ``(n, 4, 4)`` of a touch-off TOML text. Raises ConfigError naming
+    ``source`` and the field."""
+    import tomllib
+
+    from dm2.core.config import ConfigError
+    from dm2.core.frames import from_quat_abb
+
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{source}: not valid TOML: {exc}") from None
+    if data.get("schema") != TOUCH_OFF_SCHEMA:
+        raise ConfigError(f"{source}: field 'schema': expected {TOUCH_OFF_SCHEMA}, got "
+                          f"{data.get('schema')!r}")
+    touches = data.get("touches")
+    if not isinstance(touches, list) or not touches:
+        raise ConfigError(f"{source}: field 'touches': expected [[touches]] tables")
+    out = []
+    for i, tab in enumerate(touches):
+        try:
+            t = np.asarray(tab["translation_mm"], dtype=np.float64)
+            q = np.asarray(tab["quaternion_wxyz"], dtype=np.float64)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ConfigError(f"{source}: field 'touches[{i}]': {exc}") from None
+        if t.shape != (3,) or q.shape != (4,) or not np.all(np.isfinite(np.r_[t, q])):
+            raise ConfigError(f"{source}: field 'touches[{i}]': expected 3 + 4 finite numbers")
+        if abs(np.linalg.norm(q) - 1.0) > 1e-6:
+            raise ConfigError(f"{source}: field 'touches[{i}].quaternion_wxyz': not a unit "
+                              f"quaternion (norm {np.linalg.norm(q):.9g})")
+        out.append(from_quat_abb(t, q))
+    return np.stack(out)

@@ -87,7 +87,7 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
                  record: bool = False, full_report: bool = True,
                  progress: Progress | None = None,
                  on_stream_end: Callable[[], None] | None = None,
-                 calibration=None) -> ScenarioRun:
+                 calibration=None, true_T_B_S: dict | None = None) -> ScenarioRun:
     """Simulate ``sc`` on the twin, monitor it and write the run folder ``run_dir``.
 
     Parameters
@@ -102,6 +102,8 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
     on_stream_end : called once the stream is consumed, before the report is written
     calibration : dm2.core.messages.Calibration the pipeline uses instead of the one the scenario
         hands it (e.g. a solved hand-eye calibration against a perturbed ``calibration_error``)
+    true_T_B_S : the twin's profilers as built (dict sensor id -> (4, 4)) instead of the
+        scenario's nominal layout
 
     Raises
     ------
@@ -116,7 +118,7 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
 
     t_start = time.perf_counter()
     run_dir = check_output_dir(run_dir)
-    sim = Simulation(sc)
+    sim = Simulation(sc, true_T_B_S=true_T_B_S)
     session = MonitoringSession(calibration or sim.calibration, sc.monitor, sc.process,
                                 plate_size_mm=sc.cell.plate_size_mm, toolpath=sim.toolpath)
     run_dir.parent.mkdir(parents=True, exist_ok=True)

@@ -67,6 +67,11 @@ def bench(
     only: list[str] = typer.Option([], "--only", help="Run only these scenario files (stems)."),
     reports: bool = typer.Option(None, "--reports/--no-reports",
                                  help="Full report folders per scenario (default: the suite's)."),
+    calibration: str = typer.Option("true", "--calibration", help="true: the pipeline gets "
+                                    "the twin's calibration; rehearsed: a calibration is "
+                                    "rehearsed and solved first on a twin whose profilers "
+                                    "stand off the nominal layout, and the build is monitored "
+                                    "with it (and, for comparison, with the true one)."),
 ) -> None:
     """Run a suite of scenarios with injected faults and score each against the fault truth.
 
@@ -80,6 +85,8 @@ def bench(
     from scenarios import scenario_dir
 
     with bad_input_exits():
+        if calibration not in ("true", "rehearsed"):
+            raise ValueError(f"--calibration {calibration}: expected 'true' or 'rehearsed'")
         spec, files = resolve_suite(suite, scenario_dir() / "suites")
         if only:
             files = [f for f in files if f.stem in set(only)]
@@ -96,11 +103,21 @@ def bench(
 
     runs: dict[str, dict] = {}
     done_runs = {}
+    chain_true, chain_cmp = {}, {}
     t0 = time.perf_counter()
     for path, sc in scenarios:
         t1 = time.perf_counter()
         try:
-            run = run_scenario(sc, out_dir / path.stem, scenario_file=path, full_report=full)
+            if calibration == "rehearsed":
+                from dm2.cli.bench_calibration import compare, run_rehearsed
+
+                run, run_true, info = run_rehearsed(sc, out_dir / path.stem, path, full)
+                chain_true[path.stem] = score_scenario_run(run_true)
+                chain_cmp[path.stem] = {**compare(score_scenario_run(run),
+                                                  chain_true[path.stem]), "calibration": info}
+            else:
+                run = run_scenario(sc, out_dir / path.stem, scenario_file=path,
+                                   full_report=full)
         except Exception as exc:  # one broken scenario must not hide the others' scores
             err_console.print(f"[red]{escape(f'{path.name}: {type(exc).__name__}: {exc}')}[/]")
             runs[path.stem] = {"error": f"{type(exc).__name__}: {exc}", "expect_passed": False}
@@ -119,6 +136,15 @@ def bench(
            "overrides": list(overrides), "runs": runs, "summary": summary}
     if spec.paper:
         doc["paper"] = _paper_outputs(out_dir, done_runs)
+    if calibration == "rehearsed":
+        from dm2.cli.bench_calibration import chain_summary
+
+        doc["calibration"] = chain_summary(chain_true, chain_cmp, spec.targets)
+        c = doc["calibration"]
+        console.print(f"rehearsed calibration: F1 {summary['f1']:.3f} (true calibration "
+                      f"{c['true_calibration']['summary']['f1']:.3f}); extra false tracks "
+                      f"{c['extra_false_tracks']}; same detections {c['same_detections']}; "
+                      f"largest reconstruction RMS difference {c['max_rms_difference_mm']} mm")
     (out_dir / "bench.json").write_text(json.dumps(doc, indent=1, default=_json_default),
                                         encoding="utf-8")
     console.width = max(console.width, 170)

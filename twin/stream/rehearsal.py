@@ -247,6 +247,27 @@ def rehearse_calibration(scenario, artifact: Artifact, cfg: RehearsalConfig | No
     return Rehearsal(messages, truth, prior, true_T_F_A, poses, touches, intrinsics, surface)
 
 
+def write_rehearsal_recording(sim: Rehearsal, path) -> None:
+    """Record the run to MCAP as the cell would: robot states and profiles, the prior (the
+    cell file) as the recording's calibration, the touch-off poses as ``touch_off.toml``.
+    Nothing of the truth goes into the file."""
+    from calib.touch_off import TOUCH_OFF_ATTACHMENT, touch_off_to_toml
+    from dm2.core.calibration_io import calibration_to_toml
+    from dm2.io.recording import CALIBRATION_ATTACHMENT
+    from dm2.io.recording_writer import RecordingWriter
+
+    atts = {CALIBRATION_ATTACHMENT: calibration_to_toml(sim.prior).encode()}
+    if len(sim.touch_T_B_F):
+        atts[TOUCH_OFF_ATTACHMENT] = touch_off_to_toml(sim.touch_T_B_F).encode()
+    writer = RecordingWriter(path, attachments=atts)
+    try:
+        writer.write_static_tf(sim.prior)
+        for m in sim.messages:
+            writer.write(m)
+    finally:
+        writer.close()
+
+
 def without_errors(cfg: RehearsalConfig, **keep) -> RehearsalConfig:
     """``cfg`` with every intrinsic error zero except those named in ``keep``."""
     zero = {"z_scale_error": 0.0, "fan_angle_offset_deg": 0.0, "x_distortion_mm": 0.0}
@@ -255,4 +276,4 @@ def without_errors(cfg: RehearsalConfig, **keep) -> RehearsalConfig:
 
 
 __all__ = ["IntrinsicError", "Rehearsal", "RehearsalConfig", "as_built_sensor_poses",
-           "perturb", "rehearse_calibration", "without_errors"]
+           "perturb", "rehearse_calibration", "without_errors", "write_rehearsal_recording"]

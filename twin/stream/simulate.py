@@ -12,6 +12,7 @@ attached, so replaying a recording gives the pipeline exactly what an in-process
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections import Counter
@@ -63,7 +64,8 @@ class Simulation:
     ----------
     scenario : the scenario
     toolpath : dm2.core.messages.Toolpath in O
-    cell : twin.cell.cell.CellModel
+    cell : twin.cell.cell.CellModel (its profilers at ``true_T_B_S`` when that is given: a cell
+        whose sensors stand off the scenario's nominal layout)
     motion : twin.cell.motion.ExecutedMotion (sampled at ``cell.robot_state_hz``)
     true_calibration, calibration : the cell's true calibration and the one the pipeline gets
     end_s : float [s], last process time simulated (``scenario.duration_s`` cuts it short)
@@ -73,7 +75,7 @@ class Simulation:
         without ``scan_thread``), and the share of each fan the worker cast at the end
     """
 
-    def __init__(self, scenario: Scenario):
+    def __init__(self, scenario: Scenario, true_T_B_S: dict | None = None):
         from dm2.toolpath import generate_toolpath
         from scenarios.parts import build_part
         from twin.cell.cell import CellModel
@@ -85,6 +87,9 @@ class Simulation:
         self.part_mesh_O = build_part(scenario.part, plate)
         self.toolpath = generate_toolpath(self.part_mesh_O, scenario.toolpath)
         self.cell = CellModel.from_scenario(scenario)
+        if true_T_B_S is not None:  # the profilers as built, off the cell file's layout
+            self.cell = dataclasses.replace(self.cell, T_B_S={k: np.asarray(v, dtype=float)
+                                                              for k, v in true_T_B_S.items()})
         self.faults = FaultSchedule(scenario.faults, self.toolpath, self.cell)
         self.motion = execute_toolpath(self.toolpath, self.cell,
                                        rate_hz=self.cell.robot_state_hz,
