@@ -8,7 +8,7 @@ states, touch-off poses) and the prior calibration (the cell file's nominal layo
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -35,6 +35,10 @@ class CalibrationOutcome:
     holdout : dict (rms_mm, n_points, n_rejected, poses) of the held-out check, or None
     dropped : dict reason -> count of profiles without a flange pose
     n_observations : int, profiles paired with a flange pose
+    z_scale : dict sensor id -> (range scale error, 1-sigma) from a solve that co-estimates
+        it (``options.estimate_z_scale``), or None. The poses of ``calibration`` come from a
+        solve that leaves the ranges as reported: the monitor takes profiles as reported, so
+        the pose that absorbs a range scale error best near the spot serves it best.
     """
 
     result: CalibrationResult
@@ -44,6 +48,7 @@ class CalibrationOutcome:
     holdout: dict | None
     dropped: dict
     n_observations: int
+    z_scale: dict | None = None
 
 
 def first_pass_refiner(artifact: Artifact, options: SolverOptions | None = None,
@@ -116,6 +121,11 @@ def solve_run(messages, artifact: Artifact, prior: Calibration, options: SolverO
     and checks those poses' profiles against the certified artifact."""
     art = artifact.with_mount(prior.T_F_O)
     obs, dropped = observations_from_messages(messages)
+    z_scale = None
+    if options.estimate_z_scale:
+        diag = solve_calibration(obs, art, prior.T_B_S, options)
+        z_scale = {sid: (e.z_scale_error, e.sigma_z_gain) for sid, e in diag.sensors.items()}
+        options = replace(options, estimate_z_scale=False)
     result = solve_calibration(obs, art, prior.T_B_S, options)
     holdout = None
     if holdout_every > 1:
@@ -149,4 +159,5 @@ def solve_run(messages, artifact: Artifact, prior: Calibration, options: SolverO
         provenance[sid] = (f"estimated: sphere artifact hand-eye solve, {n_prof[sid]} profiles, "
                            f"residual RMS {est.residual_rms_mm:.4f} mm")
     cal = Calibration(T_B_S=result.T_B_S, T_F_O=T_F_O, T_B_N=T_B_N)
-    return CalibrationOutcome(result, cal, provenance, touch, holdout, dropped, len(obs))
+    return CalibrationOutcome(result, cal, provenance, touch, holdout, dropped, len(obs),
+                              z_scale)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 
 import numpy as np
 
@@ -66,9 +67,9 @@ def main() -> None:
     sc = load_scenario(resolve_scenario(args.scenario))
     art = load_artifact(scenario_dir() / "artifacts" / "four_spheres.toml")
     results = {}
-    print("| case | z scale estimated | worst t error mm | worst r error deg | "
-          "worst held-out RMS mm | worst z-scale estimate error |")
-    print("|---|---|---|---|---|---|")
+    out = sys.stdout
+    out.write("| case | z scale estimated | worst t error mm | worst r error deg | "
+              "worst held-out RMS mm | worst z-scale estimate error |\n|---|---|---|---|---|---|\n")
     for name in args.cases.split(","):
         for estimate_z in (False, True):
             runs = [run_case(sc, art, s, args.poses, CASES[name], estimate_z)
@@ -77,11 +78,12 @@ def main() -> None:
             sens = [v for r in runs for v in r["sensors"].values()]
             zerr = [abs(v["estimated_z_scale_error"] - v["true_z_scale_error"]) for v in sens
                     if v["estimated_z_scale_error"] is not None]
-            print(f"| {name} | {'yes' if estimate_z else 'no'} | "
-                  f"{max(v['translation_error_mm'] for v in sens):.4f} | "
-                  f"{max(v['rotation_error_deg'] for v in sens):.4f} | "
-                  f"{max(r['holdout_rms_mm'] for r in runs):.4f} | "
-                  f"{f'{max(zerr):.5f}' if zerr else '-'} |", flush=True)
+            out.write(f"| {name} | {'yes' if estimate_z else 'no'} | "
+                      f"{max(v['translation_error_mm'] for v in sens):.4f} | "
+                      f"{max(v['rotation_error_deg'] for v in sens):.4f} | "
+                      f"{max(r['holdout_rms_mm'] for r in runs):.4f} | "
+                      f"{f'{max(zerr):.5f}' if zerr else '-'} |\n")
+            out.flush()
     with open(args.out, "w", encoding="utf-8") as f:
         json.dump({"seeds": args.seeds, "poses": args.poses, "results": results}, f, indent=1)
 

@@ -25,7 +25,10 @@ def test_solved_calibration_removes_the_miscalibration_error(tmp_path):
     sc = load_scenario(resolve_scenario("pad_miscalibrated"))
     sc = sc.model_copy(update={"duration_s": 20.0})
     res = CliRunner().invoke(app, ["calibrate", "--rehearse", "pad_miscalibrated", "--poses",
-                                   "24", "--noise-mm", "0.03", "--robot-noise-mm", "0.02",
+                                   "48", "--noise-mm", "0.03", "--robot-noise-mm", "0.02",
+                                   # the build's twin stands at the nominal layout: so does
+                                   # the rehearsal's (the prior is still the cell file)
+                                   "--as-built-mm", "0", "--as-built-deg", "0",
                                    "--out", str(tmp_path / "cal")])
     assert res.exit_code == 0, res.output
     solved = read_calibration_toml(tmp_path / "cal" / "calibration.toml")

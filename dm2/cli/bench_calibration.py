@@ -5,9 +5,10 @@ few mm and degrees (:func:`twin.stream.rehearsal.as_built_sensor_poses`, seeded 
 scenario's seed). A calibration run is rehearsed on that cell (the twin's own profilers, the
 scenario's ``[noise]``, robot repeatability, the artifact within its certificate, a nozzle
 touch-off) and solved from the cell file's nominal layout as the prior
-(:func:`calib.procedure.solve_run`). The build is then run twice on the same twin: monitored
-with the solved calibration (the bench's figures) and with the true one (the reference the
-figures are set beside).
+(:func:`calib.procedure.solve_run`): the sensors, the work object's mount ``T_F_O`` (the
+artifact is the work object, co-estimated) and the nozzle exit (touch-off) are estimated.
+The build is then run twice on the same twin: monitored with the solved calibration (the
+bench's figures) and with the true one (the reference the figures are set beside).
 """
 
 from __future__ import annotations
@@ -51,7 +52,8 @@ def rehearsed_calibration(sc, artifact_path: Path | None = None):
 
     nominal = art.with_mount(CellModel.from_scenario(sc).T_F_O)
     sim = rehearse_calibration(sc, art, cfg, refine=first_pass_refiner(nominal))
-    options = SolverOptions(robot_sigma_mm=ROBOT_REPEATABILITY_MM / ISO9283_RP_PER_SIGMA)
+    options = SolverOptions(estimate_mount=True,
+                            robot_sigma_mm=ROBOT_REPEATABILITY_MM / ISO9283_RP_PER_SIGMA)
     outcome = solve_run(sim.messages, art, sim.prior, options, sim.touch_T_B_F)
     errors = {}
     for sid, T in outcome.calibration.T_B_S.items():

@@ -59,6 +59,9 @@ def outcome_summary(outcome, truth=None) -> dict:
     out = {"provenance": outcome.provenance, "mount_estimated": res.mount_estimated,
            "T_F_A": np.asarray(res.T_F_A).tolist(), "holdout": outcome.holdout,
            "dropped_profiles": outcome.dropped}
+    if outcome.z_scale is not None:
+        out["z_scale_error"] = {sid: {"estimate": v, "sigma": sg}
+                                for sid, (v, sg) in outcome.z_scale.items()}
     if outcome.touch_off is not None:
         t = outcome.touch_off
         out["touch_off"] = {"n_touches": t.n_touches, "exit_B_mm": t.exit_B_mm.tolist(),
