@@ -55,6 +55,8 @@ from twin.stream.touch_off import touch_off_poses
 
 log = logging.getLogger(__name__)
 
+CALIBRATION_NOISE_STREAM = 0xCA1B  # offsets the profiler noise seed of a calibration run
+
 
 @dataclass(frozen=True)
 class RehearsalConfig:
@@ -181,7 +183,9 @@ def rehearse_calibration(scenario, artifact: Artifact, cfg: RehearsalConfig | No
                         T_F_O=true_T_F_A if artifact.work_object else prior.T_F_O,
                         T_B_N=true_T_B_N)
     noise = cfg.noise or scenario.noise
-    profilers = {sid: VirtualProfiler(sid, T, scenario.sensors, noise, seed=cfg.seed)
+    # the profilers' own noise stream, not the one the build with the same seed draws from
+    noise_seed = (int(cfg.seed) * 1_000_003 + CALIBRATION_NOISE_STREAM) & 0xFFFFFFFF
+    profilers = {sid: VirtualProfiler(sid, T, scenario.sensors, noise, seed=noise_seed)
                  for sid, T in sorted(true_T_B_S.items())}
     nozzle_prior = nozzle_occluder(prior.T_B_N, scenario.cell)
     nozzle_true = nozzle_occluder(true_T_B_N, scenario.cell)
