@@ -14,7 +14,13 @@ import numpy as np
 
 from calib.artifact import Artifact
 from calib.observations import Observation, observations_from_messages
-from calib.solver import CalibrationError, CalibrationResult, SolverOptions, solve_calibration
+from calib.solver import (
+    CalibrationError,
+    CalibrationResult,
+    DegenerateError,
+    SolverOptions,
+    solve_calibration,
+)
 from calib.touch_off import TouchOffResult, nozzle_exit_from_touches
 from dm2.core.frames import apply, invert, pose_error
 from dm2.core.messages import Calibration
@@ -126,7 +132,17 @@ def solve_run(messages, artifact: Artifact, prior: Calibration, options: SolverO
         diag = solve_calibration(obs, art, prior.T_B_S, options)
         z_scale = {sid: (e.z_scale_error, e.sigma_z_gain) for sid, e in diag.sensors.items()}
         options = replace(options, estimate_z_scale=False)
-    result = solve_calibration(obs, art, prior.T_B_S, options)
+    mount_note = ""
+    try:
+        result = solve_calibration(obs, art, prior.T_B_S, options)
+    except DegenerateError as exc:
+        if not options.estimate_mount:
+            raise
+        # the pose set may fix the sensors but not the mount: solve without it, and say so
+        options = replace(options, estimate_mount=False)
+        result = solve_calibration(obs, art, prior.T_B_S, options)
+        mount_note = f" (the mount is not observable from these poses: {exc})"
+        log.warning("mount not estimated: %s", exc)
     holdout = None
     if holdout_every > 1:
         held = {o.pose_index for o in obs if o.pose_index % holdout_every == holdout_every - 1}
@@ -134,7 +150,7 @@ def solve_run(messages, artifact: Artifact, prior: Calibration, options: SolverO
                                 prior.T_B_S, options)
         holdout = holdout_residuals([o for o in obs if o.pose_index in held], art, fit)
         holdout["poses"] = len(held)
-    T_F_O, mount_text = prior.T_F_O, f"taken from {prior_source}"
+    T_F_O, mount_text = prior.T_F_O, f"taken from {prior_source}{mount_note}"
     if result.mount_estimated and art.work_object:
         T_F_O = result.T_F_A
         mount_text = ("estimated: the sphere artifact's mount (the work object), co-estimated "

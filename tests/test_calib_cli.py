@@ -37,9 +37,10 @@ def test_rehearsal_writes_errors_and_a_calibration_file_with_provenance(tmp_path
     prov = read_calibration_provenance(out / "calibration.toml")
     sc = load_scenario(resolve_scenario("pad"))
     cell_file = CellModel.from_scenario(sc).calibration()
-    # T_F_O was not estimated: taken from the cell file, and said so
-    assert prov["T_F_O"] == "taken from the cell file"
-    assert np.array_equal(cal.T_F_O, cell_file.T_F_O)
+    # T_F_O: the artifact is the work object, its mount co-estimated
+    assert prov["T_F_O"].startswith("estimated: the sphere artifact's mount")
+    assert summary["T_F_O_error"]["translation_mm"] < 0.02
+    assert not np.array_equal(cal.T_F_O, cell_file.T_F_O)
     # T_B_N: the exit 0.8 mm off the cell file, found again by the touch-off
     assert prov["T_B_N"].startswith("estimated: exit position by a nozzle touch-off")
     assert summary["T_B_N_error"]["translation_mm"] < 0.03
@@ -71,13 +72,23 @@ def test_recorded_rehearsal_is_solved_from_the_recording(tmp_path):
     assert r.exit_code == 0, r.output
     cal = read_calibration_toml(out / "calibration.toml")
     again = read_calibration_toml(tmp_path / "rehearsed" / "calibration.toml")
+    assert read_calibration_provenance(tmp_path / "rehearsed" / "calibration.toml")[
+        "T_F_O"].startswith("estimated")
     for sid in ("S1", "S2", "S3"):  # the same solve, from float32 metres (PointCloud2)
         dt, dr = pose_error(cal.T_B_S[sid], again.T_B_S[sid])
         assert dt < 1e-3 and dr < 1e-6, sid
     prov = read_calibration_provenance(out / "calibration.toml")
-    assert prov["T_F_O"] == "taken from the calibration in calib_run.mcap"
+    assert prov["T_F_O"].startswith("estimated")
     assert "touch-off (4 touches" in prov["T_B_N"]
     assert json.loads((out / "calibration.json").read_text())["n_observations"] == 36
+    fixed = tmp_path / "fixed"
+    r = runner.invoke(app, ["calibrate", str(rec), "--holdout", "0", "--fixed-mount", "--out",
+                            str(fixed)])
+    assert r.exit_code == 0, r.output
+    prov = read_calibration_provenance(fixed / "calibration.toml")
+    assert prov["T_F_O"] == "taken from the calibration in calib_run.mcap"
+    assert np.array_equal(read_calibration_toml(fixed / "calibration.toml").T_F_O,
+                          prior.T_F_O)
 
 
 def test_degenerate_recorded_pose_set_exits_2(tmp_path):

@@ -78,8 +78,11 @@ def calibrate(
                                           "file's."),
     touch_offs: int = typer.Option(4, "--touch-offs", min=0, help="Nozzle touch-offs to "
                                    "rehearse (0: T_B_N is taken from the cell file)."),
-    estimate_mount: bool = typer.Option(False, "--estimate-mount",
-                                        help="Co-estimate the artifact pose on the flange."),
+    estimate_mount: bool = typer.Option(True, "--estimate-mount/--fixed-mount",
+                                        help="Co-estimate the artifact pose on the flange "
+                                        "(T_F_O for a work-object artifact); when the poses "
+                                        "leave it unobservable it is taken from the prior, "
+                                        "and calibration.toml says so."),
     estimate_z_scale: bool = typer.Option(False, "--estimate-z-scale",
                                           help="Co-estimate each profiler's range scale."),
     holdout: int = typer.Option(4, "--holdout", min=0, help="Also check every k-th pose's "
