@@ -11,11 +11,14 @@ observed and stays the prior's.
 
 from __future__ import annotations
 
+import tomllib
 from dataclasses import dataclass
 
 import numpy as np
 
-from dm2.core.frames import apply, make_T
+from dm2.core.config import ConfigError
+from dm2.core.frames import apply, from_quat_abb, make_T, to_quat_abb
+from dm2.core.toml_write import dump_toml
 
 
 @dataclass(frozen=True)
@@ -59,9 +62,6 @@ TOUCH_OFF_ATTACHMENT = "touch_off.toml"
 def touch_off_to_toml(T_B_F: np.ndarray) -> str:
     """Touch-off flange poses as TOML: ``schema = 1`` and ``[[touches]]`` tables with
     ``translation_mm`` and ``quaternion_wxyz`` (ABB order), as a calibration run records them."""
-    from dm2.core.frames import to_quat_abb
-    from dm2.core.toml_write import dump_toml
-
     touches = []
     for T in np.asarray(T_B_F, dtype=np.float64).reshape(-1, 4, 4):
         t, q = to_quat_abb(T)
@@ -74,11 +74,6 @@ def touch_off_to_toml(T_B_F: np.ndarray) -> str:
 def touch_off_from_toml(text: str, source: str = "<touch-off>") -> np.ndarray:
     """Flange poses ``(n, 4, 4)`` of a touch-off TOML text. Raises ConfigError naming
     ``source`` and the field."""
-    import tomllib
-
-    from dm2.core.config import ConfigError
-    from dm2.core.frames import from_quat_abb
-
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:

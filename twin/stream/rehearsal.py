@@ -33,7 +33,7 @@ body keeps the artifact out (collision) and hides laser and camera rays (``nozzl
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -48,7 +48,7 @@ from dm2.core.messages import Calibration, RobotState
 from twin.cell.cell import CellModel
 from twin.cell.kinematics import ReachError
 from twin.profiler.artifact_surface import SphereArtifactSurface
-from twin.profiler.intrinsics import IntrinsicError, seeded_intrinsic_errors
+from twin.profiler.intrinsics import seeded_intrinsic_errors
 from twin.profiler.occluders import nozzle_occluder
 from twin.profiler.sensor import VirtualProfiler
 from twin.stream.touch_off import touch_off_poses
@@ -270,14 +270,3 @@ def write_rehearsal_recording(sim: Rehearsal, path) -> None:
             writer.write(m)
     finally:
         writer.close()
-
-
-def without_errors(cfg: RehearsalConfig, **keep) -> RehearsalConfig:
-    """``cfg`` with every intrinsic error zero except those named in ``keep``."""
-    zero = {"z_scale_error": 0.0, "fan_angle_offset_deg": 0.0, "x_distortion_mm": 0.0}
-    zero.update(keep)
-    return replace(cfg, **zero)
-
-
-__all__ = ["IntrinsicError", "Rehearsal", "RehearsalConfig", "as_built_sensor_poses",
-           "perturb", "rehearse_calibration", "without_errors", "write_rehearsal_recording"]
