@@ -93,7 +93,7 @@ def calibrate(
                                "recording without one."),
     out: Path = typer.Option(Path("calibration"), "--out", "-o", help="Output folder."),
 ) -> None:
-    """Calibrate the three profilers (T_B_S), the mount (T_F_O, with --estimate-mount) and
+    """Calibrate the three profilers (T_B_S), the mount (T_F_O, unless --fixed-mount) and
     the nozzle exit (touch-off) from a sphere artifact.
 
     With `--rehearse [SCENARIO]`, the twin renders the run with its own profilers, starting
