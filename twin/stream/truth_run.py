@@ -14,8 +14,8 @@ def nominal_layer_heights(sim, last_segment: int, layers: list[int]) -> dict:
     :class:`twin.stream.simulate.Simulation`; same seed, no corner dwell), which stops where the
     faulty run's toolpath move ``last_segment`` ends."""
     from twin.cell.motion import execute_toolpath
-    from twin.world.deposition import SprayModel
     from twin.world.heightfield import HEIGHTFIELD_CELL_MM, HeightField
+    from twin.world.twin_physics import twin_spray_model
 
     motion = sim.motion
     if any(f.kind == "corner_dwell" for f in sim.scenario.faults):
@@ -24,7 +24,7 @@ def nominal_layer_heights(sim, last_segment: int, layers: list[int]) -> dict:
     plate = sim.scenario.cell.plate_size_mm
     hf = HeightField(size_mm=(plate[0], plate[1]), cell_mm=HEIGHTFIELD_CELL_MM,
                      thickness_mm=plate[2])
-    spray = SprayModel(sim.scenario.process, seed=sim.scenario.seed)
+    spray = twin_spray_model(sim.scenario)  # same [twin_process] and seed
     n = int(np.searchsorted(motion.segment, last_segment, side="right"))
     dt = 1.0 / sim.cell.robot_state_hz
     layer = np.asarray(motion.layer[:n])
