@@ -41,8 +41,9 @@ def nominal_layer_heights(sim, last_segment: int, layers: list[int]) -> dict:
 
 
 class TruthWriter:
-    """Ground truth beside a run: the true top surface after each layer (PLY in O) and
-    ``faults.json``, each fault's effect measured against a fault-free run with the same seed.
+    """Ground truth beside a run: the true top surface after each layer (PLY in O),
+    ``faults.json``, each fault's effect measured against a fault-free run with the same seed
+    and ``[twin_process]``, and per layer the map of that effect (``deviation_LLL.npz``).
     The truth of an earlier run in the same folder is removed first (a shorter run must not
     leave stale layers beside its own); other files stay."""
 
@@ -50,7 +51,8 @@ class TruthWriter:
         self.dir = Path(truth_dir)
         self.dir.mkdir(parents=True, exist_ok=True)
         for p in self.dir.iterdir():
-            if re.fullmatch(r"layer_\d{3,}\.ply", p.name) or p.name == "faults.json":
+            if re.fullmatch(r"(layer_\d{3,}\.ply)|(deviation_\d{3,}\.npz)", p.name) or \
+                    p.name == "faults.json":
                 p.unlink()
         self.sim = sim
         self.faulty: dict[int, np.ndarray] = {}
@@ -63,7 +65,7 @@ class TruthWriter:
 
     def finish(self, last_segment: int) -> None:
         from twin.world.heightfield import HEIGHTFIELD_CELL_MM
-        from twin.world.truth import write_fault_truth
+        from twin.world.truth import write_deviation_maps, write_fault_truth
 
         sc = self.sim.scenario
         nominal = (nominal_layer_heights(self.sim, last_segment, sorted(self.faulty))
@@ -71,3 +73,4 @@ class TruthWriter:
         write_fault_truth(self.dir / "faults.json", sc.faults, self.faulty, nominal,
                           toolpath=self.sim.toolpath, cell_mm=HEIGHTFIELD_CELL_MM,
                           area_threshold_mm=sc.monitor.delta_global_mm)
+        write_deviation_maps(self.dir, self.faulty, nominal, HEIGHTFIELD_CELL_MM)
