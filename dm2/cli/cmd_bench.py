@@ -221,7 +221,7 @@ def sweep(
     Writes sweep.json (every case and the probability per size, with the smallest size
     detected in at least 90 % of the seeds from there up) and sweep.png.
 
-    Example: `dm2 sweep scenarios/suites/regression/bump.toml --sizes 0.2,0.4,0.8 --seeds 4`
+    Example: `dm2 sweep scenarios/suites/smoke/bump.toml --sizes 0.2,0.4,0.8 --seeds 4`
     """
     from dm2.bench.suites import apply_overrides
     from dm2.bench.sweep import plot_sweep, run_sweep, summarize_sweep, sweep_cases

@@ -242,6 +242,7 @@ class ExpectTrack(_Model):
 
 class ExpectConfig(_Model):
     tracks: tuple[ExpectTrack, ...] = ()
+    absent: tuple[ExpectTrack, ...] = ()  # tracks that must NOT appear (kind, near, from_layer)
     no_tracks: bool = False  # no global over/underbuild track (local ones are early warnings)
     no_local_tracks: bool = False  # no local over/underbuild track either
 
