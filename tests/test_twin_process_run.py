@@ -55,3 +55,57 @@ def test_twin_process_changes_the_part_not_the_reference(tmp_path):
             assert not z["deviation_mm"].any()  # no faults: no fault-caused deviation
     # 15 % less sticks: the twin's part holds about 15 % less material
     assert surf["twin"].sum() / surf["nominal"].sum() == pytest.approx(0.85, abs=0.02)
+
+
+TWIN_BUMP = """schema = 1
+name = "pad_bump_twin"
+seed = 2
+duration_s = 12.0
+[part]
+generator = "pad"
+params = { width_mm = 12.0, depth_mm = 8.0, height_mm = 1.6 }
+[toolpath]
+strategy = "single"
+contour_angle_deg = 0.0
+[process]
+feed_g_min = 26.0
+[twin_process]
+deposition_efficiency = 0.45
+efficiency_curve = "linear"
+plume_exponent = 3.0
+[[faults]]
+kind = "bump"
+layers = [1, 1]
+center_O_mm = [62.0, 60.0]
+height_mm = 1.0
+width_mm = 4.0
+"""
+
+
+def test_dm2_simulate_runs_a_twin_process_scenario_with_truth_maps(tmp_path):
+    from typer.testing import CliRunner
+
+    from dm2.bench.truth_maps import load_truth_maps
+    from dm2.cli.main import app
+    from dm2.core.config import parse_scenario, read_toml
+    from dm2.io.recording import read_recording
+
+    path = tmp_path / "twin.toml"
+    path.write_text(TWIN_BUMP)
+    res = CliRunner().invoke(app, ["simulate", str(path), "--out", str(tmp_path / "r.mcap"),
+                                   "--truth", str(tmp_path / "truth")])
+    assert res.exit_code == 0, res.output
+    rec = read_recording(tmp_path / "r.mcap")
+    import tomllib
+
+    sc = parse_scenario(tomllib.loads(rec.attachments["scenario.toml"].decode()), "attached")
+    assert sc.twin_process.deposition_efficiency == 0.45 and sc.process.deposition_efficiency == 0.5
+    assert read_toml(path)["twin_process"]["efficiency_curve"] == "linear"
+    maps = load_truth_maps(tmp_path / "truth")
+    assert sorted(maps) == [0, 1]
+    assert not maps[0].deviation_mm.any()  # the bump lands as layer 1 starts
+    d = maps[1].deviation_mm  # the bump, relative to a fault-free run of the same twin physics
+    assert d.max() == pytest.approx(1.0, abs=0.15) and d.min() > -0.1
+    j, i = np.unravel_index(np.argmax(d), d.shape)
+    assert abs(maps[1].x0_mm + i * maps[1].cell_mm - 62.0) < 0.5
+    assert abs(maps[1].y0_mm + j * maps[1].cell_mm - 60.0) < 0.5
