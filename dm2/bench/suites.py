@@ -136,4 +136,8 @@ def load_suite_scenario(path: str | Path, overrides: list[str] = ()) -> Scenario
         data = apply_overrides(data, list(overrides))
     except (IndexError, KeyError, TypeError, ValueError) as exc:
         raise ConfigError(f"{path}: cannot apply overrides {list(overrides)}: {exc}") from None
-    return parse_scenario(data, f"{path} (with {', '.join(overrides)})")
+    sc = parse_scenario(data, f"{path} (with {', '.join(overrides)})")
+    if sc.part.stl is not None and not Path(sc.part.stl).is_absolute():  # as load_scenario
+        sc = sc.model_copy(update={"part": sc.part.model_copy(
+            update={"stl": str((path.parent / sc.part.stl).resolve())})})
+    return sc
