@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from dm2.core.config import ConfigError, ProcessConfig, TwinProcessConfig, parse_scenario
-from twin.world.deposition import SprayModel, plume_sigma_mm
+from twin.world.deposition import SprayModel, plume_sigma_mm, twin_process
 from twin.world.heightfield import HeightField
-from twin.world.twin_physics import NOMINAL, TwinPhysics, twin_process
+from twin.world.twin_physics import NOMINAL, TwinPhysics
 
 DT = 1.0 / 250.0
 N_STATIC = 250  # 1 s on one spot

@@ -29,8 +29,8 @@ def per_sample_messages(sim, hf=None) -> Iterator[Profile | RobotState | LayerMa
     from twin.profiler.sensor import VirtualProfiler
     from twin.profiler.trigger import trigger_schedule
     from twin.stream.simulate import ROBOT_NOISE_SEED_OFFSET
+    from twin.world.deposition import twin_spray_model
     from twin.world.heightfield import HEIGHTFIELD_CELL_MM, HeightField
-    from twin.world.twin_physics import twin_spray_model
 
     sc, cell, motion, faults = sim.scenario, sim.cell, sim.motion, sim.faults
     plate = sc.cell.plate_size_mm

@@ -123,8 +123,8 @@ class Simulation:
         from twin.profiler.sensor import VirtualProfiler
         from twin.profiler.trigger import trigger_schedule
         from twin.stream.truth_run import TruthWriter
+        from twin.world.deposition import twin_spray_model
         from twin.world.heightfield import HeightField
-        from twin.world.twin_physics import twin_spray_model
 
         sc, cell, motion, faults = self.scenario, self.cell, self.motion, self.faults
         plate = sc.cell.plate_size_mm

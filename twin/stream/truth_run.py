@@ -14,8 +14,8 @@ def nominal_layer_heights(sim, last_segment: int, layers: list[int]) -> dict:
     :class:`twin.stream.simulate.Simulation`; same seed, no corner dwell), which stops where the
     faulty run's toolpath move ``last_segment`` ends."""
     from twin.cell.motion import execute_toolpath
+    from twin.world.deposition import twin_spray_model
     from twin.world.heightfield import HEIGHTFIELD_CELL_MM, HeightField
-    from twin.world.twin_physics import twin_spray_model
 
     motion = sim.motion
     if any(f.kind == "corner_dwell" for f in sim.scenario.faults):

@@ -52,7 +52,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dm2.core.config import ProcessConfig
+from dm2.core.config import ProcessConfig, Scenario
 from twin.world import deposition_kernels as DK
 from twin.world.heightfield import HeightField
 from twin.world.twin_physics import NOMINAL, TwinPhysics
@@ -228,3 +228,25 @@ class SamplePlan:
     sigma_mm: np.ndarray
     back_mm: np.ndarray
     zeta0: np.ndarray
+
+
+def twin_process(scenario: Scenario) -> tuple[ProcessConfig, TwinPhysics]:
+    """The twin's process (``[process]`` with ``[twin_process]`` applied, sigma and efficiency
+    scaled) and its extra physics."""
+    tp = scenario.twin_process
+    proc = scenario.process.model_copy(update=tp.overrides())
+    proc = ProcessConfig.model_validate({
+        **proc.model_dump(),
+        "plume_sigma_mm": plume_sigma_mm(proc) * tp.plume_sigma_factor,
+        "deposition_efficiency": min(proc.deposition_efficiency * tp.efficiency_factor, 1.0)})
+    physics = TwinPhysics(efficiency_curve=tp.efficiency_curve,
+                          plateau_angle_deg=tp.plateau_angle_deg,
+                          plume_exponent=tp.plume_exponent, porosity=tp.porosity,
+                          standoff_efficiency_per_mm=tp.standoff_efficiency_per_mm)
+    return proc, physics
+
+
+def twin_spray_model(scenario: Scenario):
+    """The :class:`twin.world.deposition.SprayModel` of the scenario's twin (its seed)."""
+    proc, physics = twin_process(scenario)
+    return SprayModel(proc, seed=scenario.seed, physics=physics)

@@ -19,7 +19,9 @@ its own (:class:`TwinPhysics`, used by :class:`twin.world.deposition.SprayModel`
   flight from the nozzle exit to the surface exceeds the twin's standoff (a surface that grew
   short stands farther from the nozzle; a standoff fault moves the nozzle).
 
-:data:`NOMINAL` is the nominal model exactly (what a bare ``SprayModel(process)`` uses).
+:data:`NOMINAL` is the nominal model exactly (what a bare ``SprayModel(process)`` uses);
+``twin.world.deposition.twin_process`` resolves a scenario's sections into the twin's process
+and physics, ``twin.world.deposition.twin_spray_model`` builds its spray model.
 """
 
 from __future__ import annotations
@@ -29,8 +31,6 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-
-from dm2.core.config import ProcessConfig, Scenario
 
 CURVES = ("cos2", "cos", "linear", "plateau")  # index = the kernels' CURVE_* code
 RADIAL_TABLE_NODES = 4096  # quantile intervals of the tabulated inverse radial CDF
@@ -116,29 +116,3 @@ def _radial_table(p: float) -> np.ndarray:
     table = a * (2.0 * s) ** (1.0 / p)
     table.setflags(write=False)
     return table
-
-
-def twin_process(scenario: Scenario) -> tuple[ProcessConfig, TwinPhysics]:
-    """The twin's process (``[process]`` with ``[twin_process]`` applied, sigma and efficiency
-    scaled) and its extra physics."""
-    from twin.world.deposition import plume_sigma_mm
-
-    tp = scenario.twin_process
-    proc = scenario.process.model_copy(update=tp.overrides())
-    proc = ProcessConfig.model_validate({
-        **proc.model_dump(),
-        "plume_sigma_mm": plume_sigma_mm(proc) * tp.plume_sigma_factor,
-        "deposition_efficiency": min(proc.deposition_efficiency * tp.efficiency_factor, 1.0)})
-    physics = TwinPhysics(efficiency_curve=tp.efficiency_curve,
-                          plateau_angle_deg=tp.plateau_angle_deg,
-                          plume_exponent=tp.plume_exponent, porosity=tp.porosity,
-                          standoff_efficiency_per_mm=tp.standoff_efficiency_per_mm)
-    return proc, physics
-
-
-def twin_spray_model(scenario: Scenario):
-    """The :class:`twin.world.deposition.SprayModel` of the scenario's twin (its seed)."""
-    from twin.world.deposition import SprayModel
-
-    proc, physics = twin_process(scenario)
-    return SprayModel(proc, seed=scenario.seed, physics=physics)
