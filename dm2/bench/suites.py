@@ -40,12 +40,14 @@ class Suite:
 
 SUITES = {
     "regression": Suite(
-        "regression", "One small pad per injected fault type plus a fault-free control (CI).",
+        "regression", "Realistic small parts (box, seven-sided part, reduced tower, two STL "
+        "parts), default strategy, every fault kind off-centre / at walls / at corners, five "
+        "fault-free controls (CI).",
         "regression",
         targets={"f1_min": 0.95, "max_onset_delay_layers": 1, "max_false_tracks": 0,
                  "max_false_alarms_per_hour": 0}),
     "smoke": Suite(
-        "smoke", "Three tiny regression cases (control, feed step, bump): the default tests.",
+        "smoke", "The small pads, one per fault kind plus a control, single strategy: fast.",
         "smoke",
         targets={"f1_min": 0.95, "max_onset_delay_layers": 1, "max_false_tracks": 0,
                  "max_false_alarms_per_hour": 0}),
