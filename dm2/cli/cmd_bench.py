@@ -139,7 +139,7 @@ def bench(
         summary["passed"] = False
         summary["errors"] = sorted(set(runs) - set(ok_runs))
     summary["wall_s"] = time.perf_counter() - t0
-    doc = {"schema": "dm2.bench/1", "suite": spec.name, "description": spec.description,
+    doc = {"schema": "dm2.bench/2", "suite": spec.name, "description": spec.description,
            "overrides": list(overrides), "runs": runs, "summary": summary}
     if spec.paper:
         doc["paper"] = _paper_outputs(out_dir, done_runs)
