@@ -16,10 +16,18 @@ log = logging.getLogger(__name__)
 
 
 def _read_toolpath(path: Path):
-    """A toolpath file: the canonical CSV, or the RAPID module ``dm2 toolpath`` writes."""
+    """A toolpath file: the canonical CSV, or the RAPID module ``dm2 toolpath`` writes (told
+    apart by its ``MODULE`` line)."""
+    import re
+
     from dm2.toolpath.formats import read_csv, read_rapid
 
-    if path.suffix.lower() in (".mod", ".modx", ".prg", ".sys"):
+    try:
+        with open(path, encoding="utf-8", errors="replace") as f:
+            head = f.read(4096)
+    except OSError as exc:
+        raise FileNotFoundError(f"--toolpath {path}: cannot read: {exc.strerror}") from None
+    if re.search(r"^\s*MODULE\s+\w+", head, re.MULTILINE):
         return read_rapid(path)
     return read_csv(path)
 
