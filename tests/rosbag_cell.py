@@ -229,3 +229,50 @@ def storage_file(bag: Path) -> Path:
     """The one storage file of an unsplit bag folder (to open it on its own)."""
     (f,) = [p for p in bag.iterdir() if p.suffix in (".mcap", ".db3")]
     return f
+
+
+def write_mcap_ros2(path: Path, cal, msgs) -> Path:
+    """The stream as one MCAP file written by ``mcap-ros2-support`` in the pipeline's names,
+    every message record with ``sequence = 0`` (as rosbag2's MCAP storage writes them)."""
+    from mcap_ros2.writer import Writer as McapWriter
+
+    from dm2.io import ros_messages as ros
+
+    def stamp(ns):
+        return {"sec": ns // 10**9, "nanosec": ns % 10**9}
+
+    def tf_msg(tfs):
+        return {"transforms": [
+            {"header": {"stamp": stamp(ns), "frame_id": a}, "child_frame_id": b,
+             "transform": {"translation": dict(zip("xyz", (T[:3, 3] / 1000).tolist(),
+                                                   strict=True)),
+                           "rotation": dict(zip("xyzw", Rotation.from_matrix(
+                               T[:3, :3]).as_quat().tolist(), strict=True))}}
+            for ns, a, b, T in tfs]}
+
+    with open(path, "wb") as f:
+        w = McapWriter(f)
+        schema = {n: w.register_msgdef(n, d) for n, d in ros.SCHEMAS.items()}
+        statics = [(0, "B", "N", cal.T_B_N), (0, "F", "O", cal.T_F_O)]
+        statics += [(0, "B", s, T) for s, T in cal.T_B_S.items()]
+        w.write_message("/tf_static", schema[ros.TFMESSAGE], tf_msg(statics), log_time=0,
+                        publish_time=0, sequence=0)
+        for m in msgs:
+            ns = round(m.stamp_s * 1e9)
+            if isinstance(m, RobotState):
+                w.write_message("/tf", schema[ros.TFMESSAGE], tf_msg([(ns, "B", "F", m.T_B_F)]),
+                                log_time=ns, publish_time=ns, sequence=0)
+                continue
+            pts = np.zeros((m.n_points, 4), "<f4")
+            pts[:, 0], pts[:, 2] = m.xz_S[:, 0] / 1000, m.xz_S[:, 1] / 1000
+            pts[:, 3] = m.intensity
+            cloud = {"header": {"stamp": stamp(ns), "frame_id": m.sensor_id}, "height": 1,
+                     "width": m.n_points,
+                     "fields": [{"name": c, "offset": 4 * i, "datatype": 7, "count": 1}
+                                for i, c in enumerate(("x", "y", "z", "intensity"))],
+                     "is_bigendian": False, "point_step": 16, "row_step": 16 * m.n_points,
+                     "data": pts.tobytes(), "is_dense": False}
+            w.write_message(f"/scan/{m.sensor_id}", schema[ros.POINTCLOUD2], cloud, log_time=ns,
+                            publish_time=ns, sequence=0)
+        w.finish()
+    return path
