@@ -14,14 +14,16 @@ from pathlib import Path
 
 import numpy as np
 from rosbags.rosbag2 import StoragePlugin, Writer
-from rosbags.typesys import Stores, get_typestore
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from scipy.spatial.transform import Rotation
 from test_monitor_scene import Scene, make_calibration, raster_lines, raster_run
 
 from dm2.core.frames import invert, make_T
 from dm2.core.messages import Profile, RobotState
+from dm2.io.ros_messages import LAYERMARK, LAYERMARK_DEF
 
 TS = get_typestore(Stores.ROS2_HUMBLE)
+TS.register(get_types_from_msg(LAYERMARK_DEF, LAYERMARK))
 DOME = Scene(spheres=[((60.0, 60.0, -20.0), 35.0)])  # a cap 15 mm high, 57 mm across
 FOREIGN_SENSORS = {"S1": "scanner_left", "S2": "scanner_rear", "S3": "scanner_right"}
 FOREIGN_TOPICS = {"S1": "/scanners/left/points", "S2": "/scanners/rear/points",
@@ -109,7 +111,7 @@ def _cloud(p: Profile, frame: str, float64: bool, organised: bool, zero_invalid:
         row_step=step * width, data=np.frombuffer(data, np.uint8), is_dense=zero_invalid)
 
 
-def _messages(cal, msgs, foreign: bool, float64: bool, cloud_frames=None):
+def _messages(cal, msgs, foreign: bool, float64: bool, cloud_frames=None, marks=()):
     """``(topic, msgtype, stamp_ns, message)`` of the whole recording."""
     t = TS.types
     out = []
@@ -127,6 +129,9 @@ def _messages(cal, msgs, foreign: bool, float64: bool, cloud_frames=None):
         statics += [_tf(0.0, "B", s, T) for s, T in cal.T_B_S.items()]
     out.append(("/tf_static", "tf2_msgs/msg/TFMessage", 0, t["tf2_msgs/msg/TFMessage"](statics)))
     topics = FOREIGN_TOPICS if foreign else {s: f"/scan/{s}" for s in cal.T_B_S}
+    for stamp_s, layer in marks:
+        out.append(("/dm2/layer", LAYERMARK, round(stamp_s * 1e9),
+                    t[LAYERMARK](stamp=_time(stamp_s), layer=layer)))
     for m in msgs:
         ns = round(m.stamp_s * 1e9)
         if isinstance(m, RobotState):
@@ -156,12 +161,13 @@ def _messages(cal, msgs, foreign: bool, float64: bool, cloud_frames=None):
 
 def write_bag(path: Path, cal, msgs, *, foreign: bool = False, float64: bool = False,
               storage: str = "mcap", split: bool = False, duplicate: int = 0,
-              cloud_frames=None) -> Path:
+              cloud_frames=None, marks=()) -> Path:
     """Write a rosbag2 folder at ``path`` (``storage`` "mcap" or "sqlite3"); ``split``: two
     files split half-way in time; ``duplicate``: record that many profiles twice;
-    ``cloud_frames``: sensor -> the frame_id its clouds carry (default: its own frame)."""
+    ``cloud_frames``: sensor -> the frame_id its clouds carry (default: its own frame);
+    ``marks``: ``(stamp_s, layer)`` layer marks on ``/dm2/layer``."""
     plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
-    rows = _messages(cal, msgs, foreign, float64, cloud_frames)
+    rows = _messages(cal, msgs, foreign, float64, cloud_frames, marks)
     clouds = [i for i, r in enumerate(rows) if r[1] == "sensor_msgs/msg/PointCloud2"]
     for i in clouds[10:10 + duplicate]:
         rows.append(rows[i])

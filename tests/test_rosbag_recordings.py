@@ -200,3 +200,18 @@ def test_own_recording_of_profiles_without_counters_dedupes_by_stamp(tmp_path, c
     profiles = [m for m in rec.messages() if isinstance(m, Profile)]
     assert len(profiles) == sum(isinstance(m, Profile) for m in part)
     assert {p.counter for p in profiles} == {None}
+
+
+def test_layer_marks_on_the_mapped_layer_topic(tmp_path, cell):
+    cal, msgs, _ = cell
+    t_mid = msgs[len(msgs) // 2].stamp_s
+    bag = write_bag(tmp_path / "marks", cal, msgs, foreign=True,
+                    marks=[(msgs[0].stamp_s, 0), (t_mid, 1)])
+    rosmap = tmp_path / "map.toml"
+    rosmap.write_text(FOREIGN_MAP.replace('[frames]', 'layer = "/dm2/layer"\n[frames]'))
+    res, out = _monitor(tmp_path, bag, "--map", rosmap)
+    assert res.exit_code == 0, res.output
+    summary = json.loads((out / "monitor.json").read_text())
+    assert summary["layer_source"] == "marks"
+    assert [row["layer"] for row in summary["layers"]] == [0, 1]
+    assert summary["layers"][0]["stamp_s"] <= t_mid

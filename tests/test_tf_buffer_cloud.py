@@ -67,6 +67,18 @@ def test_lookup_refuses_to_extrapolate_beyond_the_gap():
     assert tf.lookup("base", "tool", 0.3, max_gap_s=0.05) is not None
 
 
+def test_a_fixed_transform_republished_on_tf_does_not_move():
+    tf = TfBuffer()
+    T = make_T(Rotation.from_euler("y", 20, degrees=True).as_matrix(), [5.0, 0.0, 1.0])
+    for t in np.arange(0.0, 1.0, 0.1):
+        tf.add(t, "base", "cam", T, static=False)
+        tf.add(t, "base", "arm", make_T(None, [t, 0.0, 0.0]), static=False)
+    tf.finish()
+    assert tf.dynamic_edges("base", "cam") == [("base", "cam")]
+    assert tf.dynamic_edges("arm", "cam", moving_only=True) == [("base", "arm")]
+    np.testing.assert_allclose(tf.lookup("base", "cam"), T, atol=1e-12)
+
+
 def test_tree_errors_name_the_frames():
     tf = TfBuffer()
     tf.add(0.0, "a", "b", np.eye(4), static=True)

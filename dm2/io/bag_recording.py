@@ -144,7 +144,7 @@ class BagRecording:
         def static(key: str, parent_key: str) -> np.ndarray:
             parent, child = frames[parent_key], frames[key]
             try:
-                dyn = self.tf.dynamic_edges(parent, child)
+                dyn = self.tf.dynamic_edges(parent, child, moving_only=True)
             except TfError as exc:
                 raise MapError(f"{m.source}: {key} = {child!r}: {exc}") from None
             if dyn:
@@ -155,7 +155,7 @@ class BagRecording:
                 raise MapError(f"{self.path}: {key} = {child!r} moves relative to {parent_key} "
                                f"= {parent!r}: its tf path holds the dynamic edge(s) {edges} "
                                f"on {m.tf}; dm2 expects {what}")
-            return self.tf.lookup(parent, child)
+            return self.tf.lookup(parent, child)  # fixed edges on /tf: their nearest sample
 
         T_B_S = {sid: static(f"frames.sensors.{sid}", "frames.base") for sid in m.sensors}
         return Calibration(T_B_S=T_B_S, T_F_O=static("frames.work_object", "frames.flange"),
@@ -170,7 +170,7 @@ class BagRecording:
                 cache[key] = None
             else:
                 try:
-                    ok = not self.tf.dynamic_edges(sensor, frame_id)
+                    ok = not self.tf.dynamic_edges(sensor, frame_id, moving_only=True)
                 except TfError:
                     ok = False
                 cache[key] = self.tf.lookup(sensor, frame_id) if ok else False

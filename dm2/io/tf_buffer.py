@@ -50,6 +50,14 @@ class _DynamicEdge:
         self.q_xyzw = q * flip[:, None]
         self.p_mm = T[:, :3, 3]
 
+    def moves(self, tol_mm: float = 1e-3, tol_rad: float = 1e-6) -> bool:
+        """Whether the samples differ (a fixed transform republished on ``/tf`` does not)."""
+        if self.t_s.size < 2:
+            return False
+        dp = float(np.abs(self.p_mm - self.p_mm[0]).max())
+        dots = np.clip(np.abs(self.q_xyzw @ self.q_xyzw[0]), 0.0, 1.0)
+        return dp > tol_mm or float(2 * np.arccos(dots.min())) > tol_rad
+
     def at(self, stamp_s: float, max_gap_s: float) -> np.ndarray | None:
         t = self.t_s
         n = t.size
@@ -146,10 +154,12 @@ class TfBuffer:
                           f"(roots {up_a[-1]!r} and {up_b[-1]!r})")
         return up_a[:up_a.index(common)], up_b[:up_b.index(common)]
 
-    def dynamic_edges(self, a: str, b: str) -> list[tuple[str, str]]:
-        """The ``(parent, child)`` dynamic edges between ``a`` and ``b``."""
+    def dynamic_edges(self, a: str, b: str, moving_only: bool = False) -> list[tuple[str, str]]:
+        """The ``(parent, child)`` dynamic edges between ``a`` and ``b`` (``moving_only``: only
+        those whose samples differ)."""
         pa, pb = self.path(a, b)
-        return [(self.parent[c], c) for c in pa + pb if c in self.dynamic]
+        return [(self.parent[c], c) for c in pa + pb if c in self.dynamic
+                and (not moving_only or self.dynamic[c].moves())]
 
     def _up(self, chain: list[str], stamp_s: float, max_gap_s: float) -> np.ndarray | None:
         """``T_ancestor_frame`` of ``chain = [frame, ..., child of ancestor]``."""
