@@ -48,9 +48,11 @@ T_B_CELL = make_T(Rotation.from_euler("xz", [3, -20], degrees=True).as_matrix(),
 
 def dome_stream(t0_s: float = 1.0, step_mm: float = 0.75, n_rays: int = 160):
     """``(calibration, messages in stamp order, true hits (n, 3) in O)`` of a raster over
-    the dome."""
+    the dome. The raster lines lie between voxel planes (y = 48.2, ...): on a line exactly at
+    a multiple of the voxel size, S1's plate hits (all at the spot's y) would sit exactly on a
+    voxel boundary, which only exact synthetic poses produce."""
     cal = make_calibration()
-    lines = raster_lines((30.0, 90.0), [48.0, 60.0, 72.0])
+    lines = raster_lines((30.0, 90.0), [48.2, 60.2, 72.2])
     msgs, hits = raster_run(DOME, cal, lines, step_mm=step_mm, dt_s=0.05, noise_mm=0.03, seed=5,
                             t0_s=t0_s, n_rays=n_rays)
     return cal, msgs, hits
