@@ -163,13 +163,17 @@ def _messages(cal, msgs, foreign: bool, float64: bool, cloud_frames=None, marks=
 
 def write_bag(path: Path, cal, msgs, *, foreign: bool = False, float64: bool = False,
               storage: str = "mcap", split: bool = False, duplicate: int = 0,
-              cloud_frames=None, marks=()) -> Path:
+              cloud_frames=None, marks=(), tf_hole_s=None) -> Path:
     """Write a rosbag2 folder at ``path`` (``storage`` "mcap" or "sqlite3"); ``split``: two
     files split half-way in time; ``duplicate``: record that many profiles twice;
     ``cloud_frames``: sensor -> the frame_id its clouds carry (default: its own frame);
-    ``marks``: ``(stamp_s, layer)`` layer marks on ``/dm2/layer``."""
+    ``marks``: ``(stamp_s, layer)`` layer marks on ``/dm2/layer``; ``tf_hole_s``: ``(t0, t1)``,
+    no ``/tf`` message in between (a driver that stalled)."""
     plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
     rows = _messages(cal, msgs, foreign, float64, cloud_frames, marks)
+    if tf_hole_s is not None:
+        lo, hi = (round(t * 1e9) for t in tf_hole_s)
+        rows = [r for r in rows if not (r[0] == "/tf" and lo < r[2] < hi)]
     clouds = [i for i, r in enumerate(rows) if r[1] == "sensor_msgs/msg/PointCloud2"]
     for i in clouds[10:10 + duplicate]:
         rows.append(rows[i])

@@ -215,3 +215,28 @@ def test_layer_marks_on_the_mapped_layer_topic(tmp_path, cell):
     assert summary["layer_source"] == "marks"
     assert [row["layer"] for row in summary["layers"]] == [0, 1]
     assert summary["layers"][0]["stamp_s"] <= t_mid
+
+
+def test_profiles_in_a_tf_hole_are_dropped_and_counted(tmp_path, cell):
+    """/tf stalls for 0.3 s (> max_pose_gap_s = 0.05 s): no two samples within the gap
+    bracket a profile in the hole, so every one there is dropped, counted, and not fused."""
+    from dm2.core.messages import Profile
+
+    cal, msgs, _ = cell
+    part = msgs[:1500]
+    t0 = part[600].stamp_s
+    hole = (t0, t0 + 0.3)
+    bag = write_bag(tmp_path / "hole", cal, part, foreign=True, tf_hole_s=hole)
+    rosmap = tmp_path / "map.toml"
+    rosmap.write_text(FOREIGN_MAP)
+    res, out = _monitor(tmp_path, bag, "--map", rosmap)
+    assert res.exit_code == 0, res.output
+    summary = json.loads((out / "monitor.json").read_text())
+    states = [m.stamp_s for m in part if type(m).__name__ == "RobotState"]
+    before = max(t for t in states if t <= hole[0])
+    after = min(t for t in states if t >= hole[1])
+    lost = [m for m in part if isinstance(m, Profile) and before < m.stamp_s < after]
+    n = sum(isinstance(m, Profile) for m in part)
+    assert len(lost) > 10
+    assert summary["recording_skipped"] == {"tf lookup beyond max_pose_gap_s": len(lost)}
+    assert summary["profiles_fused"] == n - len(lost)

@@ -185,7 +185,8 @@ def monitor(
             session.feed(msg)
             n_msgs += 1
         session.finish()
-    summary = {"schema": 1, "recording": str(run), "messages": n_msgs,
+    summary = {"schema": 1, "recording": str(run),
+               **({"map": str(map_path)} if map_path is not None else {}), "messages": n_msgs,
                "profiles_fused": mon.profiles_fused, "points_fused": mon.points_fused,
                "tsdf_blocks": mon.tsdf.n_blocks, "dropped": mon.dropped,
                "recording_skipped": {k: int(v) for k, v in rec.skipped.items()},

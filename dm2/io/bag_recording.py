@@ -120,7 +120,8 @@ class BagRecording:
 
     @property
     def toolpath(self):
-        return own.Recording.toolpath.fget(self)
+        """The attached toolpath (MCAP storage only) or None."""
+        return own.attached_toolpath(self.attachments)
 
     @property
     def calibration(self) -> Calibration | None:

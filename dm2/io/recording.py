@@ -134,15 +134,7 @@ class Recording:
     @property
     def toolpath(self):
         """The attached toolpath (:class:`~dm2.core.messages.Toolpath`) or None."""
-        data = self.attachments.get(TOOLPATH_ATTACHMENT)
-        if data is None:
-            return None
-        from dm2.toolpath.formats import read_csv
-
-        with tempfile.TemporaryDirectory() as tmp:
-            p = Path(tmp) / TOOLPATH_ATTACHMENT
-            p.write_bytes(data)
-            return read_csv(p)
+        return attached_toolpath(self.attachments)
 
     def _iter_raw(self, topics=None):
         with open(self.path, "rb") as f:
@@ -216,6 +208,19 @@ class Recording:
             return None
         joints, T = (value, partner[1]) if joints_first else (partner[1], value)
         return RobotState(ns_to_stamp(ns), seq, joints, T)
+
+
+def attached_toolpath(attachments: dict[str, bytes]):
+    """The ``toolpath.csv`` attachment as a :class:`~dm2.core.messages.Toolpath`, or None."""
+    data = attachments.get(TOOLPATH_ATTACHMENT)
+    if data is None:
+        return None
+    from dm2.toolpath.formats import read_csv
+
+    with tempfile.TemporaryDirectory() as tmp:
+        p = Path(tmp) / TOOLPATH_ATTACHMENT
+        p.write_bytes(data)
+        return read_csv(p)
 
 
 def read_recording(path: str | Path) -> Recording:
