@@ -193,6 +193,8 @@ def monitor(
                "recording_problems": list(getattr(rec, "problems", [])),
                "layer_source": mon.layers.source, "layers": written}
     (out / "monitor.json").write_text(json.dumps(summary, indent=2), encoding="utf-8")
+    if hasattr(rec, "close"):  # a rosbag2 recording holds its files open while read
+        rec.close()
     if analyse and session.results:
         write_report(out / "report", session.results, session.tracks,
                      config_toml=dump_toml({"recording": str(run),

@@ -78,6 +78,11 @@ class BagRecording:
         except TfError as exc:
             raise MapError(f"{rmap.source}: frames.base -> frames.flange: {exc}") from None
 
+    def close(self) -> None:
+        """Close the bag's files (reading again afterwards raises)."""
+        if self._reader.stack is not None:
+            self._reader.close()
+
     def _connections(self, topics) -> list:
         return [c for c in self._reader.connections if c.topic in topics]
 
@@ -208,9 +213,10 @@ class BagRecording:
                     continue
                 sid = sid_of[topic]
                 stamp = _stamp_s(msg.header.stamp)
-                T_S_C = self._T_S_C(sid, msg.header.frame_id, frames_cache)
+                frame_id = msg.header.frame_id.lstrip("/")
+                T_S_C = self._T_S_C(sid, frame_id, frames_cache)
                 if T_S_C is False:
-                    self.skipped[f"{topic}: cloud frame {msg.header.frame_id!r} not fixed to "
+                    self.skipped[f"{topic}: cloud frame {frame_id!r} not fixed to "
                                  f"{m.sensors[sid]!r}"] += 1
                     continue
                 xyz, inten = cloud_xyz(msg)

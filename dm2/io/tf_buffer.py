@@ -110,7 +110,9 @@ class TfBuffer:
 
     def add(self, stamp_s: float, parent: str, child: str, T_parent_child: np.ndarray,
             static: bool, source: str = "") -> None:
-        """One transform; a frame with a second, different parent raises TfError."""
+        """One transform; a frame with a second, different parent raises TfError. A leading
+        ``/`` of a frame name (ROS 1 style) is dropped, as tf2 does."""
+        parent, child = parent.lstrip("/"), child.lstrip("/")
         known = self.parent.get(child)
         if known is not None and known != parent:
             raise TfError(f"{source}: frame {child!r} has two parents in the tf tree "
