@@ -95,7 +95,8 @@ def run_rehearsed(sc, run_dir: Path, scenario_file, full_report: bool):
 def compare(score_solved: dict, score_true: dict) -> dict:
     """The chain's figures beside the true-calibration run's, for one scenario."""
     def figures(s):
-        return {"false_positive_tracks": len(s["false_positive_tracks"]),
+        return {"false_tracks": len(s["false_tracks"]),
+                "realtime_false_alarms": s["realtime_false_alarms"],
                 "detected": [bool(f["detected"]) for f in s["faults"]],
                 "reconstruction_rms_mm": s["reconstruction_rms_mm"]}
 
@@ -103,8 +104,7 @@ def compare(score_solved: dict, score_true: dict) -> dict:
     drms = (a["reconstruction_rms_mm"] - b["reconstruction_rms_mm"]
             if a["reconstruction_rms_mm"] is not None and b["reconstruction_rms_mm"] is not None
             else None)
-    return {"solved": a, "true": b, "extra_false_tracks":
-            a["false_positive_tracks"] - b["false_positive_tracks"],
+    return {"solved": a, "true": b, "extra_false_tracks": a["false_tracks"] - b["false_tracks"],
             "same_detections": a["detected"] == b["detected"], "rms_difference_mm": drms}
 
 
@@ -113,7 +113,7 @@ def chain_summary(runs_true: dict, comparisons: dict, targets) -> dict:
     from dm2.bench.scoring import summarize
 
     true_summary = summarize(runs_true, targets)
-    keep = ("f1", "true_positives", "false_negatives", "false_positive_tracks")
+    keep = ("f1", "detected_faults", "missed_faults", "false_tracks", "realtime_false_alarms")
     return {"mode": "rehearsed", "true_calibration": {
                 "summary": {k: true_summary.get(k) for k in keep}, "runs": runs_true},
             "comparison": comparisons,
