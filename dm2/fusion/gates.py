@@ -1,0 +1,257 @@
+"""Plausibility gates on live and replayed input: one absurd message costs that message only.
+
+A finite but absurd stamp or pose would otherwise poison what follows it: a stamp 1000 s ahead
+raises the sync watermark so every later message is ``late_message``; a flange pose 1e12 mm out
+or joints at 1e300 degrees build defects that are not there. :class:`InputGates` checks every
+message before anything else sees it (the clock aligner, the sync watermark, the reorder window,
+the recording, the reference), so those move only with plausible stamps and poses.
+
+**Stamps** (``implausible_stamp``), per source (the robot, each profiler; layer marks ride on the
+robot's clock). A source's first ``stamp_seed`` messages are held and their median seeds its
+clock, so one bad first stamp cannot set it. After that a stamp is plausible when it lies within
+``stamp_band_s`` of the newest plausible stamp, plus ``stamp_rate_max`` times the host time
+since it arrived (live sources; a replay has no host time), so a pause of the stream is no step.
+An implausible message is held as a candidate for a clock step: when further implausible
+messages agree with it (the same band) for ``stamp_confirm_s`` of their own stamps, the step is
+real and the held messages are released: a step forward as it is (the stream paused or the
+clock jumped ahead: later stages only see a gap), a step back shifted so the source's stamps
+continue where they were (otherwise every later message would be late). A plausible message
+ends the candidate: its held messages stay dropped. So a lasting step of a clock, forward or
+back, is re-synced within ``stamp_confirm_s`` of process time and loses at most that.
+
+**Poses** (``implausible_pose``, robot states): the flange position outside the cell's
+workspace box ``workspace_B_mm``, a joint beyond ``joint_limits_deg``, or a motion from the
+previous plausible state faster than the robot's limits (``max_tcp_speed_mm_s``,
+``max_joint_speed_deg_s``, times ``speed_margin``). Five states in a row that agree with one
+another but not with the previous plausible one replace it (that one was the outlier).
+
+The ``dropped`` counts of both reasons are exact: held messages that are released again are
+not counted.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import Counter
+from dataclasses import replace
+
+import numpy as np
+
+from dm2.core.config import InputGateConfig
+from dm2.core.messages import LayerMark, Profile, RobotState
+
+log = logging.getLogger(__name__)
+
+MAX_HELD = 4096  # messages held at most per source (seed or step candidate)
+POSE_ADOPT = 5  # consistent states in a row that replace an outlying reference pose
+JUMP_MM, JUMP_DEG = 2.0, 0.5  # position / joint change always allowed between two states
+
+
+class _Clock:
+    """One source's clock: newest plausible stamp, held seed or step candidate."""
+
+    __slots__ = ("last", "last_arr", "offset", "seed", "cand", "cand_lo", "cand_hi",
+                 "cand_arr")
+
+    def __init__(self):
+        self.last = None  # newest plausible stamp [s] (offset applied)
+        self.last_arr = None  # its arrival [s, host]
+        self.offset = 0.0  # [s] subtracted from raw stamps after a step back
+        self.seed: list = []
+        self.cand: list = []
+        self.cand_lo = self.cand_hi = 0.0
+        self.cand_arr = None
+
+
+class InputGates:
+    """Stamp and pose plausibility for one stream (see the module docstring).
+
+    ``admit(msg, arrival_s)`` returns the ``(message, arrival_s)`` pairs to pass on now (none,
+    the message, or messages held before); ``flush()`` releases the seeds held at the end of a
+    stream. :attr:`dropped` counts ``implausible_stamp`` and ``implausible_pose``;
+    :attr:`steps` lists the re-synced clock steps.
+    """
+
+    def __init__(self, cfg: InputGateConfig | None = None):
+        self.cfg = cfg = cfg or InputGateConfig()
+        self.dropped: Counter = Counter()
+        self.steps: list[dict] = []
+        self._clocks: dict[str, _Clock] = {}
+        lo, hi = (np.asarray(c, np.float64) for c in cfg.workspace_B_mm)
+        self._ws_lo, self._ws_hi = lo, hi
+        lim = np.radians(np.asarray(cfg.joint_limits_deg, np.float64))
+        self._q_lo, self._q_hi = lim[:, 0] - 1e-9, lim[:, 1] + 1e-9
+        self._v_max = cfg.max_tcp_speed_mm_s * cfg.speed_margin
+        self._w_max = np.radians(np.asarray(cfg.max_joint_speed_deg_s)) * cfg.speed_margin
+        self._jump_rad = math.radians(JUMP_DEG)
+        self._pose_ref = None  # (stamp, position, joints) of the newest plausible state
+        self._pose_cand: list = []
+
+    # ------------------------------------------------------------------------------ entry
+    def admit(self, msg, arrival_s: float | None = None) -> list:
+        if isinstance(msg, RobotState):
+            key = "robot"
+        elif isinstance(msg, Profile):
+            key = msg.sensor_id
+        elif isinstance(msg, LayerMark):
+            return self._mark(msg, arrival_s)
+        else:
+            return [(msg, arrival_s)]
+        out = self._stamp(key, msg, arrival_s)
+        if key != "robot" or not out:
+            return out
+        return [(m, a) for m, a in out if self._pose_ok(m)]
+
+    def flush(self) -> list:
+        """Release every source's held seed (a stream shorter than the seed); step
+        candidates still held stay dropped."""
+        out = []
+        for key, clock in self._clocks.items():
+            if clock.seed:
+                out.extend(self._seeded(key, clock))
+        if out:
+            robot = [(m, a) for m, a in out if isinstance(m, RobotState)]
+            keep = {id(m) for m, _ in robot if self._pose_ok(m)}
+            out = [(m, a) for m, a in out if not isinstance(m, RobotState) or id(m) in keep]
+        return out
+
+    # ----------------------------------------------------------------------------- stamps
+    def _stamp(self, key: str, msg, arr) -> list:
+        clock = self._clocks.get(key)
+        if clock is None:
+            clock = self._clocks[key] = _Clock()
+        if clock.last is None:
+            clock.seed.append((msg, arr))
+            if len(clock.seed) < self.cfg.stamp_seed:
+                return []
+            return self._seeded(key, clock)
+        cfg = self.cfg
+        c = msg.stamp_s - clock.offset
+        if self._within(c, clock.last, clock.last_arr, arr):
+            if clock.cand:
+                clock.cand = []  # a passing outlier (its messages stay dropped)
+            if c > clock.last:
+                clock.last, clock.last_arr = c, arr
+            return [(self._shifted(msg, clock.offset), arr)]
+        self.dropped["implausible_stamp"] += 1
+        if clock.cand and (clock.cand_lo - cfg.stamp_band_s <= c) and \
+                self._within(c, clock.cand_hi, clock.cand_arr, arr):
+            clock.cand.append((msg, arr))
+            if c > clock.cand_hi:
+                clock.cand_hi, clock.cand_arr = c, arr
+            clock.cand_lo = min(clock.cand_lo, c)
+        else:
+            clock.cand = [(msg, arr)]
+            clock.cand_lo = clock.cand_hi = c
+            clock.cand_arr = arr
+        if len(clock.cand) > MAX_HELD:
+            del clock.cand[: len(clock.cand) - MAX_HELD]
+        if clock.cand_hi - clock.cand_lo >= cfg.stamp_confirm_s and len(clock.cand) >= 3:
+            return self._resync(key, clock)
+        return []
+
+    def _within(self, c: float, ref: float, ref_arr, arr) -> bool:
+        band = self.cfg.stamp_band_s
+        ahead = band
+        if arr is not None and ref_arr is not None and arr > ref_arr:
+            ahead += self.cfg.stamp_rate_max * (arr - ref_arr)
+        return ref - band <= c <= ref + ahead
+
+    def _seeded(self, key: str, clock: _Clock) -> list:
+        """Seed the clock from the median of the held first stamps; release those near it."""
+        held, clock.seed = clock.seed, []
+        mid = float(np.median([m.stamp_s for m, _ in held]))
+        out = []
+        for m, a in held:
+            if abs(m.stamp_s - mid) <= self.cfg.stamp_band_s:
+                out.append((m, a))
+                if clock.last is None or m.stamp_s > clock.last:
+                    clock.last, clock.last_arr = m.stamp_s, a
+            else:
+                self.dropped["implausible_stamp"] += 1
+        if clock.last is None:  # cannot happen: the median message is within the band
+            clock.last, clock.last_arr = mid, held[-1][1]
+        return out
+
+    def _resync(self, key: str, clock: _Clock) -> list:
+        held, clock.cand = clock.cand, []
+        stamps = np.sort([m.stamp_s - clock.offset for m, _ in held])
+        diffs = np.diff(stamps)
+        period = float(np.median(diffs[diffs > 0])) if np.any(diffs > 0) else 0.0
+        step = float(stamps[0] - clock.last)
+        if step < 0:  # a step back: continue the source's stamps where they were
+            clock.offset += step - period
+        self.dropped["implausible_stamp"] -= len(held)
+        self.steps.append({"source": key, "step_s": round(step, 6),
+                           "at_s": round(float(clock.last), 6), "held": len(held)})
+        log.warning("the clock of %s stepped %+.3f s at %.3f s: re-synced (%d messages held)",
+                    key, step, clock.last, len(held))
+        out = [(self._shifted(m, clock.offset), a) for m, a in held]
+        top = max(out, key=lambda ma: ma[0].stamp_s)
+        clock.last, clock.last_arr = top[0].stamp_s, top[1]
+        if key == "robot":
+            self._pose_ref = None  # the held states start the pose check afresh
+            self._pose_cand = []
+        return out
+
+    @staticmethod
+    def _shifted(msg, offset: float):
+        if offset == 0.0:
+            return msg
+        stamp = max(0.0, msg.stamp_s - offset)
+        if isinstance(msg, RobotState):
+            return RobotState.trusted(stamp, msg.seq, msg.joints_rad, msg.T_B_F)
+        return replace(msg, stamp_s=stamp)
+
+    def _mark(self, msg: LayerMark, arr) -> list:
+        clock = self._clocks.get("robot")
+        if clock is None or clock.last is None:
+            return [(msg, arr)]
+        c = msg.stamp_s - clock.offset
+        if clock.cand and clock.cand_lo - self.cfg.stamp_band_s <= c <= \
+                clock.cand_hi + self.cfg.stamp_band_s:
+            clock.cand.append((msg, arr))  # on the stepped clock: released with its states
+            self.dropped["implausible_stamp"] += 1
+            return []
+        if not self._within(c, clock.last, clock.last_arr, arr):
+            self.dropped["implausible_stamp"] += 1
+            return []
+        return [(self._shifted(msg, clock.offset), arr)]
+
+    # ------------------------------------------------------------------------------ poses
+    def _pose_ok(self, s) -> bool:
+        if not isinstance(s, RobotState):
+            return True
+        p = s.T_B_F[:3, 3]
+        q = s.joints_rad
+        if np.any(p < self._ws_lo) or np.any(p > self._ws_hi) or q.shape[0] != \
+                self._q_lo.shape[0] or np.any(q < self._q_lo) or np.any(q > self._q_hi):
+            self.dropped["implausible_pose"] += 1
+            return False
+        ref = self._pose_ref
+        if ref is None or self._consistent(ref, s.stamp_s, p, q):
+            self._pose_ref = (s.stamp_s, p, q)
+            self._pose_cand = []
+            return True
+        self.dropped["implausible_pose"] += 1
+        cand = self._pose_cand
+        if cand and self._consistent(cand[-1], s.stamp_s, p, q):
+            cand.append((s.stamp_s, p, q))
+        else:
+            cand[:] = [(s.stamp_s, p, q)]
+        if len(cand) >= POSE_ADOPT:  # the reference was the outlier
+            self._pose_ref = cand[-1]
+            self._pose_cand = []
+        return False
+
+    def _consistent(self, ref, stamp: float, p, q) -> bool:
+        dt = abs(stamp - ref[0])  # reordered states compare just as well
+        if float(np.linalg.norm(p - ref[1])) > self._v_max * dt + JUMP_MM:
+            return False
+        return bool(np.all(np.abs(q - ref[2]) <= self._w_max * dt + self._jump_rad))
+
+    def summary(self) -> dict:
+        """The drops by reason and the re-synced clock steps."""
+        return {"dropped": {k: int(v) for k, v in self.dropped.items() if v},
+                "clock_steps": list(self.steps)}
