@@ -277,7 +277,7 @@ def format_validation_error(source: str, exc: ValidationError, model=None) -> st
     lines = [f"{source}: invalid configuration"]
     for err in exc.errors():
         loc = ".".join(str(p) for p in err["loc"]) or "(top level)"
-        msg = err["msg"]
+        msg = err["msg"].removeprefix("Value error, ")
         if err["type"] == "extra_forbidden":
             msg = "unknown key"
             known = _known_keys(model, err["loc"][:-1])

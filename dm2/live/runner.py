@@ -140,11 +140,13 @@ class LiveRunner:
         try:
             host, port = parse_host_port(live.egm, "live.egm")
             egm = EgmSource(self.inbox, host, port, controllers=live.controllers,
-                            max_datagram_bytes=live.max_datagram_bytes).start()
+                            max_datagram_bytes=live.max_datagram_bytes,
+                            schema=live.egm_schema, layer_dnum=live.egm_layer_dnum).start()
             self.sources.append(egm)
             host, port = parse_host_port(live.profiles, "live.profiles")
             prof = ProfileServer(self.inbox, host, port, bridges=live.bridges,
-                                 max_frame_bytes=live.max_frame_bytes).start()
+                                 max_frame_bytes=live.max_frame_bytes,
+                                 idle_timeout_s=live.bridge_idle_s).start()
             self.sources.append(prof)
             addresses = {"egm": egm.address, "profiles": prof.address}
             if live.scancontrol:
