@@ -2,9 +2,10 @@
 
 The robot controller streams ``EgmRobot`` messages to the monitoring PC: RobotWare 7's layout
 by default (:mod:`dm2.live.egm_pb2`, compiled from ``egm.proto`` beside this file), RobotWare 6's
-with ``schema="rw6"`` (:mod:`dm2.live.egm_rw6_pb2`, from ``egm_rw6.proto``). Units on the wire are ABB's: joints in
-degrees, position in mm, orientation as a unit quaternion ``u0..u3`` (``u0`` = w), header
-``tm`` in ms (uint32, wraps after 49.7 days), ``feedBack.time`` as ``sec`` + ``usec``.
+with ``schema="rw6"`` (:mod:`dm2.live.egm_rw6_pb2`, from ``egm_rw6.proto``). Units on the wire
+are ABB's: joints in degrees, position in mm, orientation as a unit quaternion ``u0..u3``
+(``u0`` = w), header ``tm`` in ms (uint32, wraps after 49.7 days), ``feedBack.time`` as
+``sec`` + ``usec``.
 
 The stamp of a state is ``feedBack.time`` when the controller sends it, else the unwrapped
 header ``tm``. Under RobotWare 7 a RAPID program may report the current layer index in

@@ -38,7 +38,8 @@ def write_report(out_dir: str | Path, results, tracks, *, config_toml: str | Non
                  dropped: dict | None = None, timing: dict | None = None,
                  fault_truth=None, expect=None, map_layers=None, limit_mm: float = 1.0,
                  meta: dict | None = None, sections: dict | None = None,
-                 force: bool = False, inputs=(), command: str = "") -> dict:
+                 force: bool = False, inputs=(), command: str = "",
+                 include: dict | None = None) -> dict:
     """Write the whole run folder; returns the report dict.
 
     Parameters
@@ -59,6 +60,8 @@ def write_report(out_dir: str | Path, results, tracks, *, config_toml: str | Non
         and ``reconstruction`` (distance to the true surface per layer)
     force, inputs : see :func:`dm2.report.outdir.check_output_dir`
     command : the dm2 command, recorded in the folder's manifest
+    include : name -> path of further files or folders (e.g. the recording) moved into the
+        folder with the report, listed in its manifest
     """
     out = check_output_dir(out_dir, force=force, inputs=inputs)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -76,6 +79,8 @@ def write_report(out_dir: str | Path, results, tracks, *, config_toml: str | Non
                               sections=sections)
         (tmp / "report.json").write_text(json.dumps(report, indent=1), encoding="utf-8")
         (tmp / "index.html").write_text(render_index(report), encoding="utf-8")
+        for name, path in (include or {}).items():
+            shutil.move(str(path), str(tmp / name))
         write_manifest(tmp, files_below(tmp), command=command or "report")
         install_folder(tmp, out, inputs)
     except BaseException:

@@ -194,9 +194,23 @@ def install_folder(tmp: Path, out: Path, inputs=()) -> None:
     if not out.exists():
         tmp.rename(out)
         return
-    clear_outputs(out, inputs)
+    owned = owned_files(out) or set()
+    new_files = files_below(tmp)
+    clash = [rel for rel in new_files if rel != MANIFEST_NAME and rel not in owned
+             and ((out / rel).exists() or (out / rel).is_symlink())]
+    if clash:  # a file a user put there has the name of one dm2 writes: keep both
+        keep = out.with_name(f"{out.name}.dm2-{os.getpid()}")
+        tmp.rename(keep)
+        raise OutputRefused(f"output folder {out}: {', '.join(clash[:3])} there was not written "
+                            f"by dm2 and is left as it is; this run's output is in {keep}")
+    kept = set(clear_outputs(out, inputs)) & set(new_files)
+    if kept:  # never write over the input being read
+        keep = out.with_name(f"{out.name}.dm2-{os.getpid()}")
+        tmp.rename(keep)
+        raise OutputRefused(f"output folder {out}: {', '.join(sorted(kept)[:3])} is this "
+                            f"run's input and is left as it is; this run's output is in {keep}")
     new = read_manifest(tmp) or {"files": [], "command": ""}
-    for rel in files_below(tmp):
+    for rel in new_files:
         dest = out / rel
         dest.parent.mkdir(parents=True, exist_ok=True)
         if dest.is_dir() and not dest.is_symlink():
@@ -204,3 +218,18 @@ def install_folder(tmp: Path, out: Path, inputs=()) -> None:
         os.replace(tmp / rel, dest)
     shutil.rmtree(tmp, ignore_errors=True)
     log.debug("%s: replaced %d files of an earlier run", out, len(new["files"]))
+
+
+def prepare_output_dir(out_dir: str | Path, *, force: bool = False, inputs=()) -> set[str]:
+    """Check ``out_dir`` (:func:`check_output_dir`), create it and clear an earlier dm2 run's
+    files; returns the files left there (a user's, kept), for :func:`claim_outputs`."""
+    out = check_output_dir(out_dir, force=force, inputs=inputs)
+    out.mkdir(parents=True, exist_ok=True)
+    clear_outputs(out, inputs)
+    return set(files_below(out))
+
+
+def claim_outputs(out_dir: str | Path, before: set[str], command: str) -> None:
+    """Write the manifest of ``out_dir``: every file there now that was not in ``before``."""
+    out = Path(out_dir)
+    write_manifest(out, [f for f in files_below(out) if f not in before], command=command)
