@@ -173,3 +173,28 @@ def test_error_messages_keep_their_brackets(tmp_path):
     with err_console.capture() as cap, pytest.raises(typer.Exit):
         fail("cell.toml: [live] egm: step [mm] of x[1]")
     assert "cell.toml: [live] egm: step [mm] of x[1]" in cap.get()
+
+
+def test_replayed_stamps_far_off_cost_only_their_message(tmp_path, stream):
+    """A robot state stamped 1000 s ahead is dropped as implausible_stamp; the replay fuses
+    exactly what the clean one fuses."""
+    import dataclasses
+
+    from dm2.core.messages import RobotState
+
+    cal, msgs = stream
+    clean, bad = tmp_path / "clean.mcap", tmp_path / "bad.mcap"
+    _record(clean, msgs, cal, attach=True)
+    states = [i for i, m in enumerate(msgs) if isinstance(m, RobotState)]
+    out = list(msgs)
+    out[states[40]] = dataclasses.replace(out[states[40]], stamp_s=msgs[states[40]].stamp_s + 1e3)
+    _record(bad, out, cal, attach=True)
+    got = {}
+    for name, path in (("clean", clean), ("bad", bad)):
+        res = CliRunner().invoke(app, ["monitor", str(path), "--out", str(tmp_path / name),
+                                       "--no-analyse"])
+        assert res.exit_code == 0, res.output
+        got[name] = json.loads((tmp_path / name / "monitor.json").read_text())
+    assert got["clean"]["dropped"] == {}
+    assert got["bad"]["dropped"] == {"implausible_stamp": 1}
+    assert got["bad"]["profiles_fused"] == got["clean"]["profiles_fused"]
