@@ -25,7 +25,6 @@ def run_live_monitor(cell_path: Path, out: Path, max_duration_s: float | None = 
 
     with bad_input_exits():
         cell = load_cell_file(cell_path)
-        check_output_dir(out, force=force, inputs=[cell_path])
         if (out / "live.mcap").exists():
             raise ValueError(f"--out {out}: already holds a live recording (live.mcap); "
                              "choose a new folder")
@@ -33,6 +32,7 @@ def run_live_monitor(cell_path: Path, out: Path, max_duration_s: float | None = 
             raise ValueError(f"--out {out}: holds a live recording cut short (live.mcap.part); "
                              f"restore it with `dm2 recover {out / 'live.mcap.part'}` or choose "
                              "a new folder")
+        check_output_dir(out, force=force, inputs=[cell_path])
         out.mkdir(parents=True, exist_ok=True)
         add_to_manifest(out, ["live.mcap", "report/"], command="dm2 monitor --live")
         runner = LiveRunner(cell, out, cell_toml=cell_path.read_text(encoding="utf-8"))
