@@ -13,9 +13,10 @@ clock, so one bad first stamp cannot set it. After that a stamp is plausible whe
 since it arrived (live sources; a replay has no host time), so a pause of the stream is no step.
 An implausible message is held as a candidate for a clock step: when further implausible
 messages agree with it (the same band) for ``stamp_confirm_s`` of their own stamps, the step is
-real and the held messages are released: a step forward as it is (the stream paused or the
-clock jumped ahead: later stages only see a gap), a step back shifted so the source's stamps
-continue where they were (otherwise every later message would be late). A plausible message
+real and the held messages are released, shifted so the source's stamps continue where they
+were (a step back would otherwise make every later message late; a step forward would put the
+source seconds away from the others). A replay has no host time to tell a step forward from a
+pause of the recording, so there a step forward is released as it is (later stages see a gap). A plausible message
 ends the candidate: its held messages stay dropped. So a lasting step of a clock, forward or
 back, is re-synced within ``stamp_confirm_s`` of process time and loses at most that.
 
@@ -180,7 +181,8 @@ class InputGates:
         diffs = np.diff(stamps)
         period = float(np.median(diffs[diffs > 0])) if np.any(diffs > 0) else 0.0
         step = float(stamps[0] - clock.last)
-        if step < 0:  # a step back: continue the source's stamps where they were
+        live = held[0][1] is not None
+        if step < 0 or live:  # continue the source's stamps where they were
             clock.offset += step - period
         self.dropped["implausible_stamp"] -= len(held)
         self.steps.append({"source": key, "step_s": round(step, 6),
