@@ -16,9 +16,10 @@ messages agree with it (the same band) for ``stamp_confirm_s`` of their own stam
 real and the held messages are released, shifted so the source's stamps continue where they
 were (a step back would otherwise make every later message late; a step forward would put the
 source seconds away from the others). A replay has no host time to tell a step forward from a
-pause of the recording, so there a step forward is released as it is (later stages see a gap). A plausible message
-ends the candidate: its held messages stay dropped. So a lasting step of a clock, forward or
-back, is re-synced within ``stamp_confirm_s`` of process time and loses at most that.
+pause of the recording, so there a step forward is released as it is (later stages see a gap).
+A plausible message ends the candidate: its held messages stay dropped. So a lasting step of a
+clock, forward or back, is re-synced within ``stamp_confirm_s`` of process time and loses at
+most that.
 
 **Poses** (``implausible_pose``, robot states): the flange position outside the cell's
 workspace box ``workspace_B_mm``, a joint beyond ``joint_limits_deg``, or a motion from the

@@ -233,3 +233,42 @@ def claim_outputs(out_dir: str | Path, before: set[str], command: str) -> None:
     """Write the manifest of ``out_dir``: every file there now that was not in ``before``."""
     out = Path(out_dir)
     write_manifest(out, [f for f in files_below(out) if f not in before], command=command)
+
+
+def written_by_dm2(path: Path) -> bool:
+    """Whether the single file ``path`` is one dm2 writes: an MCAP recording whose header
+    names the library ``dm2``, a canonical toolpath CSV, a RAPID module dm2 generated, or a
+    PNG carrying dm2's ``Software`` tag."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(512)
+    except OSError:
+        return False
+    if head.startswith(b"\x89MCAP0\r\n") and len(head) > 21:
+        at = 8 + 1 + 8  # magic, header opcode, record length
+        n = int.from_bytes(head[at:at + 4], "little")
+        at += 4 + n  # profile string
+        m = int.from_bytes(head[at:at + 4], "little")
+        return head[at + 4:at + 4 + m] == b"dm2"
+    if head.startswith(b"\x89PNG"):
+        return b"Software\x00dm2" in head
+    text = head.decode("utf-8", errors="replace")
+    return text.startswith("index,x_mm,y_mm,z_mm,") or (
+        text.startswith("MODULE ") and "written by dm2" in text)
+
+
+def check_output_file(path: str | Path, *, force: bool = False, inputs=()) -> Path:
+    """Refuse (OutputRefused) a single output file that is an input, a folder, or an existing
+    file dm2 did not write (unless ``force``: the user asks for it to be replaced)."""
+    path = Path(path).absolute()
+    for inp in inputs:
+        if inp is not None and _same_file(Path(inp), path):
+            raise OutputRefused(f"output file {path}: is the input {inp}")
+    if path.is_dir():
+        raise OutputRefused(f"output file {path}: is a folder")
+    if not path.parent.is_dir():
+        raise OutputRefused(f"output file {path}: folder {path.parent} does not exist")
+    if path.exists() and not force and not written_by_dm2(path):
+        raise OutputRefused(f"output file {path}: exists and was not written by dm2; choose "
+                            "another name, or give --force to replace it")
+    return path
