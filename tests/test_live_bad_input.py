@@ -254,3 +254,20 @@ def test_a_lasting_clock_step_is_resynced_within_a_second(twin, baseline, tmp_pa
     per_s = baseline[1] / DURATION_S
     assert 0 <= lost <= 1.2 * per_s  # at most about the second before the re-sync
     assert len(r.analysis.tracks) == baseline[2]
+
+
+def test_a_datagram_stamped_1e12_s_ahead_leaves_the_recording_whole(twin, baseline, tmp_path):
+    """A stamp that does not fit a ROS Time is one implausible message: the recording holds
+    every other state and the run goes on."""
+    from dm2.io.recording import read_recording
+
+    cell, msgs = twin
+    out = list(msgs)
+    i = _robot_indices(out)[200]
+    out[i] = dataclasses.replace(out[i], stamp_s=out[i].stamp_s + 1e12)
+    r = run(cell, out, tmp_path, [m.stamp_s for m in msgs], record=True)
+    assert extra(r.analysis.dropped, baseline[0]) == {"implausible_stamp": 1}
+    assert r.analysis.monitor.profiles_fused == baseline[1]
+    recorded = [m for m in read_recording(r.recording_path).messages()
+                if isinstance(m, RobotState)]
+    assert len(recorded) == sum(isinstance(m, RobotState) for m in msgs) - 1

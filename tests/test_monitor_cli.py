@@ -198,3 +198,14 @@ def test_replayed_stamps_far_off_cost_only_their_message(tmp_path, stream):
     assert got["clean"]["dropped"] == {}
     assert got["bad"]["dropped"] == {"implausible_stamp": 1}
     assert got["bad"]["profiles_fused"] == got["clean"]["profiles_fused"]
+
+
+def test_a_replay_that_fuses_nothing_says_so_and_exits_1(tmp_path, stream):
+    from dm2.core.messages import RobotState
+
+    cal, msgs = stream
+    poses_only = tmp_path / "poses.mcap"
+    _record(poses_only, [m for m in msgs if isinstance(m, RobotState)], cal, attach=True)
+    res = CliRunner().invoke(app, ["monitor", str(poses_only), "--out", str(tmp_path / "o")])
+    assert res.exit_code == 1, res.output
+    assert "fused no profile" in " ".join(res.output.split())
