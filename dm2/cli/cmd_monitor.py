@@ -166,7 +166,8 @@ def monitor(
             session.feed(msg)
             n_msgs += 1
         session.finish()
-    input_info = rec.input_summary()
+    input_info = (rec.input_summary() if hasattr(rec, "input_summary")  # other readers:
+                  else {"file": str(run), "complete": True})  # complete unless they say so
     dropped = {**session.dropped, **{f"recording_{k}": int(v) for k, v in rec.skipped.items()}}
     summary = {"schema": 1, "recording": str(run), "messages": n_msgs,
                "profiles_fused": mon.profiles_fused, "points_fused": mon.points_fused,
