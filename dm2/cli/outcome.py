@@ -30,15 +30,20 @@ def exit_code(*codes: int) -> int:
     return max((int(c) for c in codes), default=EXIT_OK)
 
 
+def counts_messages(reason: str) -> bool:
+    """Whether a drop reason counts messages (not points, gaps or connections)."""
+    return reason not in NOT_MESSAGES and not reason.endswith("points")
+
+
 def lost_messages(dropped: dict) -> int:
-    return int(sum(v for k, v in dropped.items() if k not in NOT_MESSAGES))
+    return int(sum(v for k, v in dropped.items() if counts_messages(k)))
 
 
 def drop_lines(dropped: dict) -> list[str]:
     """One line per drop reason with its count, largest first."""
     unit = {"nan_points": "points", "out_of_range": "points", "reference_pose_gap": "gaps",
             "connection_limit": "connections", "idle_connection": "connections"}
-    return [f"dropped {n:,} {unit.get(k, 'messages')}: {k}"
+    return [f"dropped {n:,} {unit.get(k, 'messages' if counts_messages(k) else 'points')}: {k}"
             for k, n in sorted(dropped.items(), key=lambda kv: (-kv[1], kv[0])) if n]
 
 
