@@ -162,7 +162,8 @@ class InputGates:
     def _seeded(self, key: str, clock: _Clock) -> list:
         """Seed the clock from the median of the held first stamps; release those near it."""
         held, clock.seed = clock.seed, []
-        mid = float(np.median([m.stamp_s for m, _ in held]))
+        stamps = sorted(m.stamp_s for m, _ in held)
+        mid = stamps[(len(stamps) - 1) // 2]  # the (lower) median: one of the held stamps
         out = []
         for m, a in held:
             if abs(m.stamp_s - mid) <= self.cfg.stamp_band_s:
@@ -171,8 +172,6 @@ class InputGates:
                     clock.last, clock.last_arr = m.stamp_s, a
             else:
                 self.dropped["implausible_stamp"] += 1
-        if clock.last is None:  # cannot happen: the median message is within the band
-            clock.last, clock.last_arr = mid, held[-1][1]
         return out
 
     def _resync(self, key: str, clock: _Clock) -> list:
@@ -180,10 +179,10 @@ class InputGates:
         stamps = np.sort([m.stamp_s - clock.offset for m, _ in held])
         diffs = np.diff(stamps)
         period = float(np.median(diffs[diffs > 0])) if np.any(diffs > 0) else 0.0
-        step = float(stamps[0] - clock.last)
+        step = float(stamps[0] - clock.last) - period  # the clock's jump (less one period)
         live = held[0][1] is not None
         if step < 0 or live:  # continue the source's stamps where they were
-            clock.offset += step - period
+            clock.offset += step
         self.dropped["implausible_stamp"] -= len(held)
         self.steps.append({"source": key, "step_s": round(step, 6),
                            "at_s": round(float(clock.last), 6), "held": len(held)})
@@ -270,8 +269,3 @@ class InputGates:
             if abs(a - b) > w * dt + jump:
                 return False
         return True
-
-    def summary(self) -> dict:
-        """The drops by reason and the re-synced clock steps."""
-        return {"dropped": {k: int(v) for k, v in self.dropped.items() if v},
-                "clock_steps": list(self.steps)}
