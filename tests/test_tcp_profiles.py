@@ -187,3 +187,18 @@ def test_frame_drops_are_reported_while_the_connection_is_open():
         assert server.disconnects == 0
         assert sum(inbox.dropped.values()) == 1 and inbox.accepted == 1
         client.close()
+
+
+def test_a_bridge_closed_for_idling_reconnects_without_losing_its_next_frame():
+    inbox = Inbox(1000)
+    with ProfileServer(inbox, "127.0.0.1", 0, idle_timeout_s=0.3) as server:
+        client = ProfileClient(*server.address)
+        client.connect()
+        _wait(lambda: server.disconnects >= 1, timeout=3.0)  # closed: no frame for 0.3 s
+        time.sleep(1.1)
+        for k in range(3):
+            client.send(profile(k))
+        _wait(lambda: inbox.accepted >= 3)
+        client.close()
+    assert inbox.accepted == 3 and inbox.dropped == {"idle_connection": 1}
+    assert server.connections == 2

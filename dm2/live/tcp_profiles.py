@@ -191,6 +191,7 @@ class ProfileClient:
         self.connect_timeout_s = float(connect_timeout_s)
         self.reconnects = 0
         self._sock: socket.socket | None = None
+        self._last_send = 0.0
 
     def connect(self) -> None:
         """Connect now (no-op when connected), retrying for up to ``connect_timeout_s``;
@@ -212,7 +213,12 @@ class ProfileClient:
                 time.sleep(0.05)
 
     def send_bytes(self, data: bytes) -> None:
-        """Send raw bytes, reconnecting once if the connection dropped."""
+        """Send raw bytes, reconnecting once if the connection dropped (or, after a pause,
+        if the server closed it meanwhile: an idle timeout must not cost the next frame)."""
+        now = time.monotonic()
+        if self._sock is not None and now - self._last_send > 1.0 and self._peer_closed():
+            self.drop_connection()
+        self._last_send = now
         for attempt in range(2):
             if self._sock is None:
                 self._connect()
@@ -224,6 +230,21 @@ class ProfileClient:
             except OSError:
                 self.drop_connection()
         raise ConnectionError(f"profile server {self.host}:{self.port} keeps dropping")
+
+    def _peer_closed(self) -> bool:
+        sock = self._sock
+        try:
+            sock.setblocking(False)
+            return sock.recv(1, socket.MSG_PEEK) == b""
+        except BlockingIOError:
+            return False
+        except OSError:
+            return True
+        finally:
+            try:
+                sock.settimeout(1.0)
+            except OSError:
+                pass
 
     def send(self, p: Profile) -> None:
         self.send_bytes(encode_frame(p))
