@@ -69,7 +69,8 @@ def test_run_writes_recording_and_fault_truth(tmp_path):
     res = runner.invoke(app, [*args, "--force"])
     assert res.exit_code == 0, res.output
     assert sorted(p.name for p in truth.iterdir()) == [
-        ".dm2-manifest.json", "faults.json", "layer_000.ply", "layer_001.ply", "notes.txt"]
+        ".dm2-manifest.json", "deviation_000.npz", "deviation_001.npz", "faults.json",
+        "layer_000.ply", "layer_001.ply", "notes.txt"]
     assert (truth / "notes.txt").read_text() == "mine"
     rec = read_recording(out)
     msgs = list(rec.messages())
