@@ -7,12 +7,13 @@ Angles are degrees in files (``*_deg``) and converted to radians at use.
 
 from __future__ import annotations
 
-import difflib
 import tomllib
 from pathlib import Path
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from dm2.core.config_errors import model_named
 
 SCHEMA_VERSION = 1
 
@@ -333,70 +334,10 @@ def _drop_none(obj):
 def format_validation_error(source: str, exc: ValidationError, model=None) -> str:
     """One line per error naming the field and showing the bad value; an unknown key gets the
     nearest known key of its table as a suggestion (``model``: the validated model class,
-    default the one that raised)."""
-    model = model or _model_named(exc.title)
-    lines = [f"{source}: invalid configuration"]
-    for err in exc.errors():
-        loc = ".".join(str(p) for p in err["loc"]) or "(top level)"
-        msg = err["msg"].removeprefix("Value error, ")
-        if err["type"] == "extra_forbidden":
-            msg = "unknown key"
-            known = _known_keys(model, err["loc"][:-1])
-            near = difflib.get_close_matches(str(err["loc"][-1]), known, n=1, cutoff=0.6)
-            if near:
-                msg += f" (did you mean '{near[0]}'?)"
-        elif "input" in err and not isinstance(err["input"], dict):
-            msg += f" (got {_shown(err['input'])})"
-        lines.append(f"  field '{loc}': {msg}")
-    return "\n".join(lines)
+    default the one that raised; :mod:`dm2.core.config_errors`)."""
+    from dm2.core.config_errors import describe_errors
 
-
-def _shown(value, limit: int = 80) -> str:
-    text = repr(value)
-    return text if len(text) <= limit else text[:limit - 3] + "..."
-
-
-def _model_named(title: str):
-    """The model class of this module (or a subclass of _Model) a ValidationError names."""
-    stack = [_Model]
-    while stack:
-        cls = stack.pop()
-        if cls.__name__ == title:
-            return cls
-        stack.extend(cls.__subclasses__())
-    return None
-
-
-def _known_keys(model, loc) -> list[str]:
-    """Field names (aliases where given) of the table at ``loc`` below ``model``."""
-    import typing
-
-    cls = model
-    for part in loc:
-        if cls is None:
-            return []
-        if isinstance(part, int):
-            continue
-        field = getattr(cls, "model_fields", {}).get(part)
-        if field is None:
-            field = next((f for f in getattr(cls, "model_fields", {}).values()
-                          if f.alias == part), None)
-        if field is None:
-            return []
-        cls = _inner_model(field.annotation, typing)
-    if cls is None or not hasattr(cls, "model_fields"):
-        return []
-    return [f.alias or name for name, f in cls.model_fields.items()]
-
-
-def _inner_model(annotation, typing):
-    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
-        return annotation
-    for arg in typing.get_args(annotation):
-        found = _inner_model(arg, typing)
-        if found is not None:
-            return found
-    return None
+    return describe_errors(source, exc, model or model_named(_Model, exc.title))
 
 
 def parse_scenario(data: dict[str, Any], source: str = "<scenario>") -> Scenario:
