@@ -91,7 +91,10 @@ def calibrate(
                                 "(MCAP, as the cell would record it) here."),
     prior: Path = typer.Option(None, "--prior", help="Coarse calibration TOML for a "
                                "recording without one."),
-    out: Path = typer.Option(Path("calibration"), "--out", "-o", help="Output folder."),
+    out: Path = typer.Option(Path("calibration"), "--out", "-o", help="Output folder (new, "
+                             "or an earlier dm2 output; see `dm2 run --help`)."),
+    force: bool = typer.Option(False, "--force", help="Write into a folder holding an earlier "
+                               "dm2 output and other files: replace only dm2's files."),
 ) -> None:
     """Calibrate the three profilers (T_B_S), the mount (T_F_O, unless --fixed-mount) and
     the nozzle exit (touch-off) from a sphere artifact.
@@ -111,7 +114,10 @@ def calibrate(
         from dm2.cli.common import fail
 
         fail("give a RECORDING.mcap of a calibration run (with --artifact), or --rehearse")
+    from dm2.report.outdir import check_output_dir, clear_outputs, write_manifest
+
     with bad_input_exits():
+        check_output_dir(out, force=force, inputs=[source, prior])
         art = load_artifact(_artifact_path(artifact))
         options = SolverOptions(estimate_mount=estimate_mount,
                                 estimate_z_scale=estimate_z_scale,
@@ -129,9 +135,6 @@ def calibrate(
                             mount_error_mm=mount_error_mm, mount_error_deg=mount_error_deg,
                             nozzle_error_mm=nozzle_error_mm, touch_offs=touch_offs)
             sim = _rehearse(source, art, settings)
-            if record is not None:
-                record.parent.mkdir(parents=True, exist_ok=True)
-                write_rehearsal_recording(sim, record)
             messages, prior_cal, touches, truth = sim.messages, sim.prior, sim.touch_T_B_F, \
                 sim.truth
             prior_source = "the cell file"
@@ -165,8 +168,17 @@ def calibrate(
         h = outcome.holdout
         console.print(f"held-out poses ({h['poses']}): {h['n_points']} sphere points fit the "
                       f"certified artifact with RMS {h['rms_mm']:.4f} mm")
+    if out.is_dir():
+        clear_outputs(out, inputs=[source, prior])
+    written = []
+    if rehearse and record is not None:
+        record.parent.mkdir(parents=True, exist_ok=True)
+        write_rehearsal_recording(sim, record)
+        if record.parent.resolve() == out.resolve():
+            written.append(record.name)
     cal_path, json_path = write_outputs(out, outcome, summary,
                                         "rehearsal.json" if rehearse else "calibration.json")
+    write_manifest(out, [*written, cal_path.name, json_path.name], command="dm2 calibrate")
     console.print(f"wrote {cal_path} and {json_path}")
 
 

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2.core.config import Scenario
+from dm2.core.config import ConfigError, Scenario
 from dm2.core.frames import PoseInterpolator
 from dm2.core.messages import SENSOR_IDS, Calibration, LayerMark, Profile, RobotState
 from dm2.core.toml_write import dump_toml
@@ -90,7 +90,10 @@ class Simulation:
         if true_T_B_S is not None:  # the profilers as built, off the cell file's layout
             self.cell = dataclasses.replace(self.cell, T_B_S={k: np.asarray(v, dtype=float)
                                                               for k, v in true_T_B_S.items()})
-        self.faults = FaultSchedule(scenario.faults, self.toolpath, self.cell)
+        try:
+            self.faults = FaultSchedule(scenario.faults, self.toolpath, self.cell)
+        except ValueError as exc:  # a fault window the part cannot have: a scenario error
+            raise ConfigError(f"scenario '{scenario.name}': {exc}") from None
         self.motion = execute_toolpath(self.toolpath, self.cell,
                                        rate_hz=self.cell.robot_state_hz,
                                        accel_mm_s2=self.cell.accel_mm_s2,
