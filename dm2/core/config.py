@@ -163,6 +163,20 @@ class CalibrationPerturbation(_Model):
     sensors: tuple[str, ...] = ("S1", "S2", "S3")
 
 
+class UncertaintyConfig(_Model):
+    """Standard deviations [mm] of the measurement and reference error per vertex, combined in
+    quadrature (dm2.defects.uncertainty); refit from a fault-free run with
+    dm2.defects.uncertainty_fit (README: "Refitting the uncertainty model")."""
+
+    confidence_k: float = Field(3.0, gt=0)  # called a defect only beyond k combined sigmas
+    floor_mm: float = Field(0.08, ge=0)  # everywhere: reconstruction and reference floor
+    range_mm: float = Field(0.05, ge=0)  # one observation's range noise, / sqrt(weight)
+    wall_mm: float = Field(0.2, ge=0)  # at a vertical measured surface (x (1 - |n_z|))
+    edge_mm: float = Field(0.15, ge=0)  # at a reference edge / corner (x min(1, |H| r_edge))
+    foot_mm: float = Field(0.25, ge=0)  # at the foot of a wall (reference rises beside it)
+    gap_mm_per_mm: float = Field(0.1, ge=0)  # per mm to the nearest well observed vertex
+
+
 class MonitorConfig(_Model):
     voxel_mm: float = Field(0.5, gt=0, le=2.0)
     truncation_voxels: float = Field(3.0, gt=0)
@@ -181,6 +195,19 @@ class MonitorConfig(_Model):
     # (progress slower than dwell_speed_mm_s: dwells, reorientation stops) deposits nothing
     reference_clock: Literal["executed", "programmed"] = "programmed"
     dwell_speed_mm_s: float = Field(1.0, gt=0)
+    uncertainty: UncertaintyConfig = UncertaintyConfig()
+    # evidence over time (dm2.defects.track): a region becomes a track once seen in
+    # track_min_observations layers within track_window_layers layers of its first
+    track_min_observations: int = Field(2, ge=1)
+    track_window_layers: int = Field(2, ge=1)
+    min_region_volume_mm3: float = Field(1.0, ge=0)  # area x mean |deviation| floor
+    # real-time alarms: a column counts once flagged this long and in this many observations
+    # in a row (new measurement each; one frame set is 0.1 s at 10 Hz)
+    realtime_persist_s: float = Field(0.1, ge=0)
+    realtime_min_observations: int = Field(2, ge=1)
+    # plate deviations this far outside the planned outline, not joined to a wall defect,
+    # are overspray (reported, never tracked)
+    overspray_margin_mm: float = Field(2.0, ge=0)
 
 
 class ExpectTrack(_Model):

@@ -15,6 +15,13 @@ feature (radius of curvature up to ``LOCAL_CURVATURE_RADIUS_MM``) counts with it
 normalised deviation. ``lambda > delta_L``
 is local overbuild, ``lambda < -delta_L`` local underbuild. Vertices whose fusion weight is below
 ``min_weight`` are unobserved and never called under- or overbuilt.
+
+Given each vertex's standard deviation ``sigma`` (:mod:`dm2.defects.uncertainty`), a vertex is
+over-/underbuilt (global or local) only where also ``|d| > k sigma``
+(``monitor.uncertainty.confidence_k``); a vertex that meets the global or local criterion but
+not the bound is ``uncertain``: reported and coloured, never segmented into a defect region.
+``overspray`` (:mod:`dm2.defects.footprint`) marks deviations on the plate outside the planned
+outline that are not joined to a defect at a wall; they are reported, never tracked.
 """
 
 from __future__ import annotations
@@ -25,9 +32,10 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-NORMAL, OVERBUILD, UNDERBUILD, LOCAL_OVERBUILD, LOCAL_UNDERBUILD, UNOBSERVED = range(6)
+(NORMAL, OVERBUILD, UNDERBUILD, LOCAL_OVERBUILD, LOCAL_UNDERBUILD, UNOBSERVED, UNCERTAIN,
+ OVERSPRAY) = range(8)
 CLASS_NAMES = ("normal", "overbuild", "underbuild", "local_overbuild", "local_underbuild",
-               "unobserved")
+               "unobserved", "uncertain", "overspray")
 DEFECT_CLASSES = (OVERBUILD, UNDERBUILD, LOCAL_OVERBUILD, LOCAL_UNDERBUILD)
 LOCAL_CURVATURE_RADIUS_MM = 10.0
 CURVATURE_SMOOTHING_ITERATIONS = 3
@@ -43,12 +51,14 @@ class VertexClasses:
     local_metric : (n,) float64, normalised curvature-weighted deviation (dimensionless)
     mean_curvature : (n,) float64 [1/mm], positive where convex (a bump seen from above)
     vertex_area_mm2 : (n,) float64 [mm^2], barycentric area per vertex
+    normals_O : (n, 3) float64, unit vertex normals (given, or area-weighted face normals)
     """
 
     class_code: np.ndarray
     local_metric: np.ndarray
     mean_curvature: np.ndarray
     vertex_area_mm2: np.ndarray
+    normals_O: np.ndarray | None = None
 
 
 @njit(cache=True)
@@ -144,8 +154,10 @@ def smooth_over_faces(values: np.ndarray, faces: np.ndarray, iterations: int) ->
 
 
 def curvature_and_areas(vertices_O: np.ndarray, faces: np.ndarray, normals_O=None,
-                        smooth_iterations: int = CURVATURE_SMOOTHING_ITERATIONS):
-    """``(mean curvature [1/mm] (n,), vertex areas [mm^2] (n,))`` of a triangle mesh.
+                        smooth_iterations: int = CURVATURE_SMOOTHING_ITERATIONS,
+                        return_normals: bool = False):
+    """``(mean curvature [1/mm] (n,), vertex areas [mm^2] (n,))`` of a triangle mesh, and the
+    unit normals (n, 3) used for the sign with ``return_normals``.
 
     Mean curvature by the cotangent Laplacian, + where convex, 0 on the border of an open
     mesh, then smoothed through the faces. The sign is taken against ``normals_O`` when given,
@@ -155,7 +167,8 @@ def curvature_and_areas(vertices_O: np.ndarray, faces: np.ndarray, normals_O=Non
     f = np.ascontiguousarray(faces, dtype=np.int64).reshape(-1, 3)
     n = len(v)
     if len(f) == 0:
-        return np.zeros(n), np.zeros(n)
+        flat = np.tile([0.0, 0.0, 1.0], (n, 1))
+        return (np.zeros(n), np.zeros(n), flat) if return_normals else (np.zeros(n), np.zeros(n))
     lap, area, nrm, loop = _face_terms(v, f)
     hn = lap / np.maximum(area, 1e-12)[:, None]  # = 2 H n (points into a convex surface)
     normals = nrm if normals_O is None else np.asarray(normals_O, dtype=np.float64)
@@ -163,7 +176,8 @@ def curvature_and_areas(vertices_O: np.ndarray, faces: np.ndarray, normals_O=Non
     h = -0.5 * np.einsum("ij,ij->i", hn, normals)
     h[_border(v, f, loop)] = 0.0
     h[area <= 1e-12] = 0.0
-    return _smooth(h, f, int(smooth_iterations)), area
+    h = _smooth(h, f, int(smooth_iterations))
+    return (h, area, normals) if return_normals else (h, area)
 
 
 def mean_curvature(vertices_O: np.ndarray, faces: np.ndarray, normals_O=None,
@@ -173,7 +187,8 @@ def mean_curvature(vertices_O: np.ndarray, faces: np.ndarray, normals_O=None,
 
 
 def classify_vertices(vertices_O, faces, weight, signed_distance_mm, monitor_cfg,
-                      normals_O=None, reference_curvature=None) -> VertexClasses:
+                      normals_O=None, reference_curvature=None, sigma_mm=None,
+                      curvature=None) -> VertexClasses:
     """Class per vertex from the signed deviation (see module docstring).
 
     Parameters
@@ -186,12 +201,16 @@ def classify_vertices(vertices_O, faces, weight, signed_distance_mm, monitor_cfg
     normals_O : (n, 3) float64 or None, outward vertex normals (sign of the curvature)
     reference_curvature : (n,) float64 [1/mm] or None, the reference's mean curvature at each
         vertex's closest reference point; only curvature beyond it weights the local metric
+    sigma_mm : (n,) float64 [mm] or None, standard deviation of each deviation; with it a
+        defect class needs ``|d| > monitor_cfg.uncertainty.confidence_k * sigma`` too
+    curvature : ``curvature_and_areas(..., return_normals=True)`` when computed already
     """
     d = np.asarray(signed_distance_mm, dtype=np.float64)
     w = np.asarray(weight, dtype=np.float64)
     dg = float(monitor_cfg.delta_global_mm)
     dl = float(monitor_cfg.delta_local)
-    h, area = curvature_and_areas(vertices_O, faces, normals_O)
+    h, area, normals = (curvature if curvature is not None else
+                        curvature_and_areas(vertices_O, faces, normals_O, return_normals=True))
     excess = h if reference_curvature is None else h - np.asarray(reference_curvature, float)
     agree = np.maximum(np.sign(d) * excess, 0.0)  # convex where above, concave where below
     metric = (d / dg) * np.minimum(1.0, agree * LOCAL_CURVATURE_RADIUS_MM)
@@ -200,5 +219,8 @@ def classify_vertices(vertices_O, faces, weight, signed_distance_mm, monitor_cfg
     code[metric < -dl] = LOCAL_UNDERBUILD
     code[d > dg] = OVERBUILD
     code[d < -dg] = UNDERBUILD
+    if sigma_mm is not None:
+        k = float(monitor_cfg.uncertainty.confidence_k)
+        code[(code != NORMAL) & (np.abs(d) <= k * np.asarray(sigma_mm, np.float64))] = UNCERTAIN
     code[w < float(monitor_cfg.min_weight)] = UNOBSERVED
-    return VertexClasses(code, metric, h, area)
+    return VertexClasses(code, metric, h, area, normals)
