@@ -175,7 +175,8 @@ def monitor(
                      timing={**session.timing.to_dict(),
                              "wall_s": time.perf_counter() - t_start},
                      meta={"recording": str(run), "layers": len(session.results)},
-                     sections={"realtime": session.realtime_summary()})
+                     sections={"realtime": session.realtime_summary(),
+                               "process": session.process_summary()})
     table = Table(title=f"monitor: {run.name}")
     table.add_column("what")
     table.add_column("count", justify="right")

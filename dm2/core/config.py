@@ -165,16 +165,18 @@ class CalibrationPerturbation(_Model):
 
 class UncertaintyConfig(_Model):
     """Standard deviations [mm] of the measurement and reference error per vertex, combined in
-    quadrature (dm2.defects.uncertainty); refit from a fault-free run with
-    dm2.defects.uncertainty_fit (README: "Refitting the uncertainty model")."""
+    quadrature (dm2.defects.uncertainty). The defaults are dm2.defects.uncertainty_fit's fit
+    to the fault-free seven-sided part on the twin (12 layers, executed reference clock);
+    refit them for a cell of one's own (README: "Refitting the uncertainty model")."""
 
     confidence_k: float = Field(3.0, gt=0)  # called a defect only beyond k combined sigmas
-    floor_mm: float = Field(0.08, ge=0)  # everywhere: reconstruction and reference floor
-    range_mm: float = Field(0.05, ge=0)  # one observation's range noise, / sqrt(weight)
-    wall_mm: float = Field(0.2, ge=0)  # at a vertical measured surface (x (1 - |n_z|))
-    edge_mm: float = Field(0.15, ge=0)  # at a reference edge / corner (x min(1, |H| r_edge))
-    foot_mm: float = Field(0.25, ge=0)  # at the foot of a wall (reference rises beside it)
-    gap_mm_per_mm: float = Field(0.1, ge=0)  # per mm to the nearest well observed vertex
+    floor_mm: float = Field(0.051, ge=0)  # everywhere: reconstruction and reference floor
+    range_mm: float = Field(0.0, ge=0)  # one observation's range noise, / sqrt(weight)
+    wall_mm: float = Field(0.305, ge=0)  # at a vertical measured surface (x (1 - |n_z|))
+    edge_mm: float = Field(1.046, ge=0)  # at a reference edge / corner (x min(1, |H| r_edge))
+    foot_mm: float = Field(0.154, ge=0)  # at the foot of a wall, near the plate
+    gap_mm_per_mm: float = Field(0.032, ge=0)  # per mm to the nearest well observed vertex
+    height_mm: float = Field(0.274, ge=0)  # reference error after 10 mm of deposited height
 
 
 class MonitorConfig(_Model):
@@ -188,12 +190,13 @@ class MonitorConfig(_Model):
     delta_local: float = Field(0.5, gt=0)
     min_weight: float = Field(1.0, ge=0)
     min_region_area_mm2: float = Field(4.0, ge=0)
-    # near-net reference clock along the executed path (see dm2.reference.path_clock): "programmed"
-    # = path
-    # length over the programmed speeds (every slowdown of the robot shows as overbuild);
-    # "executed" = the controller's time while the spray spot progresses, but standing still
-    # (progress slower than dwell_speed_mm_s: dwells, reorientation stops) deposits nothing
-    reference_clock: Literal["executed", "programmed"] = "programmed"
+    # near-net reference clock along the executed path (see dm2.reference.path_clock):
+    # "executed" (default) = the controller's time while the spray spot progresses, but
+    # standing still (progress slower than dwell_speed_mm_s: dwells, reorientation stops)
+    # deposits nothing, so the robot's own accelerations build the reference as they build
+    # the part; "programmed" = path length over the programmed speeds (every slowdown of the
+    # robot shows as overbuild; the fault-free seven-sided part got 105 tracks with it)
+    reference_clock: Literal["executed", "programmed"] = "executed"
     dwell_speed_mm_s: float = Field(1.0, gt=0)
     uncertainty: UncertaintyConfig = UncertaintyConfig()
     # evidence over time (dm2.defects.track): a region becomes a track once seen in
@@ -208,6 +211,13 @@ class MonitorConfig(_Model):
     # plate deviations this far outside the planned outline, not joined to a wall defect,
     # are overspray (reported, never tracked)
     overspray_margin_mm: float = Field(2.0, ge=0)
+    # the reference follows the process (dm2.reference.process_fit): its deposition scale
+    # moves towards the measured one by at most process_fit_rate_per_layer per layer, within
+    # 1 +- process_fit_bound; off nominal by process_finding_threshold: a process finding
+    process_fit: bool = True
+    process_fit_rate_per_layer: float = Field(0.02, ge=0, le=0.2)
+    process_fit_bound: float = Field(0.10, ge=0, lt=0.5)
+    process_finding_threshold: float = Field(0.05, gt=0)
 
 
 class ExpectTrack(_Model):

@@ -187,6 +187,7 @@ class LayerDeviation:
     sigma_mm : (n,) float64 [mm] or None, standard deviation of each vertex's deviation
         (dm2.defects.uncertainty)
     outside_mm : (n,) float64 [mm] or None, distance outside the planned outline
+    normals_O : (n, 3) float64 or None, unit vertex normals used for the classification
     """
 
     layer: int
@@ -202,6 +203,7 @@ class LayerDeviation:
     stamp_s: float = 0.0
     sigma_mm: np.ndarray | None = None
     outside_mm: np.ndarray | None = None
+    normals_O: np.ndarray | None = None
 
     @property
     def n_vertices(self) -> int:
@@ -244,4 +246,4 @@ def layer_deviation(surface, reference: ReferenceMap, monitor_cfg, layer: int | 
     return LayerDeviation(layer, v, f, w, d, foot, code, classes.local_metric,
                           classes.mean_curvature, classes.vertex_area_mm2,
                           float(reference.stamp_s if stamp_s is None else stamp_s), sigma,
-                          outside)
+                          outside, curv[2])

@@ -172,9 +172,10 @@ class RealtimeDeviation:
             self._weight_map)
         n_over = int(np.count_nonzero(flag == OVER))
         n_under = int(np.count_nonzero(flag == UNDER))
-        # a patch can only reach the alarm area through a flagged column becoming persistent:
-        # columns observed as normal only shrink patches and clear their marks
-        alarms = self._raise_alarms(stamp_s, gi, gj) if (n_over or n_under) else ()
+        # a patch can only reach the alarm area, or hold a persistent column, through a column
+        # flagged anew or observed flagged again: columns observed as normal only shrink
+        # patches and clear their marks
+        alarms = self._raise_alarms(stamp_s, gi, gj) if newly else ()
         xy = np.empty((gi.shape[0], 2))
         xy[:, 0] = (gi + 0.5) * v
         xy[:, 1] = (gj + 0.5) * v

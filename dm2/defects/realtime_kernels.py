@@ -94,7 +94,7 @@ def compare_columns(d, w, min_weight, i0, j0, k0, hw, voxel_mm, delta_mm, stamp_
     (kept in ``weight_map``) or deviation changed since the last: new measurement, not the same
     TSDF compared again. Returns ``gi, gj`` (map column indices), ``dev`` [mm] and
     ``flag`` of those columns, in ``np.nonzero`` order, and how many columns were newly flagged
-    (flag changed to over or under).
+    (flag changed to over or under) or, with ``flag_count``, observed flagged again.
     """
     cross, wcross = column_crossings_weights(d, w, min_weight)
     kb, fl2, rg2, wl2 = bound[0], bound[1] ** 2, bound[2] ** 2, bound[3] ** 2
@@ -136,6 +136,8 @@ def compare_columns(d, w, min_weight, i0, j0, k0, hw, voxel_mm, delta_mm, stamp_
             if f != 0 and flag_map[y, x] != f:
                 first_flag_s[y, x] = stamp_s
                 newly += 1
+            elif f != 0 and fresh and flag_count is not None:
+                newly += 1  # observed flagged again: the column's evidence grew
             if flag_count is not None:
                 if f == 0:
                     flag_count[y, x] = 0

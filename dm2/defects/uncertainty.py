@@ -18,13 +18,18 @@ wall       ``(1 - |n_z|)^2`` of the measured normal     ``wall_mm^2``: grazing i
                                                         mismatch at walls
 edge       ``min(1, |H_ref| * EDGE_RADIUS_MM)^2``       ``edge_mm^2``: rounded edges and
                                                         corners of the reference
-foot       ``min(1, rise / FOOT_RISE_MM)^2``, ``rise``  ``foot_mm^2``: the foot of a wall,
-           = how far the reference rises within         where the profilers see poorly and
-           ``FOOT_RADIUS_MM``                           the plume's tail meets the plate
+foot       ``(min(1, rise / FOOT_RISE_MM) * low)^2``,   ``foot_mm^2``: the foot of a wall,
+           ``rise`` = how far the reference rises       where the profilers see poorly and
+           within ``FOOT_RADIUS_MM``, ``low`` =         the plume's tail meets the plate
+           ``max(0, 1 - h_ref / FOOT_BAND_MM)`` (near
+           the plate)
 gap        ``min(gap, GAP_CAP_MM)^2``, the distance     ``gap_mm_per_mm^2``: surface filled
            [mm] to the nearest well observed vertex     in between observations
            (weight at least ``WELL_OBSERVED_FRACTION``
            of the layer's median observed weight)
+height     ``(h_ref / HEIGHT_SCALE_MM)^2``, the         ``height_mm^2``: the reference's error
+           reference height at the vertex               accumulates with the deposited height
+                                                        (layers the model has run open-loop)
 =========  ===========================================  ======================================
 
 A vertex is called over- or underbuilt only where ``|d| > delta_global_mm`` and
@@ -44,18 +49,20 @@ from scipy.spatial import cKDTree
 
 from dm2.reference.height_map import bilinear_height
 
-FEATURES = ("floor", "range", "wall", "edge", "foot", "gap")
+FEATURES = ("floor", "range", "wall", "edge", "foot", "gap", "height")
 EDGE_RADIUS_MM = 2.0  # reference curvature 1/2 mm^-1 and beyond counts as a full edge
 FOOT_RADIUS_MM = 2.0  # the reference rising within this radius marks the foot of a wall
 FOOT_RISE_MM = 1.0  # ... by this much or more: full foot weight
+FOOT_BAND_MM = 1.0  # the foot is within this height of the plate (z_O = 0)
 WELL_OBSERVED_FRACTION = 0.5  # of the median observed weight: counted as observed for the gap
 GAP_CAP_MM = 5.0
+HEIGHT_SCALE_MM = 10.0  # height_mm is the reference's error after 10 mm of deposit
 
 
 def coefficients(ucfg) -> np.ndarray:
-    """Variance coefficients [mm^2] (6,) in :data:`FEATURES` order from an UncertaintyConfig."""
+    """Variance coefficients [mm^2] (7,) in :data:`FEATURES` order from an UncertaintyConfig."""
     return np.array([ucfg.floor_mm, ucfg.range_mm, ucfg.wall_mm, ucfg.edge_mm, ucfg.foot_mm,
-                     ucfg.gap_mm_per_mm], np.float64) ** 2
+                     ucfg.gap_mm_per_mm, ucfg.height_mm], np.float64) ** 2
 
 
 def foot_rise_map(heights_mm: np.ndarray, cell_mm: float) -> np.ndarray:
@@ -85,7 +92,7 @@ def gap_distance_mm(vertices_O: np.ndarray, weight: np.ndarray, min_weight: floa
 
 def uncertainty_features(vertices_O, weight, normals_O, foot_O, reference,
                          reference_curvature, min_weight: float) -> np.ndarray:
-    """The (n, 6) feature matrix of :data:`FEATURES` (see the module docstring).
+    """The (n, 7) feature matrix of :data:`FEATURES` (see the module docstring).
 
     Parameters
     ----------
@@ -104,10 +111,13 @@ def uncertainty_features(vertices_O, weight, normals_O, foot_O, reference,
     nz = np.abs(np.asarray(normals_O, np.float64)[:, 2]) if n else np.zeros(0)
     f[:, 2] = (1.0 - np.clip(nz, 0.0, 1.0)) ** 2
     f[:, 3] = np.minimum(1.0, np.abs(reference_curvature) * EDGE_RADIUS_MM) ** 2
+    foot = np.asarray(foot_O, np.float64).reshape(-1, 3)
     rise = bilinear_height(foot_rise_map(reference.heights_mm, reference.cell_mm),
-                           reference.cell_mm, np.asarray(foot_O)[:, :2]) if n else np.zeros(0)
-    f[:, 4] = np.minimum(1.0, np.maximum(rise, 0.0) / FOOT_RISE_MM) ** 2
+                           reference.cell_mm, foot[:, :2]) if n else np.zeros(0)
+    low = np.clip(1.0 - foot[:, 2] / FOOT_BAND_MM, 0.0, 1.0)
+    f[:, 4] = (np.minimum(1.0, np.maximum(rise, 0.0) / FOOT_RISE_MM) * low) ** 2
     f[:, 5] = gap_distance_mm(v, np.where(np.isfinite(w), w, 1e9), min_weight) ** 2
+    f[:, 6] = (np.maximum(foot[:, 2], 0.0) / HEIGHT_SCALE_MM) ** 2
     return f
 
 
