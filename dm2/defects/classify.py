@@ -17,9 +17,9 @@ is local overbuild, ``lambda < -delta_L`` local underbuild. Vertices whose fusio
 ``min_weight`` are unobserved and never called under- or overbuilt.
 
 Given each vertex's standard deviation ``sigma`` (:mod:`dm2.defects.uncertainty`), a vertex is
-over-/underbuilt (global or local) only where also ``|d| > k sigma``
-(``monitor.uncertainty.confidence_k``); a vertex that meets the global or local criterion but
-not the bound is ``uncertain``: reported and coloured, never segmented into a defect region.
+over-/underbuilt only where also ``|d| > k sigma`` (``monitor.uncertainty.confidence_k``), and
+locally over-/underbuilt only where ``|d| > k sigma_measurement``; a vertex that meets the
+global or local criterion but not its bound is ``uncertain``: reported and coloured, never segmented into a defect region.
 ``overspray`` (:mod:`dm2.defects.footprint`) marks deviations on the plate outside the planned
 outline that are not joined to a defect at a wall; they are reported, never tracked.
 """
@@ -188,7 +188,7 @@ def mean_curvature(vertices_O: np.ndarray, faces: np.ndarray, normals_O=None,
 
 def classify_vertices(vertices_O, faces, weight, signed_distance_mm, monitor_cfg,
                       normals_O=None, reference_curvature=None, sigma_mm=None,
-                      curvature=None) -> VertexClasses:
+                      curvature=None, sigma_local_mm=None) -> VertexClasses:
     """Class per vertex from the signed deviation (see module docstring).
 
     Parameters
@@ -203,6 +203,8 @@ def classify_vertices(vertices_O, faces, weight, signed_distance_mm, monitor_cfg
         vertex's closest reference point; only curvature beyond it weights the local metric
     sigma_mm : (n,) float64 [mm] or None, standard deviation of each deviation; with it a
         defect class needs ``|d| > monitor_cfg.uncertainty.confidence_k * sigma`` too
+    sigma_local_mm : (n,) float64 [mm] or None, the measurement part of ``sigma_mm``, the
+        bound of the local classes (default ``sigma_mm``)
     curvature : ``curvature_and_areas(..., return_normals=True)`` when computed already
     """
     d = np.asarray(signed_distance_mm, dtype=np.float64)
@@ -221,6 +223,9 @@ def classify_vertices(vertices_O, faces, weight, signed_distance_mm, monitor_cfg
     code[d < -dg] = UNDERBUILD
     if sigma_mm is not None:
         k = float(monitor_cfg.uncertainty.confidence_k)
-        code[(code != NORMAL) & (np.abs(d) <= k * np.asarray(sigma_mm, np.float64))] = UNCERTAIN
+        s_loc = sigma_mm if sigma_local_mm is None else sigma_local_mm
+        bound = k * np.where((code == LOCAL_OVERBUILD) | (code == LOCAL_UNDERBUILD),
+                             np.asarray(s_loc, np.float64), np.asarray(sigma_mm, np.float64))
+        code[(code != NORMAL) & (np.abs(d) <= bound)] = UNCERTAIN
     code[w < float(monitor_cfg.min_weight)] = UNOBSERVED
     return VertexClasses(code, metric, h, area, normals)

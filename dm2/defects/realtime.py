@@ -12,12 +12,13 @@ laser lines sample the surface a few mm apart, so unobserved columns between fla
 bridged (morphological closing of radius ``link_mm``) when a patch's area is measured; columns
 observed as normal are never counted.
 
-Evidence: a column is flagged only beyond its confidence bound too (its TSDF weight and the
-reference slope, :mod:`dm2.defects.uncertainty`; ``uncertainty=False`` drops the bound). A
-patch raises an alarm only when it holds a persistent column: one flagged for at least
-``realtime_persist_s`` of process time and in ``realtime_min_observations`` observations in a
-row (comparisons with new measurement, not the same TSDF compared again). A transient at the
-deposition front or a single noisy frame set raises nothing.
+Evidence: a column is flagged only beyond its confidence bound too (its TSDF weight, the
+reference's slope, curvature and height, :mod:`dm2.defects.uncertainty`;
+``uncertainty=False`` drops the bound). A patch raises an alarm only when it holds a
+persistent column: one flagged for at least ``realtime_persist_s`` of process time and in
+``realtime_min_observations`` observations in a row (comparisons with new measurement, not
+the same TSDF compared again). A transient at the deposition front or a single noisy frame
+set raises nothing.
 """
 
 from __future__ import annotations
@@ -112,7 +113,8 @@ class RealtimeDeviation:
         self._weight_map = np.zeros((ny, nx))
         u = monitor_cfg.uncertainty
         self._bound = ((float(u.confidence_k), float(u.floor_mm), float(u.range_mm),
-                        float(u.wall_mm)) if uncertainty else (0.0, 0.0, 0.0, 0.0))
+                        float(u.wall_mm), float(u.edge_mm), float(u.height_mm))
+                       if uncertainty else (0.0,) * 6)
         self.persist_s = float(monitor_cfg.realtime_persist_s)
         self.min_observations = int(monitor_cfg.realtime_min_observations)
         r = max(int(round(link_mm / self.voxel_mm)), 1)

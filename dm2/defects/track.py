@@ -48,8 +48,8 @@ class Track:
     history: list[dict] = field(default_factory=list)
     ended: bool = False
     ended_layer: int | None = None
-    parent: int | None = None
-    merged_into: int | None = None
+    parent: int | Track | None = None  # a Track object only while that one is a candidate
+    merged_into: int | Track | None = None
     bbox_min_O: np.ndarray = field(default_factory=lambda: np.zeros(3))
     bbox_max_O: np.ndarray = field(default_factory=lambda: np.zeros(3))
     confirmed: bool = False
@@ -85,12 +85,17 @@ class Track:
     def to_dict(self) -> dict:
         return {"id": self.id, "kind": self.kind, "first_layer": self.first_layer,
                 "last_layer": self.last_layer, "ended": self.ended,
-                "ended_layer": self.ended_layer, "parent": self.parent,
-                "merged_into": self.merged_into, "trend": self.trend,
+                "ended_layer": self.ended_layer, "parent": _track_id(self.parent),
+                "merged_into": _track_id(self.merged_into), "trend": self.trend,
                 "kinds": {str(k): v for k, v in self.kinds.items()},
                 "area_mm2": {str(h["layer"]): h["area_mm2"] for h in self.history},
                 "height_mm": {str(h["layer"]): h["height_mm"] for h in self.history},
                 "history": self.history}
+
+
+def _track_id(link) -> int | None:
+    """A parent / merged-into link as a track id (None while it names an unconfirmed one)."""
+    return link.id if isinstance(link, Track) else link
 
 
 class RegionTracker:

@@ -4,7 +4,8 @@ On a defect-free build every deviation is measurement or model error, so its squ
 average, the variance the model should predict: ``E[d^2] = features @ coefficients``. The
 coefficients are the non-negative least-squares solution over all observed vertices of the
 run's layers (``scipy.optimize.nnls``); their square roots are the ``[monitor.uncertainty]``
-standard deviations. Gross outliers (``|d| > OUTLIER_MM``) are left out.
+standard deviations. Gross outliers (``|d| > OUTLIER_MM``) are left out, and the features in
+``exclude`` (default :data:`DEFAULT_EXCLUDE`) are not fitted (coefficient 0).
 
 Procedure for a cell of one's own: record a fault-free build (``dm2 monitor --live ... --record``
 or any recording), replay it through a :class:`dm2.pipeline.session.MonitoringSession`, and
@@ -21,6 +22,11 @@ from dm2.defects.classify import UNOBSERVED
 from dm2.defects.uncertainty import FEATURES, uncertainty_features
 
 OUTLIER_MM = 3.0
+# not fitted by default: "height" (the reference's open-loop drift with deposited height) on
+# the seven-sided calibration run took 0.27 mm per 10 mm, which widened the bound on every
+# top surface and hid the default scenario's corner dwell (0.5 mm measured at 4 mm height);
+# surfaces observed every layer are judged by their measurement and the model's local terms
+DEFAULT_EXCLUDE = ("height",)
 MAX_SAMPLES = 400_000
 FIELDS = ("floor_mm", "range_mm", "wall_mm", "edge_mm", "foot_mm", "gap_mm_per_mm", "height_mm")
 
@@ -42,15 +48,21 @@ def layer_features(result, min_weight: float, voxel_mm: float | None = None):
     return f[seen], dev.signed_distance_mm[seen]
 
 
-def fit_coefficients(features: np.ndarray, deviation_mm: np.ndarray) -> np.ndarray:
-    """Variance coefficients [mm^2] (7,) >= 0 with ``features @ c ~ deviation^2`` (NNLS)."""
+def fit_coefficients(features: np.ndarray, deviation_mm: np.ndarray,
+                     exclude: tuple[str, ...] = ()) -> np.ndarray:
+    """Variance coefficients [mm^2] (7,) >= 0 with ``features @ c ~ deviation^2`` (NNLS);
+    the features named in ``exclude`` get 0."""
     F = np.asarray(features, np.float64)
-    scale = np.maximum(F.max(axis=0), 1e-12)  # conditioning: every column up to 1
-    coef, _ = nnls(F / scale, np.asarray(deviation_mm, np.float64) ** 2)
-    return coef / scale
+    use = np.array([name not in exclude for name in FEATURES])
+    scale = np.maximum(F[:, use].max(axis=0), 1e-12)  # conditioning: every column up to 1
+    coef = np.zeros(len(FEATURES))
+    coef[use], _ = nnls(F[:, use] / scale, np.asarray(deviation_mm, np.float64) ** 2)
+    coef[use] /= scale
+    return coef
 
 
-def fit_uncertainty(results, monitor_cfg, seed: int = 0) -> dict:
+def fit_uncertainty(results, monitor_cfg, seed: int = 0,
+                    exclude: tuple[str, ...] = DEFAULT_EXCLUDE) -> dict:
     """Fitted ``[monitor.uncertainty]`` values from fault-free layer results.
 
     Returns a dict of the UncertaintyConfig fields (``confidence_k`` kept from
@@ -69,7 +81,7 @@ def fit_uncertainty(results, monitor_cfg, seed: int = 0) -> dict:
     if len(d) > MAX_SAMPLES:
         pick = np.random.default_rng(seed).choice(len(d), MAX_SAMPLES, replace=False)
         F, d = F[pick], d[pick]
-    coef = fit_coefficients(F, d)
+    coef = fit_coefficients(F, d, exclude)
     out = {name: float(np.sqrt(c)) for name, c in zip(FIELDS, coef, strict=True)}
     out["confidence_k"] = float(monitor_cfg.uncertainty.confidence_k)
     out["n_vertices"] = int(len(d))
