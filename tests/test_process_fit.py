@@ -41,9 +41,11 @@ def test_systematic_offset_is_absorbed_at_the_documented_rate_and_reported():
     assert scales[-1] == pytest.approx(0.92, abs=0.005)
     assert devs.min() > -0.4  # never an underbuild beyond delta_global_mm
     (finding,) = fit.findings()
-    assert finding.startswith("deposition efficiency 8 % below nominal since layer 0")
+    # the first layer (on the bare plate) is not an estimate: the finding starts at layer 1
+    assert finding.startswith("deposition efficiency 8 % below nominal since layer 1")
     assert "ends 0.5 mm short" in finding
-    assert fit.summary()["layers"][0]["estimate"] == pytest.approx(0.92)
+    layers = fit.summary()["layers"]
+    assert layers[0]["estimate"] is None and layers[1]["estimate"] == pytest.approx(0.92)
 
 
 def test_fast_drift_is_not_absorbed_beyond_the_bound():
@@ -55,3 +57,10 @@ def test_fast_drift_is_not_absorbed_beyond_the_bound():
 def test_nominal_process_gives_no_finding():
     fit, devs = build(lambda k: 1.0 + 0.02 * (-1) ** k)  # +-2 % noise per layer
     assert fit.findings() == [] and np.abs(devs).max() < 0.1
+
+
+def test_first_layer_shortfall_alone_is_no_finding():
+    fit, devs = build(lambda k: 0.87 if k == 0 else 1.0)
+    assert fit.findings() == []
+    assert [e["next_scale"] for e in fit.layers] == pytest.approx([1.0] * len(fit.layers))
+    assert np.allclose(devs, -0.8 * 0.13)

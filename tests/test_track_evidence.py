@@ -48,3 +48,21 @@ def test_class_change_local_to_global_keeps_the_track_id():
     assert t1.to_dict()["kinds"] == {"1": "local_overbuild", "2": "overbuild",
                                      "3": "local_overbuild"}
     assert t1.ended and t1.ended_layer == 4 and t2.kind == "local_underbuild"
+
+
+def test_local_only_region_is_an_early_warning_until_it_turns_global():
+    tr = RegionTracker(confirm_observations=2, confirm_window_layers=2,
+                       confirm_requires_global=True)
+    assert tr.update(1, [region(1, 0, 4, kind="local_overbuild", height=0.3),
+                         region(1, 20, 24, kind="local_underbuild")]) == [None, None]
+    assert tr.update(2, [region(2, 0, 4, kind="local_overbuild", height=0.35),
+                         region(2, 20, 24, kind="local_underbuild")]) == [None, None]
+    assert tr.tracks == []  # two layers of local deviation: early warnings only
+    # the bump turns global: its track opens with the local layers as its history
+    assert tr.update(3, [region(3, 0, 5, kind="overbuild", height=0.6),
+                         region(3, 20, 24, kind="local_underbuild")]) == [1, None]
+    (t,) = tr.tracks
+    assert t.kind == "overbuild" and t.first_layer == 1
+    assert t.kinds == {1: "local_overbuild", 2: "local_overbuild", 3: "overbuild"}
+    tr.finish()
+    assert len(tr.tracks) == 1  # the dent never turned global: no track

@@ -205,6 +205,10 @@ class MonitorConfig(_Model):
     # track_min_observations layers within track_window_layers layers of its first
     track_min_observations: int = Field(2, ge=1)
     track_window_layers: int = Field(2, ge=1)
+    # local over/underbuild (inside delta_global_mm) opens a track on its own only with this;
+    # by default it is an early warning in the layer results, and its region's track opens
+    # once it turns global (keeping the local layers in its history)
+    track_local_alone: bool = False
     min_region_volume_mm3: float = Field(1.0, ge=0)  # area x mean |deviation| floor
     # real-time alarms: a column counts once flagged this long and in this many observations
     # in a row (new measurement each; one frame set is 0.1 s at 10 Hz)

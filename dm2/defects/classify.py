@@ -19,7 +19,8 @@ is local overbuild, ``lambda < -delta_L`` local underbuild. Vertices whose fusio
 Given each vertex's standard deviation ``sigma`` (:mod:`dm2.defects.uncertainty`), a vertex is
 over-/underbuilt only where also ``|d| > k sigma`` (``monitor.uncertainty.confidence_k``), and
 locally over-/underbuilt only where ``|d| > k sigma_measurement``; a vertex that meets the
-global or local criterion but not its bound is ``uncertain``: reported and coloured, never segmented into a defect region.
+global or local criterion but not its bound is ``uncertain``: reported and coloured, never
+segmented into a defect region.
 ``overspray`` (:mod:`dm2.defects.footprint`) marks deviations on the plate outside the planned
 outline that are not joined to a defect at a wall; they are reported, never tracked.
 """

@@ -81,8 +81,9 @@ class DefectMonitor:
         (dm2.defects.uncertainty); False applies the paper's thresholds alone
 
     The default tracker confirms a region as a track once it has been seen in
-    ``track_min_observations`` layers within ``track_window_layers``; the layer results of the
-    layers before its confirmation get its id then.
+    ``track_min_observations`` layers within ``track_window_layers``, and (unless
+    ``track_local_alone``) once in a global class; the layer results of the layers before its
+    confirmation get its id then.
     """
 
     def __init__(self, monitor_cfg, tracker: RegionTracker | None = None,
@@ -94,7 +95,8 @@ class DefectMonitor:
         self.tracker = tracker or RegionTracker(
             confirm_observations=monitor_cfg.track_min_observations,
             confirm_window_layers=max(monitor_cfg.track_window_layers,
-                                      monitor_cfg.track_min_observations))
+                                      monitor_cfg.track_min_observations),
+            confirm_requires_global=not monitor_cfg.track_local_alone)
         self.results: list[LayerResult] = []
 
     def analyse_layer(self, surface, reference: ReferenceMap, layer: int | None = None,

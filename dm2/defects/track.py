@@ -9,8 +9,10 @@ A track's ``kind`` is its global class once it has been global, else its local c
 Evidence over time: a region opens a *candidate*; the candidate becomes a track only once it
 has been seen in ``confirm_observations`` layers within ``confirm_window_layers`` layers of its
 first (so its onset stays the layer it was first seen in). A candidate that does not make it
-is dropped: a single noisy layer never opens a track. Track ids are numbered in the order
-tracks are confirmed. Per layer a track is in one state:
+is dropped: a single noisy layer never opens a track. With ``confirm_requires_global`` a
+candidate seen only as local over/underbuild is not confirmed either (local deviations stay
+early warnings in the layer results) until the region turns global within the window. Track
+ids are numbered in the order tracks are confirmed. Per layer a track is in one state:
 
 * ``new``; ``growing`` (amplifying), ``shrinking`` (self-compensating) or ``stable``, judged
   on the area change (beyond ``area_tolerance``) and otherwise on the height change (beyond
@@ -108,17 +110,19 @@ class RegionTracker:
     height_tolerance_mm : float [mm], height change below which it is stable
     confirm_observations : int, layers a candidate must be seen in to become a track
     confirm_window_layers : int, ... within this many layers from its first
+    confirm_requires_global : bool, ... and once at least in a global class
     """
 
     def __init__(self, margin_mm: float = 1.0, area_tolerance: float = 0.1,
                  height_tolerance_mm: float = 0.05, confirm_observations: int = 1,
-                 confirm_window_layers: int = 2):
+                 confirm_window_layers: int = 2, confirm_requires_global: bool = False):
         if confirm_observations < 1 or confirm_window_layers < confirm_observations:
             raise ValueError(f"RegionTracker: need 1 <= confirm_observations "
                              f"({confirm_observations}) <= confirm_window_layers "
                              f"({confirm_window_layers})")
         self.confirm_observations = int(confirm_observations)
         self.confirm_window_layers = int(confirm_window_layers)
+        self.confirm_requires_global = bool(confirm_requires_global)
         self.newly_confirmed: list[Track] = []
         self._next_id = 1
         self._serial = 0
@@ -196,7 +200,8 @@ class RegionTracker:
             if t not in still:
                 still.append(t)
         for t in still:
-            if not t.confirmed and len(t.history) >= self.confirm_observations:
+            if not t.confirmed and len(t.history) >= self.confirm_observations and (
+                    not self.confirm_requires_global or not t.kind.startswith("local_")):
                 self._confirm(t)
         for t in act:
             if t not in still:

@@ -36,8 +36,9 @@ A vertex is called over- or underbuilt only where ``|d| > delta_global_mm`` and
 ``|d| > confidence_k * sigma`` (:mod:`dm2.defects.classify`); flagged deviations inside the
 bound are ``uncertain``. Local over/underbuild (a curved feature beyond the reference's own
 curvature) is held to the measurement terms alone (:data:`MEASUREMENT_FEATURES`): the
-reference's error is smooth on the scale of the plume, so it cannot make a bump or a dent. The coefficients can be refitted from a fault-free run of one's own
-cell with :func:`dm2.defects.uncertainty_fit.fit_uncertainty`.
+reference's error is smooth on the scale of the plume, so it cannot make a bump or a dent.
+The coefficients can be refitted from a fault-free run of one's own cell with
+:func:`dm2.defects.uncertainty_fit.fit_uncertainty`.
 
 Not modelled: the growth of the reference error with the layers since a region was last
 observed (the TSDF keeps no observation time per voxel).
