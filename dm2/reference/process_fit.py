@@ -9,9 +9,10 @@ product of efficiency and feed against nominal): the measured growth since the f
 over the growth the reference would have had at the nominal process. The first layer, sprayed
 onto the bare plate, is left out of the estimate: on every twin run, whatever its process, it
 grew 11-15 % less than the model (a model error of the first layer, not of the process).
-The scale the reference deposits with from the next layer on moves towards ``s_hat`` by at most ``rate_per_layer`` per layer and stays within
-``1 +- bound``. So a slow systematic offset is absorbed over a few layers, and a fault faster
-or larger than that (an efficiency drift of 30 %/layer, a feed step of 60 %) is still measured
+The scale the reference deposits with from the next layer on moves towards ``s_hat`` by at
+most ``rate_per_layer`` per layer and stays within ``1 +- bound``. So a slow systematic offset
+is absorbed over a few layers, and a fault faster or larger than that (an efficiency drift of
+30 %/layer, a feed step of 60 %) is still measured
 as a defect; the plume sigma is not fitted.
 
 What the fit absorbs is never hidden: every layer's estimate and applied scale are in
