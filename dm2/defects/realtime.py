@@ -13,7 +13,7 @@ bridged (morphological closing of radius ``link_mm``) when a patch's area is mea
 observed as normal are never counted.
 
 Evidence: a column is flagged only beyond its confidence bound too (its TSDF weight, the
-reference's slope, curvature and height, :mod:`dm2.defects.uncertainty`;
+reference's slope and height, :mod:`dm2.defects.uncertainty`;
 ``uncertainty=False`` drops the bound). A patch raises an alarm only when it holds a
 persistent column: one flagged for at least ``realtime_persist_s`` of process time and in
 ``realtime_min_observations`` observations in a row (comparisons with new measurement, not
@@ -113,8 +113,7 @@ class RealtimeDeviation:
         self._weight_map = np.zeros((ny, nx))
         u = monitor_cfg.uncertainty
         self._bound = ((float(u.confidence_k), float(u.floor_mm), float(u.range_mm),
-                        float(u.wall_mm), float(u.edge_mm), float(u.height_mm))
-                       if uncertainty else (0.0,) * 6)
+                        float(u.wall_mm), float(u.height_mm)) if uncertainty else (0.0,) * 5)
         self.persist_s = float(monitor_cfg.realtime_persist_s)
         self.min_observations = int(monitor_cfg.realtime_min_observations)
         r = max(int(round(link_mm / self.voxel_mm)), 1)

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from dm2.defects.uncertainty import EDGE_RADIUS_MM, HEIGHT_SCALE_MM
+from dm2.defects.uncertainty import HEIGHT_SCALE_MM
 from dm2.reference.height_map import bilinear_at
 
 OVER, UNDER = 1, 2
@@ -80,29 +80,29 @@ def _slope(h, a, n, v, along_rows, fixed):
 @njit(cache=True)
 def compare_columns(d, w, min_weight, i0, j0, k0, hw, voxel_mm, delta_mm, stamp_s,
                     deviation_map, flag_map, first_flag_s, alarmed, flag_count=None,
-                    bound=(0.0, 0.0, 0.0, 0.0, 0.0, 0.0), weight_map=None):
+                    bound=(0.0, 0.0, 0.0, 0.0, 0.0), weight_map=None):
     """Compare a dense TSDF box with the reference and update the column maps in place.
 
     ``d, w (nx, ny, nz)``: the box's signed distance [mm] and weight, voxel ``(i0, j0, k0)`` at
     index 0; ``hw (ny, nx)``: the reference [mm] at its columns. Each column with an observed
     zero crossing inside the maps gets its deviation: height above the reference projected on
     the reference normal, ``(z - h) / sqrt(1 + |grad h|^2)`` [mm]; beyond ``+-delta_mm`` and
-    beyond the confidence bound ``k * sigma`` it is flagged over (1) or under (2), with
-    ``bound = (k, floor_mm, range_mm, wall_mm, edge_mm, height_mm)`` and ``sigma^2 = floor^2
-    + range^2 / weight + (wall * (1 - n_z))^2 + (edge * min(1, |H| * EDGE_RADIUS_MM))^2 +
-    (height * h / HEIGHT_SCALE_MM)^2`` (the column's weight at its crossing; ``n_z``, the mean
-    curvature ``H ~ -(h_xx + h_yy) / 2`` and the height ``h`` of the reference there; the
-    terms of :mod:`dm2.defects.uncertainty` but the foot). ``flag_count`` counts each
-    column's observations in a row with the same flag, an observation being a comparison whose
-    crossing weight (kept in ``weight_map``) or deviation changed since the last: new
-    measurement, not the same TSDF compared again. Returns ``gi, gj`` (map column indices),
-    ``dev`` [mm] and ``flag`` of those columns, in ``np.nonzero`` order, and how many columns
-    were newly flagged (flag changed to over or under) or, with ``flag_count``, observed
+    beyond the confidence bound ``k * sigma`` it is flagged over (1) or under (2), with ``bound
+    = (k, floor_mm, range_mm, wall_mm, height_mm)`` and ``sigma^2 = floor^2 + range^2 / weight +
+    (wall * (1 - n_z))^2 + (height * h / HEIGHT_SCALE_MM)^2`` (the column's weight at its
+    crossing; ``n_z`` and the height ``h`` of the reference there; the terms of
+    :mod:`dm2.defects.uncertainty` but the edge, foot and gap: the reference's curvature at
+    voxel spacing follows the raster ridges, which the layer analysis smooths away).
+    ``flag_count`` counts each column's observations in a row with the same flag, an observation
+    being a comparison whose crossing weight (kept in ``weight_map``) or deviation changed since
+    the last: new measurement, not the same TSDF compared again. Returns ``gi, gj`` (map column
+    indices), ``dev`` [mm] and ``flag`` of those columns, in ``np.nonzero`` order, and how many
+    columns were newly flagged (flag changed to over or under) or, with ``flag_count``, observed
     flagged again.
     """
     cross, wcross = column_crossings_weights(d, w, min_weight)
     kb, fl2, rg2, wl2 = bound[0], bound[1] ** 2, bound[2] ** 2, bound[3] ** 2
-    ed, ht = bound[4], bound[5]
+    ht = bound[4]
     nx, ny = cross.shape
     mny, mnx = flag_map.shape
     hy, hx = hw.shape
@@ -130,14 +130,9 @@ def compare_columns(d, w, min_weight, i0, j0, k0, hw, voxel_mm, delta_mm, stamp_
             lim = delta_mm
             if kb > 0.0:
                 tilt = 1.0 - 1.0 / np.sqrt(1.0 + g2)
-                edge = 0.0
-                if 0 < ii < hx - 1 and 0 < jj < hy - 1:
-                    lap = (hw[jj, ii - 1] + hw[jj, ii + 1] + hw[jj - 1, ii] + hw[jj + 1, ii]
-                           - 4.0 * hw[jj, ii]) / (voxel_mm * voxel_mm)
-                    edge = min(1.0, 0.5 * abs(lap) * EDGE_RADIUS_MM) * ed
                 hgt = ht * max(hw[jj, ii], 0.0) / HEIGHT_SCALE_MM
                 sig = np.sqrt(fl2 + rg2 / max(wcross[ii, jj], 1.0) + wl2 * tilt * tilt
-                              + edge * edge + hgt * hgt)
+                              + hgt * hgt)
                 lim = max(lim, kb * sig)
             f = OVER if e > lim else (UNDER if e < -lim else 0)
             fresh = True

@@ -25,8 +25,8 @@ foot       ``(min(1, rise / FOOT_RISE_MM) * low)^2``,   ``foot_mm^2``: the foot 
            the plate)
 gap        ``min(gap, GAP_CAP_MM)^2``, the distance     ``gap_mm_per_mm^2``: surface filled
            [mm] to the nearest well observed vertex     in between observations
-           (weight at least ``WELL_OBSERVED_FRACTION``
-           of the layer's median observed weight)
+           (weight >= ``WELL_OBSERVED_WEIGHT``; 0
+           where the layer has none)
 height     ``(h_ref / HEIGHT_SCALE_MM)^2``, the         ``height_mm^2``: the reference's error
            reference height at the vertex               accumulates with the deposited height
                                                         (layers the model has run open-loop)
@@ -58,7 +58,7 @@ EDGE_RADIUS_MM = 2.0  # reference curvature 1/2 mm^-1 and beyond counts as a ful
 FOOT_RADIUS_MM = 2.0  # the reference rising within this radius marks the foot of a wall
 FOOT_RISE_MM = 1.0  # ... by this much or more: full foot weight
 FOOT_BAND_MM = 1.0  # the foot is within this height of the plate (z_O = 0)
-WELL_OBSERVED_FRACTION = 0.5  # of the median observed weight: counted as observed for the gap
+WELL_OBSERVED_WEIGHT = 2.0  # TSDF weight of a vertex counted as well observed for the gap
 GAP_CAP_MM = 5.0
 HEIGHT_SCALE_MM = 10.0  # height_mm is the reference's error after 10 mm of deposit
 
@@ -78,15 +78,10 @@ def foot_rise_map(heights_mm: np.ndarray, cell_mm: float) -> np.ndarray:
 def gap_distance_mm(vertices_O: np.ndarray, weight: np.ndarray, min_weight: float) -> np.ndarray:
     """Distance [mm] (n,) from each vertex to the nearest well observed one (0 for those)."""
     w = np.asarray(weight, np.float64)
-    seen = w >= min_weight
-    typical = float(np.median(w[seen])) if seen.any() else min_weight
-    well = w >= max(WELL_OBSERVED_FRACTION * typical, min_weight)
+    well = w >= max(WELL_OBSERVED_WEIGHT, min_weight)
     gap = np.zeros(len(w))
     poor = np.flatnonzero(~well)
-    if poor.size == 0:
-        return gap
-    if not well.any():
-        gap[poor] = GAP_CAP_MM
+    if poor.size == 0 or not well.any():  # nothing to measure the distance from
         return gap
     tree = cKDTree(vertices_O[well])
     dist, _ = tree.query(vertices_O[poor], distance_upper_bound=GAP_CAP_MM)
