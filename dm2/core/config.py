@@ -167,17 +167,18 @@ class UncertaintyConfig(_Model):
     """Standard deviations [mm] of the measurement and reference error per vertex, combined in
     quadrature (dm2.defects.uncertainty). The defaults are dm2.defects.uncertainty_fit's fit
     to the fault-free seven-sided part on the twin (12 layers, executed reference clock; the
-    foot of its walls came out no worse than elsewhere, foot_mm 0; height not fitted, see
+    foot of its walls came out no worse than elsewhere, foot_mm 0, and its few poorly observed
+    vertices no worse either, gap_mm_per_mm 0; height not fitted, see
     dm2.defects.uncertainty_fit.DEFAULT_EXCLUDE); refit them for a cell of one's own (README:
     "Refitting the uncertainty model")."""
 
     confidence_k: float = Field(3.0, gt=0)  # called a defect only beyond k combined sigmas
-    floor_mm: float = Field(0.096, ge=0)  # everywhere: reconstruction and reference floor
-    range_mm: float = Field(0.083, ge=0)  # one observation's range noise, / sqrt(weight)
+    floor_mm: float = Field(0.095, ge=0)  # everywhere: reconstruction and reference floor
+    range_mm: float = Field(0.12, ge=0)  # one observation's range noise, / sqrt(weight)
     wall_mm: float = Field(0.465, ge=0)  # at a vertical measured surface (x (1 - |n_z|))
     edge_mm: float = Field(1.112, ge=0)  # at a reference edge / corner (x min(1, |H| r_edge))
     foot_mm: float = Field(0.0, ge=0)  # at the foot of a wall, near the plate
-    gap_mm_per_mm: float = Field(0.021, ge=0)  # per mm to the nearest well observed vertex
+    gap_mm_per_mm: float = Field(0.0, ge=0)  # per mm to the nearest well observed vertex
     height_mm: float = Field(0.0, ge=0)  # reference error per 10 mm deposited (not fitted)
 
 

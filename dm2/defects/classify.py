@@ -17,10 +17,11 @@ is local overbuild, ``lambda < -delta_L`` local underbuild. Vertices whose fusio
 ``min_weight`` are unobserved and never called under- or overbuilt.
 
 Given each vertex's standard deviation ``sigma`` (:mod:`dm2.defects.uncertainty`), a vertex is
-over-/underbuilt only where also ``|d| > k sigma`` (``monitor.uncertainty.confidence_k``), and
-locally over-/underbuilt only where ``|d| > k sigma_measurement``; a vertex that meets the
-global or local criterion but not its bound is ``uncertain``: reported and coloured, never
-segmented into a defect region.
+over-/underbuilt only where also ``|d| > k sigma`` (``monitor.uncertainty.confidence_k``); a
+vertex beyond ``delta_global_mm`` but not beyond its bound is ``uncertain``: reported and
+coloured, never segmented into a defect region (unless its local metric makes it a local
+defect). The local classes keep the paper's rule: they are early warnings, which open a track
+only together with a global observation of the region (dm2.defects.track).
 ``overspray`` (:mod:`dm2.defects.footprint`) marks deviations on the plate outside the planned
 outline that are not joined to a defect at a wall; they are reported, never tracked.
 """
@@ -189,7 +190,7 @@ def mean_curvature(vertices_O: np.ndarray, faces: np.ndarray, normals_O=None,
 
 def classify_vertices(vertices_O, faces, weight, signed_distance_mm, monitor_cfg,
                       normals_O=None, reference_curvature=None, sigma_mm=None,
-                      curvature=None, sigma_local_mm=None) -> VertexClasses:
+                      curvature=None) -> VertexClasses:
     """Class per vertex from the signed deviation (see module docstring).
 
     Parameters
@@ -203,9 +204,7 @@ def classify_vertices(vertices_O, faces, weight, signed_distance_mm, monitor_cfg
     reference_curvature : (n,) float64 [1/mm] or None, the reference's mean curvature at each
         vertex's closest reference point; only curvature beyond it weights the local metric
     sigma_mm : (n,) float64 [mm] or None, standard deviation of each deviation; with it a
-        defect class needs ``|d| > monitor_cfg.uncertainty.confidence_k * sigma`` too
-    sigma_local_mm : (n,) float64 [mm] or None, the measurement part of ``sigma_mm``, the
-        bound of the local classes (default ``sigma_mm``)
+        global class needs ``|d| > monitor_cfg.uncertainty.confidence_k * sigma`` too
     curvature : ``curvature_and_areas(..., return_normals=True)`` when computed already
     """
     d = np.asarray(signed_distance_mm, dtype=np.float64)
@@ -217,16 +216,15 @@ def classify_vertices(vertices_O, faces, weight, signed_distance_mm, monitor_cfg
     excess = h if reference_curvature is None else h - np.asarray(reference_curvature, float)
     agree = np.maximum(np.sign(d) * excess, 0.0)  # convex where above, concave where below
     metric = (d / dg) * np.minimum(1.0, agree * LOCAL_CURVATURE_RADIUS_MM)
+    beyond = np.ones(d.shape, bool) if sigma_mm is None else (
+        np.abs(d) > float(monitor_cfg.uncertainty.confidence_k)
+        * np.asarray(sigma_mm, np.float64))
     code = np.full(d.shape, NORMAL, dtype=np.int8)
+    code[(d > dg) & ~beyond] = UNCERTAIN
+    code[(d < -dg) & ~beyond] = UNCERTAIN
     code[metric > dl] = LOCAL_OVERBUILD
     code[metric < -dl] = LOCAL_UNDERBUILD
-    code[d > dg] = OVERBUILD
-    code[d < -dg] = UNDERBUILD
-    if sigma_mm is not None:
-        k = float(monitor_cfg.uncertainty.confidence_k)
-        s_loc = sigma_mm if sigma_local_mm is None else sigma_local_mm
-        bound = k * np.where((code == LOCAL_OVERBUILD) | (code == LOCAL_UNDERBUILD),
-                             np.asarray(s_loc, np.float64), np.asarray(sigma_mm, np.float64))
-        code[(code != NORMAL) & (np.abs(d) <= bound)] = UNCERTAIN
+    code[(d > dg) & beyond] = OVERBUILD
+    code[(d < -dg) & beyond] = UNDERBUILD
     code[w < float(monitor_cfg.min_weight)] = UNOBSERVED
     return VertexClasses(code, metric, h, area, normals)

@@ -18,7 +18,7 @@ from numba import njit, prange
 
 from dm2.defects.classify import classify_vertices, curvature_and_areas
 from dm2.defects.footprint import mark_overspray
-from dm2.defects.uncertainty import MEASUREMENT_FEATURES, uncertainty_features, vertex_sigma_mm
+from dm2.defects.uncertainty import uncertainty_features, vertex_sigma_mm
 from dm2.reference.height_map import ReferenceMap
 
 log = logging.getLogger(__name__)
@@ -229,14 +229,13 @@ def layer_deviation(surface, reference: ReferenceMap, monitor_cfg, layer: int | 
     normals = getattr(surface, "normals_O", None)
     curv = curvature_and_areas(v, f, normals, return_normals=True)
     ref_curv = reference.mean_curvature_at(foot[:, :2])
-    sigma = sigma_local = None
+    sigma = None
     if uncertainty:
         feats = uncertainty_features(v, w, curv[2], foot, reference, ref_curv,
                                      float(monitor_cfg.min_weight))
         sigma = vertex_sigma_mm(feats, monitor_cfg.uncertainty)
-        sigma_local = vertex_sigma_mm(feats, monitor_cfg.uncertainty, MEASUREMENT_FEATURES)
     classes = classify_vertices(v, f, w, d, monitor_cfg, reference_curvature=ref_curv,
-                                sigma_mm=sigma, curvature=curv, sigma_local_mm=sigma_local)
+                                sigma_mm=sigma, curvature=curv)
     code, outside = classes.class_code, None
     if outline is not None:
         outside = outline.outside_at(v[:, :2])

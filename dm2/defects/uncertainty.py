@@ -34,9 +34,8 @@ height     ``(h_ref / HEIGHT_SCALE_MM)^2``, the         ``height_mm^2``: the ref
 
 A vertex is called over- or underbuilt only where ``|d| > delta_global_mm`` and
 ``|d| > confidence_k * sigma`` (:mod:`dm2.defects.classify`); flagged deviations inside the
-bound are ``uncertain``. Local over/underbuild (a curved feature beyond the reference's own
-curvature) is held to the measurement terms alone (:data:`MEASUREMENT_FEATURES`): the
-reference's error is smooth on the scale of the plume, so it cannot make a bump or a dent.
+bound are ``uncertain`` (local over/underbuild keeps the paper's rule; it is an early warning
+that opens no track on its own).
 The coefficients can be refitted from a fault-free run of one's own cell with
 :func:`dm2.defects.uncertainty_fit.fit_uncertainty`.
 
@@ -53,7 +52,6 @@ from scipy.spatial import cKDTree
 from dm2.reference.height_map import bilinear_height
 
 FEATURES = ("floor", "range", "wall", "edge", "foot", "gap", "height")
-MEASUREMENT_FEATURES = ("range", "wall", "gap")
 EDGE_RADIUS_MM = 2.0  # reference curvature 1/2 mm^-1 and beyond counts as a full edge
 FOOT_RADIUS_MM = 2.0  # the reference rising within this radius marks the foot of a wall
 FOOT_RISE_MM = 1.0  # ... by this much or more: full foot weight
@@ -120,10 +118,6 @@ def uncertainty_features(vertices_O, weight, normals_O, foot_O, reference,
     return f
 
 
-def vertex_sigma_mm(features: np.ndarray, ucfg, only: tuple[str, ...] | None = None):
-    """Combined standard deviation [mm] (n,) of each vertex's deviation (of the terms in
-    ``only`` when given, e.g. :data:`MEASUREMENT_FEATURES`)."""
-    c = coefficients(ucfg)
-    if only is not None:
-        c = np.where([name in only for name in FEATURES], c, 0.0)
-    return np.sqrt(np.maximum(features @ c, 0.0))
+def vertex_sigma_mm(features: np.ndarray, ucfg) -> np.ndarray:
+    """Combined standard deviation [mm] (n,) of each vertex's deviation."""
+    return np.sqrt(np.maximum(features @ coefficients(ucfg), 0.0))
