@@ -17,17 +17,35 @@ MON = MonitorConfig()
 CELL = 0.5
 
 
-def test_bound_separates_defect_from_uncertain():
-    n = 4
-    v = np.zeros((n, 3))
-    faces = np.zeros((0, 3), np.int64)
-    d = np.array([0.5, 0.5, -0.9, -0.9])
-    sigma = np.array([0.1, 0.3, 0.1, 0.35])  # flat top, wall, flat top, foot of a wall
-    c = classify_vertices(v, faces, np.full(n, 5.0), d, MON, sigma_mm=sigma)
-    assert c.class_code.tolist() == [OVERBUILD, UNCERTAIN, UNDERBUILD, UNCERTAIN]
+def grid(n=60, step=0.5):
+    x = np.arange(n) * step
+    xx, yy = np.meshgrid(x, x)
+    idx = np.arange(n * n).reshape(n, n)
+    a, b, c, d = (idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(),
+                  idx[1:, 1:].ravel())
+    faces = np.concatenate([np.column_stack([a, b, d]), np.column_stack([a, d, c])])
+    return np.column_stack([xx.ravel(), yy.ravel(), np.zeros(n * n)]), faces, xx, yy
+
+
+def test_bound_decides_the_defect_and_the_tolerance_its_extent():
+    v, faces, xx, yy = grid()
+    d = np.zeros(xx.shape)
+    sigma = np.full(xx.shape, 0.1)
+    a = (xx < 5) & (yy < 5)  # 0.5 mm over, well within the bound: a defect
+    b = (xx > 20) & (yy < 5)  # 0.5 mm over where the model is unsure: uncertain
+    c = (xx < 10) & (yy > 15)  # unsure except a 2 x 2 mm core: a defect as far as it reaches
+    d[a | b | c] = 0.5
+    sigma[b | c] = 0.3
+    sigma[c & (xx < 2) & (yy > 27)] = 0.1
+    d[(xx > 20) & (yy > 20)] = -0.9  # an isolated underbuild beyond its bound
+    c_ = classify_vertices(v, faces, np.full(d.size, 5.0), d.ravel(), MON,
+                           sigma_mm=sigma.ravel()).class_code.reshape(xx.shape)
+    assert np.all(c_[a] == OVERBUILD) and np.all(c_[c] == OVERBUILD)
+    assert np.all(c_[b] == UNCERTAIN)
+    assert np.all(c_[(xx > 20) & (yy > 20)] == UNDERBUILD)
     # without the bound: the paper's rule alone
-    assert classify_vertices(v, faces, np.full(n, 5.0), d, MON).class_code.tolist() == [
-        OVERBUILD, OVERBUILD, UNDERBUILD, UNDERBUILD]
+    plain = classify_vertices(v, faces, np.full(d.size, 5.0), d.ravel(), MON).class_code
+    assert np.all(plain.reshape(xx.shape)[b] == OVERBUILD)
 
 
 def test_sigma_grows_at_walls_feet_and_low_weight():

@@ -173,10 +173,10 @@ class UncertaintyConfig(_Model):
     "Refitting the uncertainty model")."""
 
     confidence_k: float = Field(3.0, gt=0)  # called a defect only beyond k combined sigmas
-    floor_mm: float = Field(0.095, ge=0)  # everywhere: reconstruction and reference floor
-    range_mm: float = Field(0.12, ge=0)  # one observation's range noise, / sqrt(weight)
-    wall_mm: float = Field(0.465, ge=0)  # at a vertical measured surface (x (1 - |n_z|))
-    edge_mm: float = Field(1.112, ge=0)  # at a reference edge / corner (x min(1, |H| r_edge))
+    floor_mm: float = Field(0.127, ge=0)  # everywhere: reconstruction and reference floor
+    range_mm: float = Field(0.113, ge=0)  # one observation's range noise, / sqrt(weight)
+    wall_mm: float = Field(0.515, ge=0)  # at a vertical measured surface (x (1 - |n_z|))
+    edge_mm: float = Field(1.36, ge=0)  # at a reference edge / corner (dm2.defects.uncertainty)
     foot_mm: float = Field(0.0, ge=0)  # at the foot of a wall, near the plate
     gap_mm_per_mm: float = Field(0.0, ge=0)  # per mm to the nearest well observed vertex
     height_mm: float = Field(0.0, ge=0)  # reference error per 10 mm deposited (not fitted)

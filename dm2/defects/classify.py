@@ -16,12 +16,15 @@ normalised deviation. ``lambda > delta_L``
 is local overbuild, ``lambda < -delta_L`` local underbuild. Vertices whose fusion weight is below
 ``min_weight`` are unobserved and never called under- or overbuilt.
 
-Given each vertex's standard deviation ``sigma`` (:mod:`dm2.defects.uncertainty`), a vertex is
-over-/underbuilt only where also ``|d| > k sigma`` (``monitor.uncertainty.confidence_k``); a
-vertex beyond ``delta_global_mm`` but not beyond its bound is ``uncertain``: reported and
-coloured, never segmented into a defect region (unless its local metric makes it a local
-defect). The local classes keep the paper's rule: they are early warnings, which open a track
-only together with a global observation of the region (dm2.defects.track).
+Given each vertex's standard deviation ``sigma`` (:mod:`dm2.defects.uncertainty`), the
+vertices beyond ``delta_global_mm`` form connected same-signed candidate regions (over mesh
+edges); a region is over-/underbuilt only where at least ``MIN_CONFIDENT_AREA_MM2`` of it lies
+beyond ``k sigma`` (``monitor.uncertainty.confidence_k``): the bound decides whether there is
+a defect, the tolerance how far it reaches. The vertices of a region without that evidence are
+``uncertain``: reported and coloured, never segmented into a defect region (unless their local
+metric makes them a local defect). The local classes keep the paper's rule: they are early
+warnings, which open a track only together with a global observation of the region
+(dm2.defects.track).
 ``overspray`` (:mod:`dm2.defects.footprint`) marks deviations on the plate outside the planned
 outline that are not joined to a defect at a wall; they are reported, never tracked.
 """
@@ -40,6 +43,7 @@ CLASS_NAMES = ("normal", "overbuild", "underbuild", "local_overbuild", "local_un
                "unobserved", "uncertain", "overspray")
 DEFECT_CLASSES = (OVERBUILD, UNDERBUILD, LOCAL_OVERBUILD, LOCAL_UNDERBUILD)
 LOCAL_CURVATURE_RADIUS_MM = 10.0
+MIN_CONFIDENT_AREA_MM2 = 1.0  # of a candidate region beyond k sigma: it is a defect
 CURVATURE_SMOOTHING_ITERATIONS = 3
 
 
@@ -216,9 +220,9 @@ def classify_vertices(vertices_O, faces, weight, signed_distance_mm, monitor_cfg
     excess = h if reference_curvature is None else h - np.asarray(reference_curvature, float)
     agree = np.maximum(np.sign(d) * excess, 0.0)  # convex where above, concave where below
     metric = (d / dg) * np.minimum(1.0, agree * LOCAL_CURVATURE_RADIUS_MM)
-    beyond = np.ones(d.shape, bool) if sigma_mm is None else (
-        np.abs(d) > float(monitor_cfg.uncertainty.confidence_k)
-        * np.asarray(sigma_mm, np.float64))
+    beyond = np.ones(d.shape, bool) if sigma_mm is None else _confident_regions(
+        d, dg, np.abs(d) > float(monitor_cfg.uncertainty.confidence_k)
+        * np.asarray(sigma_mm, np.float64), area, faces)
     code = np.full(d.shape, NORMAL, dtype=np.int8)
     code[(d > dg) & ~beyond] = UNCERTAIN
     code[(d < -dg) & ~beyond] = UNCERTAIN
@@ -228,3 +232,23 @@ def classify_vertices(vertices_O, faces, weight, signed_distance_mm, monitor_cfg
     code[(d < -dg) & beyond] = UNDERBUILD
     code[w < float(monitor_cfg.min_weight)] = UNOBSERVED
     return VertexClasses(code, metric, h, area, normals)
+
+
+def _confident_regions(d, dg, strong, area, faces) -> np.ndarray:
+    """(n,) bool: vertices of same-signed connected regions beyond ``+-dg`` holding at least
+    ``MIN_CONFIDENT_AREA_MM2`` of ``strong`` (beyond the bound) vertices."""
+    from scipy import sparse
+    from scipy.sparse.csgraph import connected_components
+
+    n = len(d)
+    cand = np.abs(d) > dg
+    if not cand.any():
+        return np.zeros(n, bool)
+    f = np.asarray(faces, np.int64).reshape(-1, 3)
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    e = e[cand[e[:, 0]] & cand[e[:, 1]] & (np.sign(d[e[:, 0]]) == np.sign(d[e[:, 1]]))]
+    graph = sparse.coo_matrix((np.ones(len(e), np.int8), (e[:, 0], e[:, 1])), shape=(n, n))
+    _, labels = connected_components(graph, directed=False)
+    a = np.where(cand & strong, np.maximum(area, 1e-3), 0.0)  # isolated points count a little
+    strong_area = np.bincount(labels, a, minlength=labels.max() + 1)
+    return cand & (strong_area[labels] >= MIN_CONFIDENT_AREA_MM2)

@@ -16,8 +16,9 @@ range      ``1 / max(weight, 1)``                       ``range_mm^2``: one obse
 wall       ``(1 - |n_z|)^2`` of the measured normal     ``wall_mm^2``: grazing incidence on
                                                         walls and the Gaussian model's known
                                                         mismatch at walls
-edge       ``min(1, |H_ref| * EDGE_RADIUS_MM)^2``       ``edge_mm^2``: rounded edges and
-                                                        corners of the reference
+edge       ``min(1, max(0, |H_ref| - 1 / R) *       ``edge_mm^2``: rounded edges and
+           EDGE_RADIUS_MM)^2``, ``R`` the local         corners of the reference (a gentle
+           curvature radius of dm2.defects.classify     undulation is no edge)
 foot       ``(min(1, rise / FOOT_RISE_MM) * low)^2``,   ``foot_mm^2``: the foot of a wall,
            ``rise`` = how far the reference rises       where the profilers see poorly and
            within ``FOOT_RADIUS_MM``, ``low`` =         the plume's tail meets the plate
@@ -49,10 +50,11 @@ import numpy as np
 from scipy.ndimage import maximum_filter
 from scipy.spatial import cKDTree
 
+from dm2.defects.classify import LOCAL_CURVATURE_RADIUS_MM
 from dm2.reference.height_map import bilinear_height
 
 FEATURES = ("floor", "range", "wall", "edge", "foot", "gap", "height")
-EDGE_RADIUS_MM = 2.0  # reference curvature 1/2 mm^-1 and beyond counts as a full edge
+EDGE_RADIUS_MM = 2.0  # curvature 1/2 mm^-1 beyond the local radius's counts as a full edge
 FOOT_RADIUS_MM = 2.0  # the reference rising within this radius marks the foot of a wall
 FOOT_RISE_MM = 1.0  # ... by this much or more: full foot weight
 FOOT_BAND_MM = 1.0  # the foot is within this height of the plate (z_O = 0)
@@ -107,7 +109,8 @@ def uncertainty_features(vertices_O, weight, normals_O, foot_O, reference,
     f[:, 1] = 1.0 / np.maximum(np.where(np.isfinite(w), w, 1e9), 1.0)
     nz = np.abs(np.asarray(normals_O, np.float64)[:, 2]) if n else np.zeros(0)
     f[:, 2] = (1.0 - np.clip(nz, 0.0, 1.0)) ** 2
-    f[:, 3] = np.minimum(1.0, np.abs(reference_curvature) * EDGE_RADIUS_MM) ** 2
+    excess = np.maximum(np.abs(reference_curvature) - 1.0 / LOCAL_CURVATURE_RADIUS_MM, 0.0)
+    f[:, 3] = np.minimum(1.0, excess * EDGE_RADIUS_MM) ** 2
     foot = np.asarray(foot_O, np.float64).reshape(-1, 3)
     rise = bilinear_height(foot_rise_map(reference.heights_mm, reference.cell_mm),
                            reference.cell_mm, foot[:, :2]) if n else np.zeros(0)
