@@ -12,10 +12,11 @@ laser lines sample the surface a few mm apart, so unobserved columns between fla
 bridged (morphological closing of radius ``link_mm``) when a patch's area is measured; columns
 observed as normal are never counted.
 
-Evidence: a column is flagged only beyond its confidence bound too (its TSDF weight, the
-reference's slope and height, :mod:`dm2.defects.uncertainty`;
-``uncertainty=False`` drops the bound). A patch raises an alarm only when it holds a
-persistent column: one flagged for at least ``realtime_persist_s`` of process time and in
+Evidence: as in the layer analysis, the bound decides whether there is a defect and the
+tolerance how far it reaches. A patch raises an alarm only when it holds a column beyond its
+confidence bound (its TSDF weight, the reference's slope and height,
+:mod:`dm2.defects.uncertainty`; ``uncertainty=False`` drops the bound) that is persistent:
+flagged for at least ``realtime_persist_s`` of process time and in
 ``realtime_min_observations`` observations in a row (comparisons with new measurement, not
 the same TSDF compared again). A transient at the deposition front or a single noisy frame
 set raises nothing.
@@ -111,6 +112,7 @@ class RealtimeDeviation:
         self._alarmed = np.zeros((ny, nx), bool)
         self.flag_count = np.zeros((ny, nx), np.int64)
         self._weight_map = np.zeros((ny, nx))
+        self.strong_map = np.zeros((ny, nx), bool)
         u = monitor_cfg.uncertainty
         self._bound = ((float(u.confidence_k), float(u.floor_mm), float(u.range_mm),
                         float(u.wall_mm), float(u.height_mm)) if uncertainty else (0.0,) * 5)
@@ -170,7 +172,7 @@ class RealtimeDeviation:
             d, np.asarray(weight, np.float32), np.float32(self.cfg.min_weight), i0, j0, k0, hw,
             v, float(self.cfg.delta_global_mm), float(stamp_s), self.deviation_map_mm,
             self.flag_map, self.first_flag_s, self._alarmed, self.flag_count, self._bound,
-            self._weight_map)
+            self._weight_map, self.strong_map)
         n_over = int(np.count_nonzero(flag == OVER))
         n_under = int(np.count_nonzero(flag == UNDER))
         # a patch can only reach the alarm area, or hold a persistent column, through a column
@@ -196,7 +198,8 @@ class RealtimeDeviation:
         min_cells = max(self.cfg.min_region_area_mm2 / (v * v), 1.0)
         deviation_mm = self.deviation_map_mm[r0:r1, c0:c1]
         first_flag_s = self.first_flag_s[r0:r1, c0:c1]
-        mature = ((self.flag_count[r0:r1, c0:c1] >= self.min_observations)
+        mature = (self.strong_map[r0:r1, c0:c1]
+                  & (self.flag_count[r0:r1, c0:c1] >= self.min_observations)
                   & (stamp_s - first_flag_s >= self.persist_s))
         for kind in (OVER, UNDER):  # over first: its marks count for the under patches
             sizes, stats = patch_alarms(flags, kind, deviation_mm, alarmed, first_flag_s,

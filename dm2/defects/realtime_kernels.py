@@ -80,14 +80,15 @@ def _slope(h, a, n, v, along_rows, fixed):
 @njit(cache=True)
 def compare_columns(d, w, min_weight, i0, j0, k0, hw, voxel_mm, delta_mm, stamp_s,
                     deviation_map, flag_map, first_flag_s, alarmed, flag_count=None,
-                    bound=(0.0, 0.0, 0.0, 0.0, 0.0), weight_map=None):
+                    bound=(0.0, 0.0, 0.0, 0.0, 0.0), weight_map=None, strong_map=None):
     """Compare a dense TSDF box with the reference and update the column maps in place.
 
     ``d, w (nx, ny, nz)``: the box's signed distance [mm] and weight, voxel ``(i0, j0, k0)`` at
     index 0; ``hw (ny, nx)``: the reference [mm] at its columns. Each column with an observed
     zero crossing inside the maps gets its deviation: height above the reference projected on
-    the reference normal, ``(z - h) / sqrt(1 + |grad h|^2)`` [mm]; beyond ``+-delta_mm`` and
-    beyond the confidence bound ``k * sigma`` it is flagged over (1) or under (2), with ``bound
+    the reference normal, ``(z - h) / sqrt(1 + |grad h|^2)`` [mm]; beyond ``+-delta_mm`` it is
+    flagged over (1) or under (2), and marked in ``strong_map`` where beyond the confidence
+    bound ``k * sigma`` too, with ``bound
     = (k, floor_mm, range_mm, wall_mm, height_mm)`` and ``sigma^2 = floor^2 + range^2 / weight +
     (wall * (1 - n_z))^2 + (height * h / HEIGHT_SCALE_MM)^2`` (the column's weight at its
     crossing; ``n_z`` and the height ``h`` of the reference there; the terms of
@@ -127,14 +128,16 @@ def compare_columns(d, w, min_weight, i0, j0, k0, hw, voxel_mm, delta_mm, stamp_
             else:
                 g2 = 0.0
             e = (z - hw[jj, ii]) / np.sqrt(1.0 + g2)
-            lim = delta_mm
+            lim = 0.0
             if kb > 0.0:
                 tilt = 1.0 - 1.0 / np.sqrt(1.0 + g2)
                 hgt = ht * max(hw[jj, ii], 0.0) / HEIGHT_SCALE_MM
                 sig = np.sqrt(fl2 + rg2 / max(wcross[ii, jj], 1.0) + wl2 * tilt * tilt
                               + hgt * hgt)
-                lim = max(lim, kb * sig)
-            f = OVER if e > lim else (UNDER if e < -lim else 0)
+                lim = kb * sig
+            f = OVER if e > delta_mm else (UNDER if e < -delta_mm else 0)
+            if strong_map is not None:
+                strong_map[y, x] = f != 0 and abs(e) > lim
             fresh = True
             if weight_map is not None:
                 fresh = wcross[ii, jj] != weight_map[y, x] or e != deviation_map[y, x]
