@@ -4,19 +4,19 @@ The near-net reference uses the nominal process. A cell whose powder deposits a 
 less (or more) than nominal builds a part that drifts away from it everywhere, which the paper's
 rule would call one huge under/overbuild. After every analysed layer this fit compares the
 measured and reference heights on the part's well observed top (vertices inside the planned
-outline, ``|n_z| >= TOP_NZ``, not unobserved). The reference follows the part's height: its
-deposition scale (the product of efficiency and feed against nominal) from the next layer on
-moves towards the measured top height over the height the reference would have at the
-nominal process, by at most ``rate_per_layer`` per layer, within ``1 +- bound``. So a slow
-systematic offset, of the process or of the model, is absorbed over a few layers, and a fault
-faster or larger than that (an efficiency drift of 30 %/layer, a feed step of 60 %) is still
-measured as a defect; the plume sigma is not fitted.
+outline, ``|n_z| >= TOP_NZ``, not unobserved) and estimates the process scale ``s_hat`` (the
+product of efficiency and feed against nominal): the measured growth since the first layer
+over the growth the reference would have had at the nominal process. The first layer, sprayed
+onto the bare plate, is left out: on every twin run, whatever its process, it grew 11-15 %
+less than the model (a model error of that layer, not a process offset; absorbing it lowered
+the reference of every later layer and widened every overbuild). The scale the reference
+deposits with from the next layer on moves towards ``s_hat`` by at most ``rate_per_layer``
+per layer and stays within ``1 +- bound``. So a slow systematic offset is absorbed over a few
+layers, and a fault faster or larger than that (an efficiency drift of 30 %/layer, a feed
+step of 60 %) is still measured as a defect; the plume sigma is not fitted.
 
-What the fit absorbs is never hidden: every layer's height ratio, process estimate and applied
-scale are in report.json (``process``). The process estimate ``s_hat`` is the measured growth
-since the first layer over the nominal reference's growth: the first layer, sprayed onto the
-bare plate, grew 11-15 % less than the model on every twin run whatever its process (a model
-error of that layer, which the height ratio absorbs, not a process offset). An estimate
+What the fit absorbs is never hidden: every layer's height ratio (measured over nominal top
+height), estimate and applied scale are in report.json (``process``), and an estimate
 ``finding_threshold`` or more off nominal is a *process finding*, e.g. "deposition efficiency
 8 % below nominal since layer 3; at this rate the part ends 0.8 mm short".
 """
@@ -77,18 +77,17 @@ class ProcessFit:
                 self._last_ref_mm = ref
                 entry.update({"measured_top_mm": meas, "reference_top_mm": ref,
                               "nominal_top_mm": self._nominal_mm})
-                # the reference follows the part's height: total growth, first layer in
-                follow = meas / max(self._nominal_mm, 1e-9)
-                step = float(np.clip(follow - self.scale, -self.rate_per_layer,
-                                     self.rate_per_layer))
-                self.scale = float(np.clip(self.scale + step, 1 - self.bound, 1 + self.bound))
-                entry["height_ratio"] = follow
+                entry["height_ratio"] = meas / max(self._nominal_mm, 1e-9)
                 # the process estimate: growth since the first layer
                 if self._first is None:
                     self._first = (meas, self._nominal_mm)
                 elif self._nominal_mm - self._first[1] >= MIN_HEIGHT_MM:
-                    entry["estimate"] = ((meas - self._first[0])
-                                         / (self._nominal_mm - self._first[1]))
+                    est = (meas - self._first[0]) / (self._nominal_mm - self._first[1])
+                    step = float(np.clip(est - self.scale, -self.rate_per_layer,
+                                         self.rate_per_layer))
+                    self.scale = float(np.clip(self.scale + step, 1 - self.bound,
+                                               1 + self.bound))
+                    entry["estimate"] = est
         entry["next_scale"] = self.scale
         self.layers.append(entry)
         return self.scale
