@@ -222,8 +222,10 @@ class MonitorConfig(_Model):
     overspray_margin_mm: float = Field(2.0, ge=0)
     # the reference follows the process (dm2.reference.process_fit): its deposition scale
     # moves towards the measured one by at most process_fit_rate_per_layer per layer, within
-    # 1 +- process_fit_bound; off nominal by process_finding_threshold: a process finding
-    process_fit: bool = True
+    # 1 +- process_fit_bound; off nominal by process_finding_threshold: a process finding.
+    # None: on with the executed reference clock only (on the programmed clock every robot
+    # slowdown overbuilds, and the fit would take that for a process excess)
+    process_fit: bool | None = None
     process_fit_rate_per_layer: float = Field(0.02, ge=0, le=0.2)
     process_fit_bound: float = Field(0.10, ge=0, lt=0.5)
     process_finding_threshold: float = Field(0.05, gt=0)

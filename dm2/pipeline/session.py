@@ -82,6 +82,13 @@ class SessionTiming:
                 "messages": self.messages, **self.extra}
 
 
+def _process_fit_on(monitor_cfg) -> bool:
+    """``[monitor] process_fit``, by default on with the executed reference clock only."""
+    if monitor_cfg.process_fit is None:
+        return monitor_cfg.reference_clock == "executed"
+    return bool(monitor_cfg.process_fit)
+
+
 class MonitoringSession:
     """Messages in, per-layer :class:`~dm2.defects.layer_analysis.LayerResult` out.
 
@@ -116,7 +123,7 @@ class MonitoringSession:
         self.process_fit = (ProcessFit(monitor_cfg.process_fit_rate_per_layer,
                                        monitor_cfg.process_fit_bound,
                                        monitor_cfg.process_finding_threshold, planned)
-                            if monitor_cfg.process_fit else None)
+                            if _process_fit_on(monitor_cfg) else None)
         self.monitor = Monitor(calibration, monitor_cfg, process, toolpath=toolpath,
                                on_layer_done=self._layer_done, defer_meshing=analysis_thread)
         self.timing = SessionTiming()
