@@ -242,13 +242,21 @@ def _confident_regions(d, dg, strong, area, faces) -> np.ndarray:
 
     n = len(d)
     cand = np.abs(d) > dg
-    if not cand.any():
-        return np.zeros(n, bool)
+    out = np.zeros(n, bool)
+    ids = np.flatnonzero(cand)
+    if ids.size == 0:
+        return out
+    local = np.full(n, -1, np.int64)
+    local[ids] = np.arange(ids.size)
     f = np.asarray(faces, np.int64).reshape(-1, 3)
+    f = f[cand[f].any(axis=1)]  # faces touching a candidate: the only edges that matter
     e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
     e = e[cand[e[:, 0]] & cand[e[:, 1]] & (np.sign(d[e[:, 0]]) == np.sign(d[e[:, 1]]))]
-    graph = sparse.coo_matrix((np.ones(len(e), np.int8), (e[:, 0], e[:, 1])), shape=(n, n))
+    m = ids.size
+    graph = sparse.coo_matrix((np.ones(len(e), np.int8), (local[e[:, 0]], local[e[:, 1]])),
+                              shape=(m, m))
     _, labels = connected_components(graph, directed=False)
-    a = np.where(cand & strong, np.maximum(area, 1e-3), 0.0)  # isolated points count a little
+    a = np.where(strong[ids], np.maximum(area[ids], 1e-3), 0.0)  # isolated points count a bit
     strong_area = np.bincount(labels, a, minlength=labels.max() + 1)
-    return cand & (strong_area[labels] >= MIN_CONFIDENT_AREA_MM2)
+    out[ids] = strong_area[labels] >= MIN_CONFIDENT_AREA_MM2
+    return out
