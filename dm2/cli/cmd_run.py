@@ -12,6 +12,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from dm2.cli.common import app, bad_input_exits, console, fail, note_cold_kernel_cache
+from dm2.cli.outcome import EXIT_MISSED, drop_lines
 
 
 def default_run_dir(root: Path, name: str) -> Path:
@@ -57,8 +58,14 @@ def run(
     calibration: Path = typer.Option(None, "--calibration", help="Calibration TOML the "
                                      "pipeline uses instead of the scenario's (e.g. one solved "
                                      "by `dm2 calibrate`)."),
+    force: bool = typer.Option(False, "--force", help="Write into a folder holding an earlier "
+                               "dm2 run and other files: replace only dm2's files."),
 ) -> None:
     """Simulate SCENARIO on the twin, monitor it with the 3D-DM2 pipeline and write a report.
+
+    The run folder must be new or empty, or hold an earlier dm2 run (its manifest
+    `.dm2-manifest.json`), whose files are then replaced; other files there need `--force` and
+    are kept. Exits 1 when an expectation of the scenario's `[expect]` section is missed.
 
     Example: `dm2 run` or `dm2 run pad --out runs/pad`
     """
@@ -75,7 +82,7 @@ def run(
             sc = sc.model_copy(update={"duration_s": duration_s})
         cal = read_calibration_toml(calibration) if calibration is not None else None
         run_dir = (out or default_run_dir(runs_root, sc.name)).absolute()
-        check_output_dir(run_dir)
+        check_output_dir(run_dir, force=force, inputs=[path, calibration])
     run_dir.parent.mkdir(parents=True, exist_ok=True)
     console.print(f"[bold]dm2 run[/] scenario [cyan]{sc.name}[/] ({path})")
     note_cold_kernel_cache()
@@ -93,9 +100,11 @@ def run(
                                                                      total=total),
                                 on_stream_end=lambda: bar.update(task,
                                                                  description="writing the report"),
-                                calibration=cal)
+                                calibration=cal, force=force)
         except (ReachError, ConfigError) as exc:
             fail(f"{path}: {exc}")
+        except ValueError as exc:  # the run folder changed meanwhile (OutputRefused)
+            fail(str(exc))
     report = done.report
     link_latest(run_dir)
     console.print(tracks_table(report))
@@ -109,4 +118,9 @@ def run(
     wall = time.perf_counter() - t_start
     console.print(f"report: [bold]{run_dir / 'index.html'}[/]  ({wall:.1f} s wall, "
                   f"{done.process_s:.1f} s of process time)")
+    for line in drop_lines(report.get("dropped", {})):
+        console.print(line, highlight=False)
+    missed = [e for e in report.get("expectations", []) if not e.get("passed")]
+    if missed:
+        raise typer.Exit(EXIT_MISSED)
 

@@ -14,7 +14,9 @@ topic               type                              content
 
 Every message's MCAP ``log_time`` and ``publish_time`` equal its header stamp in nanoseconds.
 ROS 2 headers carry no sequence number, so the 24-bit profile ``counter`` and the robot
-state's ``seq`` travel, losslessly, in the MCAP message record's ``sequence`` field. A
+state's ``seq`` travel, losslessly, in the MCAP message record's ``sequence`` field. A file whose
+first profiles all have sequence 0 carries no counters (profiles written without one): its
+profiles are read with ``counter = None`` and de-duplicated by (sensor, stamp). A
 ``RobotState`` is written as a ``/joint_states`` and a ``/tf`` message with the same stamp and
 sequence; the reader pairs them back. Attachments make a recording self-contained:
 ``scenario.toml``, ``toolpath.csv`` (canonical CSV) and ``calibration.toml``
@@ -49,6 +51,7 @@ SCAN_TOPICS = {sid: f"/scan/{sid}" for sid in SENSOR_IDS}
 JOINT_TOPIC, TF_TOPIC, TF_STATIC_TOPIC, LAYER_TOPIC = ("/joint_states", "/tf", "/tf_static",
                                                       "/dm2/layer")
 MCAP_MAGIC = b"\x89MCAP0\r\n"
+COUNTER_PEEK = 64  # profiles looked at to tell whether a recording carries counters
 
 
 def stamp_to_ns(stamp_s: float) -> int:
@@ -70,6 +73,9 @@ class Recording:
     attachments : dict name -> bytes
     scenario_toml : str or None, the scenario the recording was made from
     skipped : Counter of reasons -> messages that could not be turned into pipeline messages
+    complete : False when the file has no readable summary (cut short, or damaged)
+    damage : None, or after a full pass of :meth:`messages` that stopped at a record it could
+        not read: ``{"error", "good_bytes"}`` (see :meth:`input_summary`)
     """
 
     def __init__(self, path: Path):
@@ -77,6 +83,9 @@ class Recording:
         self.skipped: Counter = Counter()
         self.attachments: dict[str, bytes] = {}
         self.complete = True
+        self._has_counters: bool | None = None
+        self.damage: dict | None = None
+        self.last_stamp_ns: int | None = None  # newest log time read by a full pass
         with open(path, "rb") as f:
             if f.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
                 raise ValueError(f"{path}: not an MCAP file (bad magic bytes)")
@@ -86,7 +95,7 @@ class Recording:
                 self.summary = reader.get_summary()
                 atts = list(reader.iter_attachments())
             except Exception as exc:  # noqa: BLE001 - any damage to the summary: read linearly
-                log.warning("%s: no summary (%s); reading it linearly", path, exc)
+                log.debug("%s: no summary (%s); reading it linearly", path, exc)
                 self.complete, self.summary = False, None
                 atts = self._linear_attachments(f)
         self.attachments = {a.name: bytes(a.data) for a in atts}
@@ -130,31 +139,66 @@ class Recording:
     @property
     def toolpath(self):
         """The attached toolpath (:class:`~dm2.core.messages.Toolpath`) or None."""
-        data = self.attachments.get(TOOLPATH_ATTACHMENT)
-        if data is None:
-            return None
-        from dm2.toolpath.formats import read_csv
-
-        with tempfile.TemporaryDirectory() as tmp:
-            p = Path(tmp) / TOOLPATH_ATTACHMENT
-            p.write_bytes(data)
-            return read_csv(p)
+        return attached_toolpath(self.attachments)
 
     def _iter_raw(self, topics=None):
+        full = topics is None  # a full pass records how far the file could be read
+        good = 0
         with open(self.path, "rb") as f:
-            if self.complete:
-                yield from make_reader(f).iter_messages(topics=topics, log_time_order=True)
-                return
             try:
-                yield from NonSeekingReader(f).iter_messages(topics=topics,
-                                                             log_time_order=False)
-            except (McapError, EOFError, ValueError, struct.error) as exc:
-                log.warning("%s: stopped at a truncated record (%s)", self.path,
-                            str(exc) or type(exc).__name__)
+                if self.complete:
+                    it = make_reader(f).iter_messages(topics=topics, log_time_order=True)
+                else:
+                    it = NonSeekingReader(f).iter_messages(topics=topics,
+                                                           log_time_order=False)
+                for item in it:
+                    if full:
+                        t = item[2].log_time
+                        if self.last_stamp_ns is None or t > self.last_stamp_ns:
+                            self.last_stamp_ns = t
+                        good = f.tell()
+                    yield item
+            except (McapError, EOFError, ValueError, struct.error, OSError) as exc:
+                log.debug("%s: stopped at a record it cannot read (%s)", self.path,
+                          str(exc) or type(exc).__name__)
+                if full:
+                    self.damage = {"error": type(exc).__name__, "good_bytes": int(good)}
+
+    def input_summary(self) -> dict:
+        """What the full pass of :meth:`messages` read: ``complete`` (False when it stopped at
+        a record it could not read), ``truncated`` (no summary: cut short), ``last_stamp_s``
+        (newest message read), ``bytes_skipped`` (bytes after the last chunk read)."""
+        size = self.path.stat().st_size
+        damaged = self.damage is not None
+        skipped = max(0, size - self.damage["good_bytes"]) if damaged else 0
+        return {"file": str(self.path), "complete": not damaged,
+                "truncated": damaged and not self.complete, "indexed": self.complete,
+                "last_stamp_s": (None if self.last_stamp_ns is None
+                                 else ns_to_stamp(self.last_stamp_ns)),
+                "bytes": size, "bytes_skipped": skipped,
+                "error": self.damage["error"] if damaged else None}
+
+    @property
+    def has_counters(self) -> bool:
+        """False when the first ``COUNTER_PEEK`` profiles all have sequence 0."""
+        if self._has_counters is None:
+            seqs = []
+            raw = self._iter_raw(list(SCAN_TOPICS.values()))
+            for _schema, _channel, message in raw:
+                seqs.append(message.sequence)
+                if len(seqs) >= COUNTER_PEEK:
+                    break
+            raw.close()
+            self._has_counters = any(seqs)
+        return self._has_counters
 
     def messages(self) -> Iterator[Profile | RobotState | LayerMark]:
         """Pipeline messages in stamp order (a RobotState once its joints and pose both came)."""
         scan_ids = {t: sid for sid, t in SCAN_TOPICS.items()}
+        counters = self.has_counters
+        if not counters:
+            log.info("%s: no profile counters (every MCAP sequence is 0); duplicate profiles "
+                     "are recognised by (sensor, stamp)", self.path)
         pending_joints: dict[int, tuple] = {}
         pending_tf: dict[int, tuple] = {}
         for _schema, channel, message in self._iter_raw():
@@ -162,8 +206,8 @@ class Recording:
             try:
                 if topic in scan_ids:
                     ns, frame_id, xz, valid, inten = ros.decode_cloud(message.data)
-                    yield Profile(scan_ids[topic], ns_to_stamp(ns), message.sequence, xz, valid,
-                                  inten)
+                    yield Profile(scan_ids[topic], ns_to_stamp(ns),
+                                  message.sequence if counters else None, xz, valid, inten)
                 elif topic == JOINT_TOPIC:
                     ns, _names, pos = ros.decode_joint_state(message.data)
                     state = self._pair(ns, message.sequence, pending_tf, pending_joints, pos)
@@ -194,6 +238,19 @@ class Recording:
             return None
         joints, T = (value, partner[1]) if joints_first else (partner[1], value)
         return RobotState(ns_to_stamp(ns), seq, joints, T)
+
+
+def attached_toolpath(attachments: dict[str, bytes]):
+    """The ``toolpath.csv`` attachment as a :class:`~dm2.core.messages.Toolpath`, or None."""
+    data = attachments.get(TOOLPATH_ATTACHMENT)
+    if data is None:
+        return None
+    from dm2.toolpath.formats import read_csv
+
+    with tempfile.TemporaryDirectory() as tmp:
+        p = Path(tmp) / TOOLPATH_ATTACHMENT
+        p.write_bytes(data)
+        return read_csv(p)
 
 
 def read_recording(path: str | Path) -> Recording:
