@@ -62,7 +62,7 @@ def test_local_only_region_is_an_early_warning_until_it_turns_global():
     assert tr.update(3, [region(3, 0, 5, kind="overbuild", height=0.6),
                          region(3, 20, 24, kind="local_underbuild")]) == [1, None]
     (t,) = tr.tracks
-    assert t.kind == "overbuild" and t.first_layer == 1
+    assert t.kind == "overbuild" and t.first_layer == 3 and t.warned_from == 1
     assert t.kinds == {1: "local_overbuild", 2: "local_overbuild", 3: "overbuild"}
     tr.finish()
     assert len(tr.tracks) == 1  # the dent never turned global: no track

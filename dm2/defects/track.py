@@ -11,7 +11,9 @@ has been seen in ``confirm_observations`` layers within ``confirm_window_layers`
 first (so its onset stays the layer it was first seen in). A candidate that does not make it
 is dropped: a single noisy layer never opens a track. With ``confirm_requires_global`` a
 candidate seen only as local over/underbuild is not confirmed either (local deviations stay
-early warnings in the layer results) until the region turns global within the window. Track
+early warnings in the layer results) until the region turns global within the window; its
+``first_layer`` (onset) is then the first global layer, ``warned_from`` the first local one,
+and the history keeps both. Track
 ids are numbered in the order tracks are confirmed. Per layer a track is in one state:
 
 * ``new``; ``growing`` (amplifying), ``shrinking`` (self-compensating) or ``stable``, judged
@@ -56,6 +58,7 @@ class Track:
     bbox_max_O: np.ndarray = field(default_factory=lambda: np.zeros(3))
     confirmed: bool = False
     serial: int = 0
+    warned_from: int | None = None  # first layer of a local early warning before the onset
     observations: list[tuple[int, int]] = field(default_factory=list)  # (layer, region index)
 
     @property
@@ -90,6 +93,7 @@ class Track:
                 "ended_layer": self.ended_layer, "parent": _track_id(self.parent),
                 "merged_into": _track_id(self.merged_into), "trend": self.trend,
                 "kinds": {str(k): v for k, v in self.kinds.items()},
+                "warned_from_layer": self.warned_from,
                 "area_mm2": {str(h["layer"]): h["area_mm2"] for h in self.history},
                 "height_mm": {str(h["layer"]): h["height_mm"] for h in self.history},
                 "history": self.history}
@@ -215,6 +219,10 @@ class RegionTracker:
         return [t.id for t in owner]
 
     def _confirm(self, t: Track) -> None:
+        if self.confirm_requires_global:  # onset: the first global layer; local ones warned
+            glob = [h["layer"] for h in t.history if not h["kind"].startswith("local_")]
+            t.warned_from = t.first_layer
+            t.first_layer = min(glob)
         t.confirmed = True
         t.id = self._next_id
         self._next_id += 1
