@@ -76,7 +76,8 @@ def test_report_folder_contents(tmp_path, monitored):
     assert len(ply.faces) == len(res.deviation.faces)
     stl = trimesh.load(out / rep["files"]["reference"][0])
     assert stl.bounds[1][2] == pytest.approx(0.8 * 6, abs=1e-6)
-    for name in rep["files"]["deviation_maps"] + rep["files"]["track_plots"]:
+    assert all(name.endswith(".svg") for name in rep["files"]["track_plots"])
+    for name in rep["files"]["deviation_maps"]:
         assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert len(rep["files"]["deviation_maps"]) == 6
     assert rep["files"]["figures"] == ["plots/overview.png", "plots/timeline.png"]

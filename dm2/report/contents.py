@@ -14,7 +14,8 @@ from pathlib import Path
 
 from dm2.report import summary
 from dm2.report.meshes import write_deviation_ply, write_reference_stl
-from dm2.report.plots import TIMELINE_ROWS, plot_deviation_map, plot_timeline, plot_track
+from dm2.report.plots import KIND_COLOURS, TIMELINE_ROWS, plot_deviation_map, plot_timeline
+from dm2.report.svg_plots import write_track_svgs
 from dm2.report.report_json import write_tracks_csv
 
 PLOTTED_TRACKS = 20
@@ -98,11 +99,9 @@ def write_contents(tmp: Path, results, tracks, ranked: list[dict], *, config_tom
                                                                         strict=True)]
     plot_timeline(tmp / "plots/timeline.png", rows, marks, n_layers=len(results))
     files["figures"].append("plots/timeline.png")
-    plotted = ranked[:PLOTTED_TRACKS]
-    for k, t in enumerate(plotted):
-        step("track plots", k, len(plotted))
-        name = f"plots/track_{t['id']:03d}_{t['kind']}.png"
-        plot_track(tmp / name, t)
-        files["track_plots"].append(name)
+    step("track plots", 0, 1)
+    items = [(f"plots/track_{t['id']:03d}_{t['kind']}.svg", t) for t in ranked[:PLOTTED_TRACKS]]
+    write_track_svgs([(tmp / name, t) for name, t in items], KIND_COLOURS)
+    files["track_plots"] += [name for name, _ in items]
     return files
 

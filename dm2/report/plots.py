@@ -28,37 +28,71 @@ def _pyplot():
     return plt
 
 
-def _draw_deviation(fig, ax, dev: LayerDeviation, limit_mm: float) -> None:
-    from matplotlib.tri import Triangulation
+def deviation_raster(dev: LayerDeviation, pixel_mm: float | None = None):
+    """Top view of a layer's signed distance on a regular xy grid: ``(image (ny, nx) with NaN
+    where nothing was measured, unobserved (ny, nx) bool, extent (x0, x1, y0, y1) mm)``.
 
+    Each pixel holds the mean signed distance of the observed vertices in it (pixels about the
+    mesh's vertex spacing; one pass fills isolated empty pixels from their neighbours).
+    """
     v = dev.vertices_O
-    if not len(dev.faces):
-        return
-    tri = Triangulation(v[:, 0], v[:, 1], dev.faces)
+    if pixel_mm is None:
+        a = dev.vertex_area_mm2
+        pixel_mm = float(np.sqrt(np.median(a[a > 0]))) if np.any(a > 0) else 0.5
+        pixel_mm = min(max(pixel_mm, 0.1), 2.0)
+    lo = v[:, :2].min(axis=0) - pixel_mm
+    nx, ny = (np.ceil((v[:, :2].max(axis=0) + pixel_mm - lo) / pixel_mm).astype(int) + 1)
+    ij = np.floor((v[:, :2] - lo) / pixel_mm).astype(np.int64)
+    flat = ij[:, 1] * nx + ij[:, 0]
     seen = dev.class_code != 5
-    d = np.where(seen, dev.signed_distance_mm, np.nan)[dev.faces]
-    with np.errstate(invalid="ignore"):
-        face_d = np.nanmean(d, axis=1) if np.isfinite(d).any() else np.full(len(d), np.nan)
-    mask = ~np.isfinite(face_d)
-    tri.set_mask(mask)
-    pc = ax.tripcolor(tri, facecolors=np.nan_to_num(face_d), cmap="RdBu_r", vmin=-limit_mm,
-                      vmax=limit_mm, rasterized=True)
-    fig.colorbar(pc, ax=ax, label="signed distance to reference [mm]", shrink=0.85)
-    if mask.any():
-        grey = Triangulation(v[:, 0], v[:, 1], dev.faces[mask])
-        ax.triplot(grey, color="0.7", lw=0.15)
+    total = np.bincount(flat[seen], dev.signed_distance_mm[seen], nx * ny)
+    count = np.bincount(flat[seen], minlength=nx * ny).astype(float)
+    blind = np.bincount(flat[~seen], minlength=nx * ny) > 0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        img = (total / count).reshape(ny, nx)
+    empty = count.reshape(ny, nx) == 0
+    if empty.any():  # isolated holes between vertices: the mean of the 3 x 3 neighbours
+        t2, c2 = total.reshape(ny, nx), count.reshape(ny, nx)
+        ts, cs = np.zeros_like(t2), np.zeros_like(c2)
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                ts += np.roll(np.roll(t2, dy, 0), dx, 1)
+                cs += np.roll(np.roll(c2, dy, 0), dx, 1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            fill = ts / cs
+        fill_here = empty & (cs >= 3)
+        img[fill_here] = fill[fill_here]
+    unobserved = blind.reshape(ny, nx) & ~np.isfinite(img)
+    extent = (lo[0], lo[0] + nx * pixel_mm, lo[1], lo[1] + ny * pixel_mm)
+    return img, unobserved, extent
+
+
+def _draw_deviation(fig, ax, dev: LayerDeviation, limit_mm: float) -> None:
+    if dev.n_vertices == 0:
+        return
+    img, unobserved, extent = deviation_raster(dev)
+    if unobserved.any():
+        grey = np.where(unobserved, 0.75, np.nan)
+        ax.imshow(grey, origin="lower", extent=extent, cmap="gray", vmin=0, vmax=1,
+                  interpolation="nearest")
+    im = ax.imshow(img, origin="lower", extent=extent, cmap="RdBu_r", vmin=-limit_mm,
+                   vmax=limit_mm, interpolation="nearest")
+    fig.colorbar(im, ax=ax, label="signed distance to reference [mm]", shrink=0.85)
 
 
 def _draw_markers(ax, markers) -> list[np.ndarray]:
     """``markers``: (id, kind, (x, y)); a numbered circle each. Returns their points."""
-    pts = []
-    for tid, kind, (x, y) in markers:
-        label = str(tid)
-        ax.scatter([x], [y], s=110 + 45 * max(len(label) - 1, 0), facecolor="white",
-                   edgecolor=KIND_COLOURS.get(kind, "k"), linewidth=1.8, zorder=5)
-        ax.text(x, y, label, ha="center", va="center", fontsize=6.5, zorder=6,
+    markers = list(markers)
+    if not markers:
+        return []
+    xy = np.array([m[2] for m in markers], float)
+    sizes = [110 + 45 * max(len(str(m[0])) - 1, 0) for m in markers]
+    ax.scatter(xy[:, 0], xy[:, 1], s=sizes, facecolor="white", linewidth=1.8, zorder=5,
+               edgecolor=[KIND_COLOURS.get(m[1], "k") for m in markers])
+    for (tid, _, _), (x, y) in zip(markers, xy, strict=True):
+        ax.text(x, y, str(tid), ha="center", va="center", fontsize=6.5, zorder=6,
                 fontweight="bold")
-        pts.append(np.array([x, y]))
+    pts = list(xy)
     return pts
 
 
@@ -88,8 +122,8 @@ def plot_deviation_map(path: str | Path, dev: LayerDeviation, markers=(), limit_
         _draw_deviation(fig, ax, dev, limit_mm)
         pts = _draw_markers(ax, markers)
         _frame(ax, outline, pts)
-        ax.set_title(title or f"Layer {dev.layer}: deviation map")
-        fig.tight_layout()
+        ax.set_title(title or f"Layer {dev.layer}: deviation map", fontsize=10)
+        fig.subplots_adjust(left=0.1, right=0.97, top=0.94, bottom=0.08)
         fig.savefig(path)
     finally:
         plt.close(fig)
@@ -126,7 +160,7 @@ def plot_timeline(path: str | Path, tracks: list[dict], alarm_marks=(), n_layers
                 continue
             ax.scatter([lay], [y], marker="v", color="k", s=28, zorder=5)
         ax.set_yticks(range(n_rows), labels, fontsize=7)
-        ax.set_ylim(n_rows - 0.5, -0.5)
+        ax.set_ylim(max(n_rows, 1) - 0.5, -0.5)
         last = max([n_layers - 1] + [t["last_layer"] for t in rows])
         ax.set_xlim(-0.6, last + 0.6)
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))
@@ -142,30 +176,3 @@ def plot_timeline(path: str | Path, tracks: list[dict], alarm_marks=(), n_layers
     return n_rows
 
 
-def plot_track(path: str | Path, track: dict) -> None:
-    """Area [mm^2] (top) and height = signed max deviation [mm] (bottom) of one track (a report
-    track dict) against layer, on integer layer ticks."""
-    plt = _pyplot()
-    from matplotlib.ticker import MaxNLocator
-
-    layers = [h["layer"] for h in track["history"]]
-    area = [h["area_mm2"] for h in track["history"]]
-    dev = [h["max_deviation_mm"] for h in track["history"]]
-    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(6, 4.2), dpi=100, sharex=True)
-    try:
-        colour = KIND_COLOURS.get(track["kind"], "k")
-        ax1.plot(layers, area, "o-", color=colour)
-        ax1.set_ylabel("area [mm$^2$]")
-        ax1.set_ylim(bottom=0)
-        ax2.plot(layers, dev, "s-", color=colour)
-        ax2.axhline(0, color="0.6", lw=0.8)
-        ax2.set_ylabel("max deviation [mm]")
-        ax2.set_xlabel("layer")
-        ax2.xaxis.set_major_locator(MaxNLocator(integer=True))
-        ax2.set_xlim(min(layers) - 0.6, max(layers) + 0.6)
-        ax1.set_title(f"Track {track['id']}: {track['kind'].replace('_', ' ')} "
-                      f"({track.get('trend', '')})")
-        fig.tight_layout()
-        fig.savefig(path)
-    finally:
-        plt.close(fig)
