@@ -15,8 +15,8 @@ from pathlib import Path
 from dm2.report import summary
 from dm2.report.meshes import write_deviation_ply, write_reference_stl
 from dm2.report.plots import KIND_COLOURS, TIMELINE_ROWS, plot_deviation_map, plot_timeline
-from dm2.report.svg_plots import write_track_svgs
 from dm2.report.report_json import write_tracks_csv
+from dm2.report.svg_plots import write_track_svgs
 
 PLOTTED_TRACKS = 20
 MARKED_TRACKS = 20
@@ -95,7 +95,7 @@ def write_contents(tmp: Path, results, tracks, ranked: list[dict], *, config_tom
     rows = sorted(ranked[:TIMELINE_ROWS], key=lambda t: (t["first_layer"], t["id"]))
     alarms = (report_stub.get("realtime") or {}).get("alarms", [])
     layers_of = summary.alarm_layers(report_stub)
-    marks = [(lay, summary.alarm_track(a, lay, rows)) for a, lay in zip(alarms, layers_of,
+    marks = [(lay, summary.alarm_track(a, lay, ranked)) for a, lay in zip(alarms, layers_of,
                                                                         strict=True)]
     plot_timeline(tmp / "plots/timeline.png", rows, marks, n_layers=len(results))
     files["figures"].append("plots/timeline.png")

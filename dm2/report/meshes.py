@@ -35,12 +35,18 @@ def write_deviation_ply(path: str | Path, dev: LayerDeviation, limit_mm: float =
 
     Vertex properties: ``x y z`` (float32, mm, frame O), ``red green blue`` (uchar),
     ``scalar_signed_distance`` (float32, mm), ``scalar_class`` (float32 class code),
-    ``scalar_weight`` (float32); CloudCompare shows the ``scalar_*`` ones as scalar fields.
+    ``scalar_weight`` (float32), ``ref_x ref_y ref_z`` (float32, mm, frame O: the closest
+    point of the near-net reference to the vertex, so the same faces over these points show the
+    reference surface); CloudCompare shows the ``scalar_*`` ones as scalar fields. The header
+    comments name each ``scalar_class`` code (:data:`dm2.defects.classify.CLASS_NAMES`).
     """
+    from dm2.defects.classify import CLASS_NAMES
+
     n = dev.n_vertices
     vdt = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"),
                     ("blue", "u1"), ("scalar_signed_distance", "<f4"), ("scalar_class", "<f4"),
-                    ("scalar_weight", "<f4")])
+                    ("scalar_weight", "<f4"), ("ref_x", "<f4"), ("ref_y", "<f4"),
+                    ("ref_z", "<f4")])
     verts = np.empty(n, vdt)
     for k, name in enumerate("xyz"):
         verts[name] = dev.vertices_O[:, k]
@@ -49,16 +55,23 @@ def write_deviation_ply(path: str | Path, dev: LayerDeviation, limit_mm: float =
     verts["scalar_signed_distance"] = dev.signed_distance_mm
     verts["scalar_class"] = dev.class_code
     verts["scalar_weight"] = np.minimum(dev.weight, np.finfo(np.float32).max)
+    for k, name in enumerate(("ref_x", "ref_y", "ref_z")):
+        verts[name] = dev.foot_O[:, k]
+    classes = ", ".join(f"{k} = {name}" for k, name in enumerate(CLASS_NAMES))
     fdt = np.dtype([("n", "u1"), ("v", "<i4", (3,))])
     faces = np.empty(len(dev.faces), fdt)
     faces["n"] = 3
     faces["v"] = dev.faces
     header = ("ply\nformat binary_little_endian 1.0\ncomment dm2 deviation map, frame O, mm\n"
-              f"comment layer {dev.layer}\nelement vertex {n}\n"
+              f"comment layer {dev.layer}\ncomment scalar_class: {classes}\n"
+              "comment scalar_signed_distance: mm to the near-net reference, + above it\n"
+              "comment ref_x ref_y ref_z: closest point on the near-net reference, mm\n"
+              f"element vertex {n}\n"
               "property float x\nproperty float y\nproperty float z\n"
               "property uchar red\nproperty uchar green\nproperty uchar blue\n"
               "property float scalar_signed_distance\nproperty float scalar_class\n"
               "property float scalar_weight\n"
+              "property float ref_x\nproperty float ref_y\nproperty float ref_z\n"
               f"element face {len(faces)}\nproperty list uchar int vertex_indices\nend_header\n")
     with open(path, "wb") as fh:
         fh.write(header.encode("ascii"))
