@@ -57,7 +57,7 @@ VERDICT_JS = "document.getElementById('verdict').innerText"
 
 def _sheet(path: Path) -> dict:
     with Browser(path.as_uri(), 1400, 900) as b:
-        b.wait_for("document.readyState == 'complete'")
+        b.wait_for("document.readyState == 'complete' && !!document.getElementById('verdict')")
         return b.evaluate(
             "(() => {const v = document.getElementById('verdict').getBoundingClientRect();"
             "const o = document.querySelector('#overview img');"
@@ -71,8 +71,9 @@ def test_verdict_names_the_bump_and_comes_from_the_monitor(runs):
     run = runs["bump"]
     page = _sheet(run / "index.html")
     assert page["height"] == 900 and 0 <= page["top"] and page["bottom"] <= 900
-    first = page["verdict"].splitlines()
-    assert "Overbuild at (" in first[1] and "from layer 2" in first[1], page["verdict"]
+    first = [line for line in page["verdict"].splitlines() if line.strip()]
+    assert first[0].startswith("1 defect track in 5 layers"), page["verdict"]
+    assert first[1].startswith("Overbuild at (") and "from layer 2" in first[1], first
     x, y = (float(c) for c in first[1].split("(")[1].split(")")[0].split(","))
     assert np.hypot(x - 57.0, y - 60.0) < 3.0
     assert page["overview"] > 0 and page["timeline"] and page["truth"]

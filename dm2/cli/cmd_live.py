@@ -9,7 +9,8 @@ import typer
 from dm2.cli.common import app, bad_input_exits, console, fail
 
 
-def run_live_monitor(cell_path: Path, out: Path, max_duration_s: float | None = None) -> None:
+def run_live_monitor(cell_path: Path, out: Path, max_duration_s: float | None = None,
+                     view_port: int | None = None) -> None:
     """``dm2 monitor --live CELL.toml --out DIR``: monitor the cell until it goes quiet or
     Ctrl-C / SIGTERM; ``DIR/live.mcap`` records the stream, ``DIR/report`` the results."""
     import signal
@@ -35,6 +36,13 @@ def run_live_monitor(cell_path: Path, out: Path, max_duration_s: float | None = 
     except OSError as exc:
         runner.close()
         fail(f"{cell_path}: cannot open the live sources: {exc}")
+    view = None
+    if view_port is not None:
+        from dm2.cli.cmd_view import start_live_view
+
+        states = runner.analysis.session.states
+        view = start_live_view(runner.calibration, lambda: states.last_T_B_F, view_port)
+        runner.analysis.layer_listeners.append(view.on_layer)
     stop = threading.Event()
     previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
     console.print(f"listening: EGM udp {addresses['egm'][0]}:{addresses['egm'][1]}, profiles "
@@ -45,6 +53,9 @@ def run_live_monitor(cell_path: Path, out: Path, max_duration_s: float | None = 
         runner.finish()
     finally:
         signal.signal(signal.SIGTERM, previous)
+        if view is not None:
+            view.close()
+            view.stop_server()
     a = runner.analysis
     console.print(f"{runner.messages_in} messages, {len(a.results)} layers, "
                   f"{len(a.tracks)} tracks; dropped {a.dropped or 'nothing'}")

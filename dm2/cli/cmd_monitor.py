@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import typer
 
-from dm2.cli.common import app, bad_input_exits, console, fail, note_cold_kernel_cache
+from dm2.cli.common import app, bad_input_exits, console, fail, log_file, note_cold_kernel_cache
 
 log = logging.getLogger(__name__)
 
@@ -89,6 +89,9 @@ def monitor(
                               "profile sources) instead of a recording; see dm2.live.config."),
     analyse: bool = typer.Option(True, "--analyse/--no-analyse", help="Also compare each layer "
                                  "with the near-net reference and write OUT/report/."),
+    view: bool = typer.Option(False, "--view", help="Show the part growing in the browser "
+                              "(3D, coloured by signed deviation) on 127.0.0.1:--view-port."),
+    view_port: int = typer.Option(8080, "--view-port", min=1, max=65535),
 ) -> None:
     """Monitor a recording: sync, register, fuse (TSDF), mesh per layer, deviation, tracks.
 
@@ -107,7 +110,7 @@ def monitor(
 
         if run is not None:
             fail("give either a recording or --live CELL.toml, not both")
-        run_live_monitor(live, out)
+        run_live_monitor(live, out, view_port=view_port if view else None)
         return
     if run is None:
         fail("give a recording to replay, or --live CELL.toml")
@@ -148,11 +151,22 @@ def monitor(
         console.print(f"layer {ls.layer}: {ls.surface.n_vertices} vertices, "
                       f"{len(result.regions)} region(s) -> {path}")
 
+    live_view = None
+
+    def on_layer(result) -> None:
+        save(result)
+        if live_view is not None:
+            live_view.on_layer(result)
+
     session = MonitoringSession(cal, monitor_cfg, process, plate_size_mm=plate_mm, toolpath=tp,
-                                on_layer=save)
+                                on_layer=on_layer)
+    if view:
+        from dm2.cli.cmd_view import start_live_view
+
+        live_view = start_live_view(cal, lambda: session.states.last_T_B_F, view_port)
     mon = session.monitor
     n_msgs = 0
-    with console.status("fusing profiles"):
+    with console.status("fusing profiles"), log_file(out / "monitor.log"):
         for msg in rec.messages():
             session.feed(msg)
             n_msgs += 1
@@ -175,7 +189,7 @@ def monitor(
                      timing={**session.timing.to_dict(),
                              "wall_s": time.perf_counter() - t_start},
                      meta={"recording": str(run), "layers": len(session.results)},
-                     sections={"realtime": session.realtime_summary()})
+                     sections={"realtime": session.realtime_summary()}, toolpath=tp)
     table = Table(title=f"monitor: {run.name}")
     table.add_column("what")
     table.add_column("count", justify="right")
@@ -190,6 +204,15 @@ def monitor(
         console.print(f"report: [bold]{out / 'report' / 'index.html'}[/]")
     if mon.points_fused == 0:
         fail(f"{run}: no profile could be fused (dropped: {mon.dropped})", code=1)
+    if live_view is not None:
+        from dm2.view.live import serve_forever
+
+        live_view.close()
+        console.print(f"3D view: [bold]{live_view.url}[/] (Ctrl-C ends)")
+        try:
+            serve_forever()
+        finally:
+            live_view.stop_server()
 
 
 def _clear_earlier_outputs(out: Path) -> None:

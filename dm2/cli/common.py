@@ -67,7 +67,7 @@ def setup_logging(verbose: bool) -> None:
 @contextmanager
 def log_file(path):
     """Write every INFO record (real-time alarms included) to ``path`` while the block runs."""
-    handler = logging.FileHandler(path, encoding="utf-8")
+    handler = logging.FileHandler(path, mode="w", encoding="utf-8")
     handler.setLevel(logging.INFO)
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
     root = logging.getLogger()
