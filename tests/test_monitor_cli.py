@@ -85,7 +85,8 @@ def test_monitor_replaces_the_outputs_of_an_earlier_run(tmp_path, stream):
     res = CliRunner().invoke(app, ["monitor", str(run), "--out", str(out), "--no-analyse"])
     assert res.exit_code == 0, res.output
     assert sorted(p.name for p in out.iterdir()) == [
-        "layer_0000.ply", "layer_0001.ply", "monitor.json", "monitor.toml", "notes.txt"]
+        "layer_0000.ply", "layer_0001.ply", "monitor.json", "monitor.log", "monitor.toml",
+        "notes.txt"]
     assert read_ply(out / "layer_0001.ply").n_faces > 1000
 
 
