@@ -48,8 +48,17 @@ class LiveView:
         self._stop = threading.Event()
         self._frames: dict = {}
         self.updates = 0
+        self._warm_up()
         self._thread = threading.Thread(target=self._loop, name="live-view", daemon=True)
         self._thread.start()
+
+    def _warm_up(self) -> None:
+        """Load the mesh encoding and colour code once now (about 2 s the first time), before
+        any stream arrives, instead of at the first layer."""
+        v = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+        handle = self.scene.surface("/warm_up", v, np.array([[0, 1, 2]]), np.zeros(3))
+        handle.remove()
+        self.scene._camera_set = False
 
     def on_layer(self, result) -> None:
         """A layer was analysed (any thread): keep it for the next scene update."""
@@ -67,8 +76,8 @@ class LiveView:
         res = self._pending
         if res is not None and res is not self._shown:
             dev = res.deviation
-            self.scene.surface("/surface", dev.vertices_O, dev.faces, dev.signed_distance_mm,
-                               dev.class_code)
+            self.scene.surface_chunked("/surface", dev.vertices_O, dev.faces,
+                                       dev.signed_distance_mm, dev.class_code)
             self.scene.tracks([(tid, r.kind, r.bbox_min_O, r.bbox_max_O)
                                for r, tid in zip(res.regions, res.track_ids, strict=True)])
             self.status.content = (f"**Layer {res.layer}** analysed · {len(res.regions)} "

@@ -12,6 +12,7 @@ import numpy as np
 from dm2.report.meshes import deviation_colours
 
 MM = 1e-3  # scene units per mm
+MAX_BOXES = 30  # track boxes shown per layer at most (the largest regions come first)
 BOX_RGB = {"overbuild": (178, 24, 43), "underbuild": (33, 102, 172),
            "local_overbuild": (244, 165, 130), "local_underbuild": (146, 197, 222)}
 
@@ -43,7 +44,29 @@ class Scene:
         self.server = server
         self.limit_mm = float(limit_mm)
         self._boxes: list = []
+        self._chunks: dict[str, list] = {}
         self._camera_set = False
+
+    def surface_chunked(self, name: str, vertices_O_mm, faces, signed_mm, class_code,
+                        chunk_faces: int = 12_000, pause_s: float = 0.002) -> None:
+        """:meth:`surface` sent as several meshes of at most ``chunk_faces`` faces, pausing
+        ``pause_s`` between them so other threads (the fusion loop) get the interpreter in
+        between; the chunks of the previous call under ``name`` are replaced."""
+        import time
+
+        faces = np.asarray(faces)
+        n = max(int(np.ceil(len(faces) / chunk_faces)), 1)
+        handles = []
+        for k in range(n):
+            f = faces[k * chunk_faces:(k + 1) * chunk_faces]
+            used, inverse = np.unique(f, return_inverse=True)
+            handles.append(self.surface(f"{name}/{k}", np.asarray(vertices_O_mm)[used],
+                                        inverse.reshape(-1, 3), np.asarray(signed_mm)[used],
+                                        np.asarray(class_code)[used]))
+            time.sleep(pause_s)
+        for h in self._chunks.get(name, [])[n:]:
+            h.remove()
+        self._chunks[name] = handles
 
     def surface(self, name: str, vertices_O_mm, faces, signed_mm=None, class_code=None,
                 rgb=None, visible: bool = True):
@@ -77,7 +100,7 @@ class Scene:
         for h in self._boxes:
             h.remove()
         self._boxes = []
-        for tid, kind, lo, hi in boxes:
+        for tid, kind, lo, hi in list(boxes)[:MAX_BOXES]:
             lo, hi = np.asarray(lo, float), np.asarray(hi, float)
             dims = np.maximum(hi - lo, 0.2) * MM
             centre = (lo + hi) / 2 * MM
