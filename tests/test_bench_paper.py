@@ -4,7 +4,7 @@
 import numpy as np
 import pytest
 
-from dm2.bench.paper import part_heights, plot_track_evolution
+from dm2.bench.paper import part_heights, plot_track_evolution, track_evolution_figure
 
 
 def _block_vertices(step=0.25):
@@ -37,8 +37,21 @@ def test_unobserved_cells_take_their_neighbours_height():
     assert out["mass_g"] == pytest.approx((20 * 10 * 3.0 + 16 * 6) * 4.51 / 1000, rel=0.05)
 
 
-def test_track_evolution_plot(tmp_path):
-    report = {"tracks": [{"id": 1, "kind": "overbuild", "history": [
-        {"layer": k, "area_mm2": 10.0 * k, "max_deviation_mm": 0.2 * k} for k in range(1, 5)]}]}
+def test_track_evolution_figure_plots_each_track_by_layer(tmp_path):
+    report = {"tracks": [
+        {"id": 1, "kind": "overbuild", "history": [
+            {"layer": k, "area_mm2": 10.0 * k, "max_deviation_mm": 0.2 * k} for k in range(1, 5)]},
+        {"id": 2, "kind": "local_underbuild", "history": [  # one layer only: left out
+            {"layer": 3, "area_mm2": 5.0, "max_deviation_mm": -0.3}]},
+    ]}
+    fig = track_evolution_figure(report, "growing overbuild")
+    ax_area, ax_height = fig.axes
+    (area,), (height,) = ax_area.get_lines(), ax_height.get_lines()
+    np.testing.assert_array_equal(area.get_xdata(), [1, 2, 3, 4])
+    np.testing.assert_allclose(area.get_ydata(), [10.0, 20.0, 30.0, 40.0])
+    np.testing.assert_allclose(height.get_ydata(), [0.2, 0.4, 0.6, 0.8])
+    assert area.get_label() == "#1 overbuild" and ax_area.get_title() == "growing overbuild"
     path = plot_track_evolution(tmp_path / "t.png", report, "growing overbuild")
-    assert path.stat().st_size > 5000
+    from matplotlib.image import imread
+
+    assert imread(path).shape[:2] == (660, 770)  # 7 x 6 in at 110 dpi

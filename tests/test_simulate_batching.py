@@ -1,5 +1,5 @@
 """The batched simulation loop gives, bit for bit, the stream of the plain per-sample loop:
-one deposition call per motion sample, validated robot states, the numpy reference profiler
+one deposition call per motion sample, validated robot states, the numpy path of the profilers
 (trace and noise), robot noise drawn three values at a time; and the trusted state constructor
 equals the validating one."""
 
@@ -10,6 +10,7 @@ import pytest
 
 from dm2.core.config import parse_scenario
 from dm2.core.messages import LayerMark, Profile, RobotState
+from tests.oracles.messages import assert_same_message
 from tests.oracles.simulate_numpy import per_sample_messages
 from twin.stream.simulate import Simulation
 from twin.stream.threads import chunk_runs
@@ -39,18 +40,6 @@ def _per_sample_stream(sim: Simulation):
     return list(per_sample_messages(sim, hf)), hf
 
 
-def _assert_same_message(a, b):
-    assert type(a) is type(b)
-    for name, va in vars(a).items():
-        vb = getattr(b, name)
-        if isinstance(va, np.ndarray):
-            assert va.dtype == vb.dtype and va.shape == vb.shape, name
-            np.testing.assert_array_equal(va, vb, err_msg=name)
-            assert not va.flags.writeable and not vb.flags.writeable
-        else:
-            assert type(va) is type(vb) and va == vb, name
-
-
 @pytest.fixture(scope="module")
 def sim():
     return Simulation(_scenario())
@@ -64,7 +53,7 @@ def test_batched_stream_equals_per_sample_loop_bit_for_bit(sim):
     assert kinds == {LayerMark, RobotState, Profile}
     assert [m.layer for m in batched if isinstance(m, LayerMark)] == [0, 1]
     for a, b in zip(batched, reference, strict=True):
-        _assert_same_message(a, b)
+        assert_same_message(a, b)
     np.testing.assert_array_equal(sim.final_heightfield.heights_mm, hf_ref.heights_mm)
     assert float(hf_ref.heights_mm.max()) > 0.3  # something was deposited and scanned
     assert sum(int(m.valid.sum()) for m in batched if isinstance(m, Profile)) > 1000
@@ -75,11 +64,11 @@ def test_trusted_robot_state_equals_validated(sim):
     for i in (0, 17, len(m) - 1):
         a = RobotState(float(m.t_s[i]), i, m.joints_rad[i], m.T_B_F[i])
         b = RobotState.trusted(np.float64(m.t_s[i]), np.int64(i), m.joints_rad[i], m.T_B_F[i])
-        _assert_same_message(a, b)
+        assert_same_message(a, b)
     joints, T = m.joints_rad[:3].copy(), m.T_B_F[:3].copy()
     joints.flags.writeable = T.flags.writeable = False  # rows taken as they are
     b = RobotState.trusted(1.5, 2, joints[2], T[2])
-    _assert_same_message(RobotState(1.5, 2, joints[2], T[2]), b)
+    assert_same_message(RobotState(1.5, 2, joints[2], T[2]), b)
     assert b.T_B_F.base is T
 
 
@@ -92,7 +81,7 @@ def test_trusted_profile_equals_validated():
     a = Profile("S2", 0.52, (1 << 24) - 1, xz.copy(), valid.copy(), intensity.copy())
     b = Profile.trusted("S2", np.float64(0.52), np.int64((1 << 24) - 1), xz, valid, intensity)
     assert np.isnan(b.xz_S[~valid]).all()
-    _assert_same_message(a, b)
+    assert_same_message(a, b)
     assert b.xz_S is xz  # no copy: the producer's array, now read-only
 
 

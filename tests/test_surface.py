@@ -49,7 +49,22 @@ def test_incremental_update_equals_full_extraction():
     a = inc.update()
     b = SurfaceExtractor(tsdf).update()
     assert a.n_vertices == b.n_vertices and a.n_faces == b.n_faces
-    np.testing.assert_allclose(np.sort(a.vertices_O, axis=0), np.sort(b.vertices_O, axis=0))
+    # the same vertices (whole rows) and the same triangles, whatever their order
+    np.testing.assert_array_equal(_rows_sorted(a.vertices_O), _rows_sorted(b.vertices_O))
+    np.testing.assert_array_equal(_triangles_sorted(a), _triangles_sorted(b))
+
+
+def _rows_sorted(x: np.ndarray) -> np.ndarray:
+    return x[np.lexsort(x.T[::-1])]
+
+
+def _triangles_sorted(surf) -> np.ndarray:
+    """Each face as its three corner points (in its own winding, rotated to start at the
+    smallest corner), the faces sorted: equal for two meshes of the same triangles."""
+    corners = surf.vertices_O[surf.faces]  # (m, 3, 3)
+    first = np.array([min(range(3), key=lambda k, c=c: tuple(c[k])) for c in corners])
+    rolled = np.stack([np.roll(c, -k, axis=0) for c, k in zip(corners, first, strict=True)])
+    return _rows_sorted(rolled.reshape(len(rolled), 9))
 
 
 def test_unobserved_field_gives_an_empty_surface():
@@ -71,6 +86,40 @@ def test_ply_round_trip_keeps_weights_and_opens_in_open3d(tmp_path):
     m = o3d.io.read_triangle_mesh(str(path))
     assert len(m.vertices) == surf.n_vertices and len(m.triangles) == surf.n_faces
     assert len(surf.to_open3d().triangles) == surf.n_faces
+
+
+def test_ply_re_saved_by_another_tool_reads_back(tmp_path):
+    """A file re-saved as ASCII with the properties in another order and the faces as a
+    variable-length list (as mesh tools write it) reads back to the same mesh."""
+    from plyfile import PlyData, PlyElement
+
+    surf = SurfaceExtractor(_fused_plane(extent=12.0)).update()
+    path = tmp_path / "s.ply"
+    surf.write_ply(path)
+    original = PlyData.read(str(path))
+    order = ["scalar_weight", "nz", "ny", "nx", "z", "y", "x"]
+    data = original["vertex"].data
+    vertex = np.empty(len(data), dtype=[(k, data.dtype[k].str) for k in order])
+    for k in order:
+        vertex[k] = data[k]
+    faces = np.empty(surf.n_faces, dtype=[("vertex_indices", object)])
+    faces["vertex_indices"] = [np.asarray(f, dtype=np.int32) for f in surf.faces]
+    resaved = tmp_path / "resaved.ply"
+    PlyData([PlyElement.describe(vertex, "vertex"),
+             PlyElement.describe(faces, "face")], text=True).write(str(resaved))
+    back = read_ply(resaved)
+    np.testing.assert_array_equal(back.vertices_O, surf.vertices_O)
+    np.testing.assert_array_equal(back.normals_O, surf.normals_O)
+    np.testing.assert_array_equal(back.faces, surf.faces)
+    np.testing.assert_array_equal(back.weight, surf.weight)
+    no_weight = tmp_path / "no_weight.ply"
+    xyz = np.empty(len(data), dtype=[(k, "<f8") for k in "xyz"])
+    for k in "xyz":
+        xyz[k] = data[k]
+    PlyData([PlyElement.describe(xyz, "vertex"),
+             PlyElement.describe(faces, "face")]).write(str(no_weight))
+    with pytest.raises(MessageError, match="no_weight.ply.*scalar_weight"):
+        read_ply(no_weight)
 
 
 def test_surface_mesh_validates():

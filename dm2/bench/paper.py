@@ -80,8 +80,9 @@ def paper_table_row(run_dir: str | Path, report: dict, density_g_cm3: float) -> 
     return row
 
 
-def plot_track_evolution(path: str | Path, report: dict, title: str) -> Path:
-    """Area and height of every global track against layer (the paper's Figs. 'evolution')."""
+def track_evolution_figure(report: dict, title: str):
+    """Area (top axes) and peak deviation (bottom axes) of every global track, and of local
+    tracks seen in two layers or more, against layer (the paper's Figs. 'evolution')."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -105,6 +106,14 @@ def plot_track_evolution(path: str | Path, report: dict, title: str) -> Path:
     if ax_a.get_legend_handles_labels()[0]:
         ax_a.legend(fontsize=7, ncol=2)
     fig.tight_layout()
+    return fig
+
+
+def plot_track_evolution(path: str | Path, report: dict, title: str) -> Path:
+    """:func:`track_evolution_figure` saved as a PNG at ``path``."""
+    import matplotlib.pyplot as plt
+
+    fig = track_evolution_figure(report, title)
     path = Path(path)
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -225,7 +225,7 @@ def _read_json(path: Path):
 def score_scenario_run(run: ScenarioRun) -> dict:
     """:func:`dm2.bench.scoring.score_run` of a finished run, with its scenario's settings."""
     from dm2.bench.scoring import score_run
-    from dm2.reference.model import plume_sigma_mm
+    from dm2.core.plume import plume_sigma_mm
 
     sc = run.scenario
     return score_run(run.report, run.fault_truth,

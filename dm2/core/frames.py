@@ -1,6 +1,6 @@
 """Rigid transforms in SE(3) for the cell's frames.
 
-Frames (see DESIGN.md): ``B`` robot base, ``F`` flange, ``O`` work object (plate corner),
+Frames (see ARCHITECTURE.md): ``B`` robot base, ``F`` flange, ``O`` work object (plate corner),
 ``N`` nozzle exit, ``S1..S3`` laser profilers. A transform ``T_a_b`` is a (4, 4) float64
 array with ``p_a = T_a_b @ p_b``; names cancel when composed: ``T_O_S = T_O_B @ T_B_S``.
 Units are millimetres and radians; degrees appear only in ``*_deg`` helpers.

@@ -137,12 +137,6 @@ def _border(v, f, loop) -> np.ndarray:
     return np.linalg.norm(loop, axis=1) > 1e-6 * scale
 
 
-def smooth_over_faces(values: np.ndarray, faces: np.ndarray, iterations: int) -> np.ndarray:
-    """Average per-vertex ``values`` through the incident faces ``iterations`` times."""
-    return _smooth(np.ascontiguousarray(values, dtype=np.float64),
-                   np.ascontiguousarray(faces, dtype=np.int64).reshape(-1, 3), int(iterations))
-
-
 def curvature_and_areas(vertices_O: np.ndarray, faces: np.ndarray, normals_O=None,
                         smooth_iterations: int = CURVATURE_SMOOTHING_ITERATIONS):
     """``(mean curvature [1/mm] (n,), vertex areas [mm^2] (n,))`` of a triangle mesh.

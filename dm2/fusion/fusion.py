@@ -22,6 +22,7 @@ import numpy as np
 
 from dm2.core.config import MonitorConfig, ProcessConfig
 from dm2.core.messages import Calibration, Toolpath
+from dm2.core.plume import plume_sigma_mm
 from dm2.fusion.layers import LayerTracker
 from dm2.fusion.registration import profile_frames, spot_B
 from dm2.fusion.surface import PendingSurface, SurfaceExtractor, SurfaceMesh
@@ -68,8 +69,6 @@ class LayerSurface:
 
 def default_active_radius_mm(process: ProcessConfig) -> float:
     """Two plume sigmas [mm] (the footprint's sigma as the near-net reference models it)."""
-    from dm2.reference.model import plume_sigma_mm
-
     return 2.0 * plume_sigma_mm(process)
 
 

@@ -80,16 +80,6 @@ class ReferenceMap:
         curv = -num / (2.0 * (1 + hx * hx + hy * hy) ** 1.5)
         return bilinear_height(curv, self.cell_mm, xy_O)
 
-    def sdf_at(self, points_O) -> np.ndarray:
-        """First-order signed distance [mm] (n,) of ``points_O`` to the reference surface.
-
-        ``(z - h(x, y)) * n_z``: the height difference projected on the local normal; positive
-        above the surface (outside the material), negative below.
-        """
-        p = np.asarray(points_O, dtype=np.float64).reshape(-1, 3)
-        nz = self.normals_at(p[:, :2])[:, 2]
-        return (p[:, 2] - self.height_at(p[:, :2])) * nz
-
     def resampled(self, cell_mm: float) -> ReferenceMap:
         """The surface point-sampled on a grid of ``cell_mm`` (centres at ``(i + 0.5) * cell``).
 

@@ -46,27 +46,17 @@ import numpy as np
 
 from dm2.core.frames import invert
 from dm2.core.messages import Calibration, LayerMark, RobotState, Toolpath
+from dm2.core.plume import plume_sigma_mm
 from dm2.fusion.layers import LayerTracker
 from dm2.reference import kernels as RK
 from dm2.reference.height_map import ReferenceMap
 
 log = logging.getLogger(__name__)
 
-PLUME_HALF_ANGLE_DEG = 5.0  # used when the process config has no plume_half_angle_deg
 FOOTPRINT_SIGMAS = 4.0  # footprint truncated at 4 sigma (0.03 % of the mass is left out)
 SLOPE_PROBE_MM = 0.5  # half span of the central difference giving the local surface normal
 MAX_INTEGRATION_GAP_S = 1.0  # longer gaps between robot states are not integrated
 MAX_PIECE_S = 0.1  # a dwell deposits at least every 0.1 s (pieces are sigma / 4 long)
-
-
-def plume_sigma_mm(process) -> float:
-    """Standard deviation of the Gaussian footprint [mm] (see module docstring)."""
-    if process.plume_sigma_mm is not None:
-        return float(process.plume_sigma_mm)
-    half_angle = getattr(process, "plume_half_angle_deg", PLUME_HALF_ANGLE_DEG)
-    radius = 0.5 * process.nozzle_exit_mm + process.standoff_mm * math.tan(
-        math.radians(half_angle))
-    return 0.5 * radius
 
 
 def volume_rate_mm3_s(process) -> float:

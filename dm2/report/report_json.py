@@ -10,7 +10,9 @@ import numpy as np
 
 from dm2.defects.track import Track
 
-REPORT_SCHEMA = "dm2.report/1"
+# 2: a track's and a region's ``height_mm`` is the largest |deviation| from the reference (was
+# the z extent of the region's box, now ``box_extent_z_mm``); ``trend`` is judged on that height
+REPORT_SCHEMA = "dm2.report/2"
 # which track kind an injected fault is expected to produce (sign of the fault's effect)
 _FAULT_KIND = {"bump": "overbuild", "dent": "underbuild", "corner_dwell": "overbuild",
                "clog": "underbuild", "feed_drop": "underbuild"}

@@ -125,7 +125,3 @@ def right_normals_closed(xy: np.ndarray) -> np.ndarray:
     norm = np.linalg.norm(v, axis=1)
     v = np.where(norm[:, None] > 1e-9, v / np.maximum(norm, 1e-12)[:, None], nxt)
     return v
-
-
-def polyline_length(xy: np.ndarray) -> float:
-    return float(np.linalg.norm(np.diff(xy, axis=0), axis=1).sum()) if len(xy) > 1 else 0.0

@@ -4,7 +4,7 @@ Plain numpy (no pybullet): poses of everything that does not move, plus the mapp
 toolpath point and spray axis to the plate pose the arm must hold. The cell's state (joints,
 time) lives elsewhere (:mod:`twin.cell.motion`).
 
-Conventions (see the interface notes in DESIGN.md):
+Conventions (see ARCHITECTURE.md, "Frames and units"):
 
 - ``T_B_N``: nozzle exit at ``cell.nozzle_exit_B_mm``, ``+z_N = -z_B`` (spray straight down),
   ``x_N = x_B``. The deposition spot is ``standoff_mm`` along ``+z_N`` from the exit.
@@ -166,11 +166,6 @@ class CellModel:
                 f"plate centre at the deposition spot {np.round(spot_B, 1).tolist()} mm: "
                 f"{exc}") from None
         return model
-
-    @property
-    def T_N_spot(self) -> np.ndarray:
-        """Deposition spot in the nozzle frame, (4, 4) translation along +z_N."""
-        return frames.make_T(None, [0.0, 0.0, self.standoff_mm])
 
     def T_B_O_for(self, position_O: np.ndarray, axis_O: np.ndarray) -> np.ndarray:
         """Plate poses ``(n, 4, 4)`` putting each ``position_O`` at the spot along ``axis_O``.

@@ -250,13 +250,6 @@ class Simulation:
         self.spray_cpu_s, self.worker_cpu_s = cpu
         self.worker_fan_share = split.rays / max(split.n_rays, 1)
 
-    def nominal_layer_heights(self, last_segment: int, layers: list[int]) -> dict:
-        """Heights (ny, nx) [mm] after each of ``layers`` of the fault-free run (same seed, no
-        corner dwell), which stops where the faulty run's toolpath move ``last_segment`` ends."""
-        from twin.stream.truth_run import nominal_layer_heights
-
-        return nominal_layer_heights(self, last_segment, layers)
-
 
 def iter_messages(scenario: Scenario, truth_dir: str | Path | None = None,
                   progress: Progress | None = None) -> Iterator[Profile | RobotState | LayerMark]:
