@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from dm2.cli.common import app, bad_input_exits, console, fail
+from dm2.cli.common import app, bad_input_exits, console, fail, log_file
 
 
 def run_live_monitor(cell_path: Path, out: Path, max_duration_s: float | None = None,
@@ -48,7 +48,9 @@ def run_live_monitor(cell_path: Path, out: Path, max_duration_s: float | None = 
     console.print(f"listening: EGM udp {addresses['egm'][0]}:{addresses['egm'][1]}, profiles "
                   f"tcp {addresses['profiles'][0]}:{addresses['profiles'][1]}; Ctrl-C ends")
     try:
-        runner.run(stop=stop, max_duration_s=max_duration_s)
+        out.mkdir(parents=True, exist_ok=True)
+        with log_file(out / "monitor.log"):  # every record, the real-time alarms included
+            runner.run(stop=stop, max_duration_s=max_duration_s)
     except KeyboardInterrupt:
         runner.finish()
     finally:
