@@ -29,16 +29,22 @@ def report_dir(run: str | Path) -> Path:
 
 
 def read_layer_ply(path: Path) -> dict:
-    """Vertices, faces and scalar fields of a report deviation PLY."""
-    import trimesh
+    """Vertices, faces and scalar fields of a report deviation PLY (triangles read at once,
+    memory-mapped; any other face layout through dm2.io.ply.read_mesh_ply)."""
+    from plyfile import PlyData
 
-    from dm2.report.meshes import read_ply_vertex_fields
+    from dm2.io.ply import read_mesh_ply
 
-    fields = read_ply_vertex_fields(path)
-    mesh = trimesh.load(path, process=False, force="mesh")
+    try:
+        ply = PlyData.read(str(path), known_list_len={"face": {"vertex_indices": 3}})
+        vertex = ply["vertex"].data
+        fields = {name: np.array(vertex[name]) for name in vertex.dtype.names}
+        faces = np.array(ply["face"].data["vertex_indices"], dtype=np.int64).reshape(-1, 3)
+    except (ValueError, KeyError, TypeError):
+        fields, faces = read_mesh_ply(path)
     v = np.column_stack([fields["x"], fields["y"], fields["z"]]).astype(float)
-    out = {"vertices": v, "faces": np.asarray(mesh.faces),
-           "signed": fields["scalar_signed_distance"], "class": fields["scalar_class"]}
+    out = {"vertices": v, "faces": faces, "signed": fields["scalar_signed_distance"],
+           "class": fields["scalar_class"]}
     if "ref_x" in fields:
         out["reference"] = np.column_stack([fields["ref_x"], fields["ref_y"], fields["ref_z"]])
     return out
