@@ -4,7 +4,8 @@ Builds the synthetic run of :func:`dm2.report.synthetic.synthetic_run` (seeded; 
 mesh per layer, the whole 120 mm plate at 0.5 mm, small defect regions living 1-5 layers each,
 one real-time alarm per ten tracks), writes the whole report folder ``--runs`` times and prints
 the median wall time of :func:`dm2.report.write_report` (goal: at most 20 s), with its CPU time
-(the process's own, so comparable on a shared machine) and the load average. ``--keep DIR`` keeps one such report.
+(the process's own, so comparable on a shared machine) and the load average. ``--keep DIR``
+keeps one such report.
 
     .venv/bin/python benchmarks/report.py [--layers 124] [--tracks 1000] [--size-mm 120] [--runs 3]
         [--keep DIR]
