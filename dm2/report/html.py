@@ -144,17 +144,19 @@ def _thumbs(paths: list[str], title: str) -> str:
 
 
 def _layers(report: dict) -> str:
-    rows = []
     recon = report.get("reconstruction") or {}
+    rows = []
     for layer in report.get("layers", []):
         st = layer["statistics"]
-        rec = recon.get(str(layer["layer"]))
-        rows.append([layer["layer"], st.get("n_vertices"),
-                     f"{st.get('deviation_min_mm') or 0:.3f}",
-                     f"{st.get('deviation_max_mm') or 0:.3f}", len(layer["regions"]),
-                     "" if rec is None else f"{rec['rms_mm']:.3f}"])
+        row = [layer["layer"], st.get("n_vertices"), f"{st.get('deviation_min_mm') or 0:.3f}",
+               f"{st.get('deviation_max_mm') or 0:.3f}", len(layer["regions"])]
+        if recon:
+            rec = recon.get(str(layer["layer"]))
+            row.append("" if rec is None else f"{rec['rms_mm']:.3f}")
+        rows.append(row)
     header = ["layer", "vertices", "min dev [mm]", "max dev [mm]", "regions"]
-    header.append("RMS to true surface [mm]" if recon else "")
+    if recon:
+        header.append("RMS to true surface [mm]")
     return "<h2>Layers</h2>" + _table(rows, header, scroll=len(rows) > 25)
 
 
