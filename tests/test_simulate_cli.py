@@ -63,7 +63,8 @@ def test_run_writes_recording_and_fault_truth(tmp_path):
     res = runner.invoke(app, ["simulate", str(sc), "--out", str(out), "--truth", str(truth)])
     assert res.exit_code == 0, res.output
     assert sorted(p.name for p in truth.iterdir()) == [
-        "faults.json", "layer_000.ply", "layer_001.ply", "notes.txt"]
+        "deviation_000.npz", "deviation_001.npz", "faults.json", "layer_000.ply",
+        "layer_001.ply", "notes.txt"]
     rec = read_recording(out)
     msgs = list(rec.messages())
     assert [m.layer for m in msgs if isinstance(m, LayerMark)] == [0, 1]

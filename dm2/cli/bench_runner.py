@@ -44,6 +44,8 @@ class ScenarioRun:
     fault_truth : the twin's faults.json content (``{"faults": [...]}``)
     reconstruction : per layer ``{"rms_mm", "p95_mm", "n_vertices"}``: unsigned distance [mm]
         from the observed reconstructed vertices to the twin's true surface of that layer
+    footprints : track id -> {layer: (xy_O (k, 2) [mm], area (k,) [mm^2])}, the vertices of
+        each track's regions (what the strict scoring tests against the truth maps)
     process_s : float [s], simulated process time
     wall_s : float [s], wall time of the whole run (twin included)
     monitor_s : float [s], wall time spent in the pipeline (fusion, reference, analysis)
@@ -54,6 +56,7 @@ class ScenarioRun:
     report: dict
     fault_truth: dict
     reconstruction: dict[int, dict] = field(default_factory=dict)
+    footprints: dict = field(default_factory=dict)
     process_s: float = 0.0
     wall_s: float = 0.0
     monitor_s: float = 0.0
@@ -135,6 +138,7 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
             on_stream_end()
         truth = _read_json(scratch / "truth" / "faults.json") or {"faults": []}
         recon = reconstruction_errors(session.results, scratch / "truth")
+        footprints = track_footprints(session.results)
         timing = session.timing.to_dict()
         monitor_s = timing["fusion_s"] + timing["reference_s"] + timing["analysis_s"]
         timing.update(simulated_process_s=sim.end_s, monitor_s=monitor_s,
@@ -164,8 +168,29 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     return ScenarioRun(scenario=sc, run_dir=run_dir, report=report, fault_truth=truth,
-                       reconstruction=recon, process_s=float(sim.end_s),
+                       reconstruction=recon, footprints=footprints,
+                       process_s=float(sim.end_s),
                        wall_s=time.perf_counter() - t_start, monitor_s=float(monitor_s))
+
+
+def track_footprints(results) -> dict:
+    """Each track's vertices per layer: {track id: {layer: (xy_O (k, 2), area (k,))}}."""
+    out: dict = {}
+    for r in results:
+        if not r.regions:
+            continue
+        areas = r.deviation.vertex_areas()
+        xy = r.deviation.vertices_O[:, :2]
+        for reg, tid in zip(r.regions, r.track_ids, strict=True):
+            if tid is None:
+                continue
+            ids = np.asarray(reg.vertex_ids)
+            layers = out.setdefault(int(tid), {})
+            prev = layers.get(int(r.layer))
+            new = (xy[ids], areas[ids])
+            layers[int(r.layer)] = new if prev is None else (
+                np.vstack([prev[0], new[0]]), np.concatenate([prev[1], new[1]]))
+    return out
 
 
 def reconstruction_errors(results, truth_dir: Path) -> dict[int, dict]:
@@ -225,13 +250,11 @@ def _read_json(path: Path):
 def score_scenario_run(run: ScenarioRun) -> dict:
     """:func:`dm2.bench.scoring.score_run` of a finished run, with its scenario's settings."""
     from dm2.bench.scoring import score_run
-    from dm2.core.plume import plume_sigma_mm
+    from dm2.bench.truth_maps import load_truth_maps
 
-    sc = run.scenario
     return score_run(run.report, run.fault_truth,
-                     fault_configs=[f.model_dump(mode="json") for f in sc.faults],
-                     plume_sigma_mm=plume_sigma_mm(sc.process),
-                     delta_mm=sc.monitor.delta_global_mm, reconstruction=run.reconstruction,
+                     truth_maps=load_truth_maps(run.run_dir / "truth"),
+                     footprints=run.footprints, reconstruction=run.reconstruction,
                      process_s=run.process_s, monitor_s=run.monitor_s, wall_s=run.wall_s)
 
 
@@ -253,7 +276,7 @@ def sweep_case(scenario_dict: dict, source: str) -> dict:
     keep = ("detected", "detected_global", "sign_ok", "qualifies", "peak_height_mm", "onset_layer",
             "first_layer_detected", "onset_delay_layers", "iou", "height_error_mm")
     return _rounded({**{k: fault.get(k) for k in keep},
-                     "false_positive_tracks": len(score["false_positive_tracks"]),
+                     "false_positive_tracks": len(score["false_tracks"]),
                      "layers": score["layers"],
                      "reconstruction_rms_mm": score["reconstruction_rms_mm"]})
 

@@ -123,6 +123,13 @@ def check_expectations(tracks: list[Track], expect) -> list[dict]:
         results.append({"expect": f"{e.kind} track" + (f" near {list(e.near_mm)}" if e.near_mm
                                                         else ""),
                         "passed": bool(hits), "track_ids": [t.id for t in hits]})
+    for e in getattr(expect, "absent", ()):
+        hits = [t for t in tracks if t.kind == e.kind
+                and (e.from_layer is None or t.last_layer >= e.from_layer)
+                and (e.near_mm is None or _track_near(t, e.near_mm, e.within_mm) <= e.within_mm)]
+        results.append({"expect": f"no {e.kind} track" + (f" near {list(e.near_mm)}" if e.near_mm
+                                                           else ""),
+                        "passed": not hits, "track_ids": [t.id for t in hits]})
     if expect.no_tracks:
         hits = [t.id for t in tracks if not t.kind.startswith("local_")]
         results.append({"expect": "no overbuild/underbuild tracks", "passed": not hits,

@@ -123,14 +123,14 @@ class Simulation:
         from twin.profiler.sensor import VirtualProfiler
         from twin.profiler.trigger import trigger_schedule
         from twin.stream.truth_run import TruthWriter
-        from twin.world.deposition import SprayModel
+        from twin.world.deposition import twin_spray_model
         from twin.world.heightfield import HeightField
 
         sc, cell, motion, faults = self.scenario, self.cell, self.motion, self.faults
         plate = sc.cell.plate_size_mm
         hf = HeightField(size_mm=(plate[0], plate[1]), cell_mm=HEIGHTFIELD_CELL_MM,
                          thickness_mm=plate[2])
-        spray = SprayModel(sc.process, seed=sc.seed)
+        spray = twin_spray_model(sc)  # the twin's own physics ([twin_process])
         profilers = [VirtualProfiler(sid, cell.T_B_S[sid], sc.sensors, sc.noise, seed=sc.seed)
                      for sid in SENSOR_IDS]
         occluders = [nozzle_occluder(cell.T_B_N, sc.cell)]
