@@ -2,6 +2,7 @@
 
 import csv
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -96,13 +97,30 @@ def test_report_folder_contents(tmp_path, monitored):
     assert [p.name for p in out.parent.iterdir()] == ["report"]  # no temp folders left
 
 
-def test_rewrite_replaces_and_failure_leaves_nothing(tmp_path, monitored):
+def test_rewrite_replaces_its_own_files_keeps_a_users_and_failure_leaves_nothing(tmp_path,
+                                                                                   monitored):
     out = tmp_path / "rep"
-    write_report(out, monitored.results, monitored.tracker.tracks)
-    (out / "stale.txt").write_text("old")
-    write_report(out, monitored.results[:2], [], map_layers=[1])
-    assert not (out / "stale.txt").exists()
+    first = write_report(out, monitored.results, monitored.tracker.tracks)
+    write_report(out, monitored.results[:2], [], map_layers=[1])  # an earlier dm2 report
     assert json.loads((out / "report.json").read_text())["tracks"] == []
+    for name in set(first["files"]["meshes"]) - {f"meshes/layer_{r.layer:03d}.ply"
+                                                 for r in monitored.results[:2]}:
+        assert not (out / name).exists()  # the earlier report's files are gone
+    (out / "thesis.tex").write_text("mine")
+    with pytest.raises(ValueError, match="thesis.tex.*--force"):
+        write_report(out, monitored.results[:2], [], map_layers=[1])
+    write_report(out, monitored.results[:1], [], map_layers=[monitored.results[0].layer],
+                 force=True)
+    assert (out / "thesis.tex").read_text() == "mine"
+    assert json.loads((out / "report.json").read_text())["meta"] is not None
+    assert len(list((out / "meshes").glob("layer_*.ply"))) == 1
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "report.json").write_text("a user's file")
+    with pytest.raises(ValueError, match="did not write"):
+        write_report(mine, monitored.results, [], force=True)
+    assert (mine / "report.json").read_text() == "a user's file"
+    shutil.rmtree(mine)
     with pytest.raises(ValueError, match="map layer 9"):
         write_report(tmp_path / "bad", monitored.results, [], map_layers=[9])
     assert sorted(p.name for p in tmp_path.iterdir()) == ["rep"]

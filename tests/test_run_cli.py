@@ -89,3 +89,15 @@ def test_first_run_says_the_kernels_are_being_compiled(tmp_path, monkeypatch):
     with common.console.capture() as cap:
         common.note_cold_kernel_cache()
     assert cap.get() == ""
+
+
+def test_a_users_folder_is_refused_and_its_files_survive(tmp_path):
+    out = tmp_path / "thesis"
+    out.mkdir()
+    (out / "thesis.tex").write_text("\\documentclass{book}")
+    for extra in ([], ["--force"]):
+        res = CliRunner().invoke(app, ["run", "pad", "--out", str(out), "--no-record", *extra])
+        assert res.exit_code == 2 and "thesis.tex" in res.output
+    assert [p.name for p in tmp_path.iterdir()] == ["thesis"]
+    assert [p.name for p in out.iterdir()] == ["thesis.tex"]
+    assert (out / "thesis.tex").read_text() == "\\documentclass{book}"

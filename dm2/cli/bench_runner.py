@@ -90,15 +90,18 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
                  record: bool = False, full_report: bool = True,
                  progress: Progress | None = None,
                  on_stream_end: Callable[[], None] | None = None,
-                 calibration=None, on_layer: Callable | None = None,
+                 calibration=None, force: bool = False, on_layer: Callable | None = None,
                  report_stage: Callable[[str, int, int], None] | None = None,
-                 on_session: Callable | None = None) -> ScenarioRun:
+                 on_session: Callable | None = None,
+                 include: dict | None = None) -> ScenarioRun:
     """Simulate ``sc`` on the twin, monitor it and write the run folder ``run_dir``.
 
     Parameters
     ----------
     sc : the scenario (apply ``duration_s`` before calling)
-    run_dir : the run folder; replaced if it exists, written only once the run has finished
+    run_dir : the run folder, written only once the run has finished; an earlier dm2 run there is
+        replaced, a folder holding other files is refused (ValueError) unless ``force``, which
+        replaces only dm2's files (:mod:`dm2.report.outdir`)
     scenario_file : where the scenario came from (recorded in report.json)
     record : also keep the raw stream as ``run.mcap``
     full_report : the whole report folder (meshes, maps, plots, HTML); otherwise report.json
@@ -110,6 +113,7 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
     on_layer : called with each analysed layer's LayerResult (the session's ``on_layer``)
     report_stage : called with (stage, done, total) while the report is written
     on_session : called with the MonitoringSession once it exists (e.g. to attach a view)
+    include : name -> path of further files moved into the run folder (e.g. its log file)
 
     Raises
     ------
@@ -123,7 +127,7 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
     from twin.stream.simulate import Simulation
 
     t_start = time.perf_counter()
-    run_dir = check_output_dir(run_dir)
+    run_dir = check_output_dir(run_dir, force=force)
     sim = Simulation(sc)
     session = MonitoringSession(calibration or sim.calibration, sc.monitor, sc.process,
                                 plate_size_mm=sc.cell.plate_size_mm, toolpath=sim.toolpath,
@@ -148,23 +152,21 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
         config_toml = dump_toml(sc.to_toml_dict())
         sections = {"realtime": session.realtime_summary(),
                     "reconstruction": {str(k): v for k, v in recon.items()}}
+        include = {**{name: scratch / name for name in ("truth", "run.mcap")
+                      if (scratch / name).exists()}, **(include or {})}
         if full_report:
             report = write_report(run_dir, session.results, session.tracks,
                                   config_toml=config_toml, dropped=session.dropped,
                                   timing=timing, fault_truth=truth, expect=sc.expect, meta=meta,
-                                  sections=sections, toolpath=sim.toolpath,
-                                  stage=report_stage)
+                                  sections=sections, force=force, include=include,
+                                  command="dm2 run", inputs=[scenario_file],
+                                  toolpath=sim.toolpath, stage=report_stage)
         else:
             report = build_report(session.results, session.tracks, dropped=session.dropped,
                                   timing=timing, fault_truth=truth, expect=sc.expect, meta=meta,
                                   sections=sections)
-            _write_lite_report(run_dir, report, session.tracks, config_toml, write_tracks_csv)
-        for name in ("truth", "run.mcap"):
-            if (scratch / name).exists():
-                target = run_dir / name
-                if target.exists():
-                    shutil.rmtree(target) if target.is_dir() else target.unlink()
-                shutil.move(str(scratch / name), str(target))
+            _write_lite_report(run_dir, report, session.tracks, config_toml, write_tracks_csv,
+                               include)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     return ScenarioRun(scenario=sc, run_dir=run_dir, report=report, fault_truth=truth,
@@ -229,15 +231,18 @@ def reconstruction_errors(results, truth_dir: Path) -> dict[int, dict]:
 
 
 def _write_lite_report(run_dir: Path, report: dict, tracks, config_toml: str,
-                       write_tracks_csv) -> None:
+                       write_tracks_csv, include: dict) -> None:
+    from dm2.report.outdir import files_below, install_folder, write_manifest
+
     tmp = Path(tempfile.mkdtemp(prefix=f".{run_dir.name}.", dir=run_dir.parent))
     try:
         (tmp / "config.toml").write_text(config_toml, encoding="utf-8")
         (tmp / "report.json").write_text(json.dumps(report, indent=1), encoding="utf-8")
         write_tracks_csv(tmp / "tracks.csv", tracks)
-        if run_dir.exists():
-            shutil.rmtree(run_dir)
-        tmp.rename(run_dir)
+        for name, path in include.items():
+            shutil.move(str(path), str(tmp / name))
+        write_manifest(tmp, files_below(tmp), command="dm2 bench")
+        install_folder(tmp, run_dir)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise

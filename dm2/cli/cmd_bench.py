@@ -14,6 +14,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from dm2.cli.common import app, bad_input_exits, console, err_console, fail
+from dm2.report.outdir import claim_outputs, prepare_output_dir
 
 EXIT_FAILED = 1
 
@@ -83,6 +84,8 @@ def bench(
     overrides: list[str] = typer.Option([], "--set", help="SECTION.KEY=VALUE applied to every "
                                         "scenario, e.g. --set toolpath.max_layers=12."),
     only: list[str] = typer.Option([], "--only", help="Run only these scenario files (stems)."),
+    force: bool = typer.Option(False, "--force", help="Write into a folder holding an earlier "
+                               "dm2 output and other files: replace only dm2's files."),
     reports: bool = typer.Option(None, "--reports/--no-reports",
                                  help="Full report folders per scenario (default: the suite's)."),
     gate: bool = typer.Option(True, "--gate/--no-gate",
@@ -112,7 +115,7 @@ def bench(
         scenarios = [(f, load_suite_scenario(f, overrides)) for f in files]
         out_dir = (out or Path("runs") / f"bench-{datetime.now():%Y%m%d-%H%M%S}-{spec.name}")
         out_dir = out_dir.absolute()
-        out_dir.mkdir(parents=True, exist_ok=True)
+        kept = prepare_output_dir(out_dir, force=force)
     full = spec.full_report if reports is None else reports
     console.print(f"[bold]dm2 bench[/] suite [cyan]{spec.name}[/]: {len(scenarios)} scenarios "
                   f"-> {out_dir}")
@@ -145,6 +148,7 @@ def bench(
         doc["paper"] = _paper_outputs(out_dir, done_runs)
     (out_dir / "bench.json").write_text(json.dumps(doc, indent=1, default=_json_default),
                                         encoding="utf-8")
+    claim_outputs(out_dir, kept, "dm2 bench")
     console.width = max(console.width, 170)
     console.print(bench_table(runs))
     checks = " ".join(f"{k}: {'[green]ok[/]' if v else '[red]missed[/]'}"
@@ -215,6 +219,8 @@ def sweep(
                                   "cluster) instead of a local cluster."),
     out: Path = typer.Option(None, "--out", "-o",
                              help="Output folder (default runs/sweep-TIME)."),
+    force: bool = typer.Option(False, "--force", help="Write into a folder holding an earlier "
+                               "dm2 output and other files: replace only dm2's files."),
 ) -> None:
     """Monte Carlo over seeds and fault sizes on Dask: detection probability against size.
 
@@ -237,7 +243,7 @@ def sweep(
         cases = sweep_cases(base, size_list, list(range(seed0, seed0 + seeds)), param, fault)
         parse_scenario(cases[0]["scenario"], f"{path} (faults[{fault}].{param})")
         out_dir = (out or Path("runs") / f"sweep-{datetime.now():%Y%m%d-%H%M%S}").absolute()
-        out_dir.mkdir(parents=True, exist_ok=True)
+        kept = prepare_output_dir(out_dir, force=force)
     from dm2.cli.bench_runner import sweep_case
 
     where = scheduler or f"a local cluster of {workers} worker processes"
@@ -253,6 +259,7 @@ def sweep(
     (out_dir / "sweep.json").write_text(json.dumps(doc, indent=1, sort_keys=True),
                                         encoding="utf-8")
     plot_sweep(out_dir / "sweep.png", summary, param, f"{Path(path).stem}: detection vs {param}")
+    claim_outputs(out_dir, kept, "dm2 sweep")
     table = Table(title=f"Detection probability against {param}")
     for c in ("size", "n", "detected", "probability", "P global track", "mean peak mm",
               "FP tracks"):

@@ -18,6 +18,7 @@ from rich.progress import (
 )
 
 from dm2.cli.common import app, bad_input_exits, console, fail, log_file, note_cold_kernel_cache
+from dm2.cli.outcome import EXIT_MISSED, drop_lines
 
 
 def default_run_dir(root: Path, name: str) -> Path:
@@ -102,11 +103,17 @@ def run(
     calibration: Path = typer.Option(None, "--calibration", help="Calibration TOML the "
                                      "pipeline uses instead of the scenario's (e.g. one solved "
                                      "by `dm2 calibrate`)."),
+    force: bool = typer.Option(False, "--force", help="Write into a folder holding an earlier "
+                               "dm2 run and other files: replace only dm2's files."),
     view: bool = typer.Option(False, "--view", help="Show the part growing in the browser "
                               "(3D, coloured by signed deviation) on 127.0.0.1:--view-port."),
     view_port: int = typer.Option(8080, "--view-port", min=1, max=65535),
 ) -> None:
     """Simulate SCENARIO on the twin, monitor it with the 3D-DM2 pipeline and write a report.
+
+    The run folder must be new or empty, or hold an earlier dm2 run (its manifest
+    `.dm2-manifest.json`), whose files are then replaced; other files there need `--force` and
+    are kept. Exits 1 when an expectation of the scenario's `[expect]` section is missed.
 
     Example: `dm2 run` or `dm2 run pad --out runs/pad`
     """
@@ -123,7 +130,7 @@ def run(
             sc = sc.model_copy(update={"duration_s": duration_s})
         cal = read_calibration_toml(calibration) if calibration is not None else None
         run_dir = (out or default_run_dir(runs_root, sc.name)).absolute()
-        check_output_dir(run_dir)
+        check_output_dir(run_dir, force=force, inputs=[path, calibration])
     run_dir.parent.mkdir(parents=True, exist_ok=True)
     console.print(f"[bold]dm2 run[/] scenario [cyan]{sc.name}[/] ({path})")
     note_cold_kernel_cache()
@@ -163,12 +170,14 @@ def run(
                                 on_stream_end=lambda: bar.update(
                                     task, description="comparing with the twin's truth"),
                                 calibration=cal, on_layer=on_layer, report_stage=on_stage,
-                                on_session=on_session)
+                                on_session=on_session, force=force,
+                                include={"run.log": log_path})
         except (ReachError, ConfigError) as exc:
             log_path.unlink(missing_ok=True)
             fail(f"{path}: {exc}")
-    if log_path.exists():
-        log_path.replace(run_dir / "run.log")
+        except ValueError as exc:  # the run folder changed meanwhile (OutputRefused)
+            log_path.unlink(missing_ok=True)
+            fail(str(exc))
     report = done.report
     link_latest(run_dir)
     print_summary(report, new_tracks)
@@ -182,6 +191,9 @@ def run(
     wall = time.perf_counter() - t_start
     console.print(f"report: [bold]{run_dir / 'index.html'}[/]  ({wall:.1f} s wall, "
                   f"{done.process_s:.1f} s of process time)")
+    for line in drop_lines(report.get("dropped", {})):
+        console.print(line, highlight=False)
+    missed = [e for e in report.get("expectations", []) if not e.get("passed")]
     if view_handle is not None:
         view_handle.close()
         console.print(f"3D view: [bold]{view_handle.url}[/] (Ctrl-C ends)")
@@ -191,4 +203,6 @@ def run(
             serve_forever()
         finally:
             view_handle.stop_server()
+    if missed:
+        raise typer.Exit(EXIT_MISSED)
 

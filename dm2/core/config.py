@@ -13,6 +13,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from dm2.core.config_errors import model_named
+
 SCHEMA_VERSION = 1
 
 
@@ -213,6 +215,38 @@ class CalibrationPerturbation(_Model):
     sensors: tuple[str, ...] = ("S1", "S2", "S3")
 
 
+class InputGateConfig(_Model):
+    """Plausibility gates on live and replayed input (:mod:`dm2.fusion.gates`); defaults fit an
+    IRB 4600-40/2.55 (datasheet joint limits and speeds, reach 2.55 m) with margin."""
+
+    stamp_band_s: float = Field(2.0, gt=0)  # a stamp this far from the source's clock: dropped
+    stamp_rate_max: float = Field(2.0, gt=0)  # stamp seconds per host second at most (live)
+    stamp_confirm_s: float = Field(1.0, gt=0)  # a clock step lasting this long is re-synced
+    stamp_seed: int = Field(3, ge=1, le=64)  # first messages whose median seeds the band
+    workspace_B_mm: tuple[tuple[float, float, float], tuple[float, float, float]] = (
+        (-3000.0, -3000.0, -1500.0), (3000.0, 3000.0, 3500.0))
+    joint_limits_deg: tuple[tuple[float, float], ...] = (
+        (-180.0, 180.0), (-90.0, 150.0), (-180.0, 75.0), (-400.0, 400.0), (-125.0, 125.0),
+        (-400.0, 400.0))
+    max_tcp_speed_mm_s: float = Field(7000.0, gt=0)
+    max_joint_speed_deg_s: tuple[float, ...] = (175.0, 175.0, 175.0, 250.0, 250.0, 360.0)
+    speed_margin: float = Field(1.5, ge=1.0)  # factor on the speed limits
+    max_lost_share: float = Field(0.25, ge=0, le=1)  # a run losing more input fails (exit 1)
+
+    @model_validator(mode="after")
+    def _boxes(self):
+        lo, hi = self.workspace_B_mm
+        if any(a >= b for a, b in zip(lo, hi, strict=True)):
+            raise ValueError(f"workspace_B_mm: lower corner {list(lo)} not below upper {list(hi)}")
+        if any(a >= b for a, b in self.joint_limits_deg):
+            raise ValueError(f"joint_limits_deg: a lower limit is not below its upper limit "
+                             f"({[list(j) for j in self.joint_limits_deg]})")
+        if len(self.max_joint_speed_deg_s) != len(self.joint_limits_deg):
+            raise ValueError(f"max_joint_speed_deg_s: {len(self.max_joint_speed_deg_s)} values "
+                             f"for {len(self.joint_limits_deg)} joints")
+        return self
+
+
 class MonitorConfig(_Model):
     voxel_mm: float = Field(0.5, gt=0, le=2.0)
     truncation_voxels: float = Field(3.0, gt=0)
@@ -231,6 +265,7 @@ class MonitorConfig(_Model):
     # (progress slower than dwell_speed_mm_s: dwells, reorientation stops) deposits nothing
     reference_clock: Literal["executed", "programmed"] = "programmed"
     dwell_speed_mm_s: float = Field(1.0, gt=0)
+    gates: InputGateConfig = InputGateConfig()
 
 
 class ExpectTrack(_Model):
@@ -296,15 +331,13 @@ def _drop_none(obj):
     return obj
 
 
-def format_validation_error(source: str, exc: ValidationError) -> str:
-    lines = [f"{source}: invalid configuration"]
-    for err in exc.errors():
-        loc = ".".join(str(p) for p in err["loc"]) or "(top level)"
-        msg = err["msg"]
-        if err["type"] == "extra_forbidden":
-            msg = "unknown key"
-        lines.append(f"  field '{loc}': {msg}")
-    return "\n".join(lines)
+def format_validation_error(source: str, exc: ValidationError, model=None) -> str:
+    """One line per error naming the field and showing the bad value; an unknown key gets the
+    nearest known key of its table as a suggestion (``model``: the validated model class,
+    default the one that raised; :mod:`dm2.core.config_errors`)."""
+    from dm2.core.config_errors import describe_errors
+
+    return describe_errors(source, exc, model or model_named(_Model, exc.title))
 
 
 def parse_scenario(data: dict[str, Any], source: str = "<scenario>") -> Scenario:

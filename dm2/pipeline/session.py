@@ -113,14 +113,17 @@ class MonitoringSession:
         worker thread with ``analysis_thread``)
     analysis_thread : analyse finished layers on a worker thread (live runs); :meth:`finish`
         waits for it, so the results are the same
+    gates : optional :class:`~dm2.fusion.gates.InputGates` every message passes first
+        (replays; a live run gates before its clock aligner); its drops join :attr:`dropped`
     """
 
     def __init__(self, calibration: Calibration, monitor_cfg: MonitorConfig,
                  process: ProcessConfig, plate_size_mm=(120.0, 120.0),
                  toolpath: Toolpath | None = None,
                  on_layer: Callable[[LayerResult], None] | None = None,
-                 analysis_thread: bool = False):
+                 analysis_thread: bool = False, gates=None):
         self.cfg = monitor_cfg
+        self.gates = gates
         self.on_layer = on_layer
         self.reference = NearNetReference(process, monitor_cfg, calibration,
                                           size_mm=tuple(plate_size_mm[:2]))
@@ -153,6 +156,8 @@ class MonitoringSession:
     @property
     def dropped(self) -> dict[str, int]:
         out = dict(self.monitor.dropped)
+        if self.gates is not None:
+            out.update({k: int(v) for k, v in self.gates.dropped.items() if v})
         if self.reference.gaps_skipped:
             out["reference_pose_gap"] = int(self.reference.gaps_skipped)
         return out
@@ -163,6 +168,13 @@ class MonitoringSession:
         ``defer=True`` fuses only: the reference update and the real-time comparison wait for
         :meth:`catch_up` (layer ends still take the reference of the finished layer at once).
         """
+        if self.gates is not None:
+            for m, _ in self.gates.admit(msg):
+                self._feed(m, defer)
+            return
+        self._feed(msg, defer)
+
+    def _feed(self, msg, defer: bool) -> None:
         self.timing.messages += 1
         if isinstance(msg, RobotState):
             self.states.push(msg.stamp_s, msg.T_B_F)
@@ -228,6 +240,9 @@ class MonitoringSession:
     def finish(self) -> list[LayerResult]:
         """Flush everything, close the last layer and end the tracks."""
         if not self._finished:
+            if self.gates is not None:
+                for m, _ in self.gates.flush():
+                    self._feed(m, False)
             self._advance()
             t0 = time.perf_counter()
             self.monitor.finish()

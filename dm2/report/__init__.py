@@ -2,7 +2,9 @@
 
 :func:`write_report` writes into a temporary folder beside the target and renames it into place
 at the end, so a reader never sees a half-written report; an unwritable target fails before any
-work is done.
+work is done. The folder's manifest (:mod:`dm2.report.outdir`) lists every file written: an
+existing folder is replaced only when it holds an earlier dm2 run, and then only dm2's own
+files are (a file a user put there stays, with ``force``; without it the folder is refused).
 """
 
 from __future__ import annotations
@@ -17,37 +19,34 @@ from pathlib import Path
 
 from dm2.report.contents import Stage, write_contents
 from dm2.report.html import render_index
+from dm2.report.outdir import (
+    OutputRefused,
+    check_output_dir,
+    files_below,
+    install_folder,
+    write_manifest,
+)
 from dm2.report.report_json import REPORT_SCHEMA, build_report, report_track
 from dm2.report.summary import by_severity
 
 log = logging.getLogger(__name__)
 
-__all__ = ["REPORT_SCHEMA", "check_output_dir", "rerender_index", "write_report"]
-
-
-def check_output_dir(out_dir: str | Path) -> Path:
-    """Fail early (ValueError naming the folder) if ``out_dir`` cannot be written."""
-    out = Path(out_dir).absolute()
-    parent = out.parent
-    while not parent.exists() and parent != parent.parent:
-        parent = parent.parent
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"report folder {out}: exists and is not a folder")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise ValueError(f"report folder {out}: {parent} is not writable")
-    return out
+__all__ = ["REPORT_SCHEMA", "OutputRefused", "check_output_dir", "rerender_index",
+           "write_report"]
 
 
 def write_report(out_dir: str | Path, results, tracks, *, config_toml: str | None = None,
                  dropped: dict | None = None, timing: dict | None = None,
                  fault_truth=None, expect=None, map_layers=None, limit_mm: float = 1.0,
-                 meta: dict | None = None, sections: dict | None = None, toolpath=None,
-                 stage: Stage | None = None) -> dict:
+                 meta: dict | None = None, sections: dict | None = None,
+                 force: bool = False, inputs=(), command: str = "",
+                 include: dict | None = None, toolpath=None, stage: Stage | None = None) -> dict:
     """Write the whole run folder; returns the report dict.
 
     Parameters
     ----------
-    out_dir : target folder (replaced if it exists)
+    out_dir : target folder (an earlier dm2 run's files in it are replaced; see
+        :func:`dm2.report.outdir.check_output_dir` for ``force`` and ``inputs``)
     results : list of dm2.defects.layer_analysis.LayerResult
     tracks : list of dm2.defects.track.Track
     config_toml : the resolved configuration text (``dm2.core.toml_write.dump_toml``), written as-is
@@ -60,11 +59,15 @@ def write_report(out_dir: str | Path, results, tracks, *, config_toml: str | Non
     meta : run description copied into report.json
     sections : further top-level report.json sections, e.g. ``realtime`` (alarms, latency)
         and ``reconstruction`` (distance to the true surface per layer)
+    force, inputs : see :func:`dm2.report.outdir.check_output_dir`
+    command : the dm2 command, recorded in the folder's manifest
+    include : name -> path of further files or folders (e.g. the recording) moved into the
+        folder with the report, listed in its manifest
     toolpath : dm2.core.messages.Toolpath for the planned outline on the maps (else the
         reference's half-height contour)
     stage : called with (stage name, steps done, steps in stage) as the report is written
     """
-    out = check_output_dir(out_dir)
+    out = check_output_dir(out_dir, force=force, inputs=inputs)
     out.parent.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
@@ -88,13 +91,10 @@ def write_report(out_dir: str | Path, results, tracks, *, config_toml: str | Non
                               sections=sections)
         (tmp / "report.json").write_text(json.dumps(report, indent=1), encoding="utf-8")
         (tmp / "index.html").write_text(render_index(report, root=tmp), encoding="utf-8")
-        if out.exists():
-            old = out.with_name(f".{out.name}.old.{os.getpid()}")
-            out.rename(old)
-            tmp.rename(out)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            tmp.rename(out)
+        for name, path in (include or {}).items():
+            shutil.move(str(path), str(tmp / name))
+        write_manifest(tmp, files_below(tmp), command=command or "report")
+        install_folder(tmp, out, inputs)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2.core.config import Scenario
+from dm2.core.config import ConfigError, Scenario
 from dm2.core.frames import PoseInterpolator
 from dm2.core.messages import SENSOR_IDS, Calibration, LayerMark, Profile, RobotState
 from dm2.core.toml_write import dump_toml
@@ -85,7 +85,10 @@ class Simulation:
         self.part_mesh_O = build_part(scenario.part, plate)
         self.toolpath = generate_toolpath(self.part_mesh_O, scenario.toolpath)
         self.cell = CellModel.from_scenario(scenario)
-        self.faults = FaultSchedule(scenario.faults, self.toolpath, self.cell)
+        try:
+            self.faults = FaultSchedule(scenario.faults, self.toolpath, self.cell)
+        except ValueError as exc:  # a fault window the part cannot have: a scenario error
+            raise ConfigError(f"scenario '{scenario.name}': {exc}") from None
         self.motion = execute_toolpath(self.toolpath, self.cell,
                                        rate_hz=self.cell.robot_state_hz,
                                        accel_mm_s2=self.cell.accel_mm_s2,

@@ -3,7 +3,6 @@ effect, measured against a fault-free run of the same scenario and seed."""
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
 import numpy as np
@@ -44,16 +43,13 @@ class TruthWriter:
     """Ground truth beside a run: the true top surface after each layer (PLY in O),
     ``faults.json``, each fault's effect measured against a fault-free run with the same seed
     and ``[twin_process]``, and per layer the map of that effect (``deviation_LLL.npz``).
-    The truth of an earlier run in the same folder is removed first (a shorter run must not
-    leave stale layers beside its own); other files stay."""
+    Nothing already in the folder is removed here: ``dm2 simulate --truth`` clears an earlier
+    run's truth through the folder's dm2 manifest (:mod:`dm2.report.outdir`), so a shorter run
+    leaves no stale layer and a user's file of the same name is never deleted."""
 
     def __init__(self, truth_dir, sim):
         self.dir = Path(truth_dir)
         self.dir.mkdir(parents=True, exist_ok=True)
-        for p in self.dir.iterdir():
-            if re.fullmatch(r"(layer_\d{3,}\.ply)|(deviation_\d{3,}\.npz)", p.name) or \
-                    p.name == "faults.json":
-                p.unlink()
         self.sim = sim
         self.faulty: dict[int, np.ndarray] = {}
 
