@@ -1,8 +1,8 @@
 """Headless Chromium driven over the DevTools protocol (tests only).
 
-Debian's ``chromium`` package (``.ci/run`` installs it). :class:`Browser` starts it on a free
-debugging port with the given page, then evaluates JavaScript in the page and takes
-screenshots; software WebGL through SwiftShader.
+Debian's ``chromium`` package (``scripts/bootstrap.sh --tests`` installs it). :class:`Browser`
+starts it on a free debugging port with the given page, then evaluates JavaScript in the page
+and takes screenshots; software WebGL through SwiftShader.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ def chromium_path() -> str:
     path = shutil.which("chromium") or shutil.which("chromium-browser")
     if path is None:
         raise RuntimeError("Debian's chromium package is required (apt-get install -y "
-                           "chromium; .ci/run installs it)")
+                           "chromium; scripts/bootstrap.sh --tests installs it)")
     return path
 
 
