@@ -65,3 +65,15 @@ def test_first_layer_shortfall_alone_is_no_finding():
     assert [e["estimate"] for e in fit.layers[1:]] == pytest.approx([1.0] * 7)
     assert [e["next_scale"] for e in fit.layers] == pytest.approx([1.0] * 8)
     assert np.allclose(devs, -0.8 * 0.13)  # the first layer's shortfall stays as it was
+
+
+def test_process_finding_is_in_the_verdict_not_a_defect():
+    from dm2.report.summary import verdict
+
+    fit, _ = build(lambda k: 0.92)
+    report = {"tracks": [], "layers": [{"layer": k} for k in range(8)],
+              "process": fit.summary()}
+    v = verdict(report)
+    assert v["headline"].startswith("No defect found in 8 layers") and v["defects"] == 0
+    assert v["sentences"] == [f"Process finding: {fit.findings()[0]}."]
+    assert "8 % below nominal since layer 1" in v["sentences"][0]

@@ -58,6 +58,7 @@ from dm2.reference.model import NearNetReference
 from dm2.reference.process_fit import ProcessFit
 
 log = logging.getLogger(__name__)
+alarm_log = logging.getLogger("dm2.alarms")  # real-time alarms: the log file, not the console
 
 FRAME_SET = 3  # profiles per real-time comparison (the three cascaded profilers)
 STATE_BACKLOG = 2500  # states buffered at most while no profile is fused (10 s at 250 Hz)
@@ -306,7 +307,7 @@ class MonitoringSession:
         frame = self.realtime.update_from_tsdf(self.monitor.tsdf, spot_O, stamp,
                                                self.reference)
         for alarm in frame.alarms:
-            log.warning("real-time: %s of %.1f mm2 at (%.1f, %.1f) mm, %.2f s after its first "
+            alarm_log.info("real-time: %s of %.1f mm2 at (%.1f, %.1f) mm, %.2f s after its first "
                         "flag", alarm.kind, alarm.area_mm2, *alarm.centroid_xy_O,
                         alarm.stamp_s - alarm.first_flag_s)
         dt = time.perf_counter() - t0
