@@ -6,7 +6,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from dm2.reference.process_fit import ProcessFit
+from dm2.pipeline.process_fit import ProcessFit
 
 LAYER_MM = 0.8
 

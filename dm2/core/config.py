@@ -276,7 +276,7 @@ class MonitorConfig(_Model):
     realtime_min_observations: int = Field(2, ge=1)
     # plate deviations this far outside the planned outline: overspray (dm2.defects.footprint)
     overspray_margin_mm: float = Field(2.0, ge=0)
-    # the reference follows the process (dm2.reference.process_fit); None: on with the
+    # the reference follows the process (dm2.pipeline.process_fit); None: on with the
     # executed clock only (on the programmed one it would fit the slowdowns' overbuild)
     process_fit: bool | None = None
     process_fit_rate_per_layer: float = Field(0.02, ge=0, le=0.2)

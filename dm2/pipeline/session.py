@@ -53,9 +53,9 @@ from dm2.defects.layer_analysis import DefectMonitor, LayerResult
 from dm2.defects.realtime import RealtimeDeviation
 from dm2.fusion.fusion import LayerSurface, Monitor
 from dm2.pipeline.layer_worker import LayerWorker
+from dm2.pipeline.process_fit import ProcessFit
 from dm2.reference.feed import ReferenceFeed
 from dm2.reference.model import NearNetReference
-from dm2.reference.process_fit import ProcessFit
 
 log = logging.getLogger(__name__)
 alarm_log = logging.getLogger("dm2.alarms")  # real-time alarms: the log file, not the console

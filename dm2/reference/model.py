@@ -127,7 +127,7 @@ class NearNetReference:
 
     def set_process_scale(self, scale: float) -> None:
         """Deposit at ``scale`` times the nominal volume rate from now on (efficiency x feed
-        against nominal; dm2.reference.process_fit)."""
+        against nominal; dm2.pipeline.process_fit)."""
         if not 0 < scale < 10:
             raise ValueError(f"NearNetReference: process scale must be in (0, 10), got {scale}")
         self.process_scale = float(scale)

@@ -115,7 +115,7 @@ def track_sentence(track: dict) -> str:
 def verdict(report: dict) -> dict:
     """``{"headline", "sentences", "more", "defects", "uncertain", "layers", "findings"}``: the
     verdict of a report dict, from its tracks, layers and process findings (what the
-    reference's process fit absorbed, dm2.reference.process_fit) only."""
+    reference's process fit absorbed, dm2.pipeline.process_fit) only."""
     findings = [f"Process finding: {f}." for f in
                 (report.get("process") or {}).get("findings", [])]
     tracks = by_severity(report.get("tracks", []))

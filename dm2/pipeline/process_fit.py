@@ -1,5 +1,9 @@
 """The reference follows the real process: a bounded, rate-limited fit of the deposition scale.
 
+It reads each analysed layer's deviation (:mod:`dm2.defects`) and sets the scale the near-net
+reference (:mod:`dm2.reference`) deposits with from the next layer on, so it is a pipeline step
+between the two, not part of either.
+
 The near-net reference uses the nominal process. A cell whose powder deposits a few per cent
 less (or more) than nominal builds a part that drifts away from it everywhere, which the paper's
 rule would call one huge under/overbuild. After every analysed layer this fit compares the
