@@ -77,10 +77,21 @@ def test_report_folder_contents(tmp_path, monitored):
     assert len(ply.faces) == len(res.deviation.faces)
     stl = trimesh.load(out / rep["files"]["reference"][0])
     assert stl.bounds[1][2] == pytest.approx(0.8 * 6, abs=1e-6)
-    for name in rep["files"]["deviation_maps"] + rep["files"]["track_plots"]:
+    assert all(name.endswith(".svg") for name in rep["files"]["track_plots"])
+    for name in rep["files"]["deviation_maps"]:
         assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert len(rep["files"]["deviation_maps"]) == 6
+    assert rep["files"]["figures"] == ["plots/overview.png", "plots/timeline.png"]
+    # height = the largest deviation from the reference; the box's z extent has its own name
+    assert track["peak_deviation_mm"] == pytest.approx(1.6, abs=0.05)
+    assert all(h["height_mm"] == pytest.approx(abs(h["max_deviation_mm"]))
+               for h in track["history"])
+    assert all(h["box_extent_z_mm"] >= h["height_mm"] - 1e-9 for h in track["history"])
+    assert float(rows[0]["height_mm"]) == pytest.approx(abs(float(rows[0]["max_deviation_mm"])),
+                                                         abs=1e-4)
     html = (out / "index.html").read_text()
+    assert "Overbuild at (50.0, 70.0) mm, from layer 2 to 5" in html
+    assert "mm², +1.5" in html and "growing 0.20 mm/layer (track 1)" in html
     for name in rep["files"]["track_plots"] + rep["files"]["meshes"] + ["report.json"]:
         assert f'"{name}"' in html
     assert [p.name for p in out.parent.iterdir()] == ["report"]  # no temp folders left

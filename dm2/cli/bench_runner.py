@@ -90,7 +90,10 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
                  record: bool = False, full_report: bool = True,
                  progress: Progress | None = None,
                  on_stream_end: Callable[[], None] | None = None,
-                 calibration=None, force: bool = False,
+                 calibration=None, force: bool = False, on_layer: Callable | None = None,
+                 report_stage: Callable[[str, int, int], None] | None = None,
+                 on_session: Callable | None = None,
+                 include: dict | None = None,
                  true_T_B_S: dict | None = None) -> ScenarioRun:
     """Simulate ``sc`` on the twin, monitor it and write the run folder ``run_dir``.
 
@@ -108,6 +111,10 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
     on_stream_end : called once the stream is consumed, before the report is written
     calibration : dm2.core.messages.Calibration the pipeline uses instead of the one the scenario
         hands it (e.g. a solved hand-eye calibration against a perturbed ``calibration_error``)
+    on_layer : called with each analysed layer's LayerResult (the session's ``on_layer``)
+    report_stage : called with (stage, done, total) while the report is written
+    on_session : called with the MonitoringSession once it exists (e.g. to attach a view)
+    include : name -> path of further files moved into the run folder (e.g. its log file)
     true_T_B_S : the twin's profilers as built (dict sensor id -> (4, 4)) instead of the
         scenario's nominal layout
 
@@ -126,7 +133,10 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
     run_dir = check_output_dir(run_dir, force=force)
     sim = Simulation(sc, true_T_B_S=true_T_B_S)
     session = MonitoringSession(calibration or sim.calibration, sc.monitor, sc.process,
-                                plate_size_mm=sc.cell.plate_size_mm, toolpath=sim.toolpath)
+                                plate_size_mm=sc.cell.plate_size_mm, toolpath=sim.toolpath,
+                                on_layer=on_layer)
+    if on_session is not None:
+        on_session(session)
     run_dir.parent.mkdir(parents=True, exist_ok=True)
     scratch = Path(tempfile.mkdtemp(prefix=".dm2-run-", dir=run_dir.parent))
     try:
@@ -143,16 +153,17 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
         meta = {"scenario": sc.name, "scenario_file": str(scenario_file or ""), "seed": sc.seed,
                 "layers_simulated": len(session.results)}
         config_toml = dump_toml(sc.to_toml_dict())
-        sections = {"realtime": session.realtime_summary(),
+        sections = {"realtime": session.realtime_summary(), "process": session.process_summary(),
                     "reconstruction": {str(k): v for k, v in recon.items()}}
-        include = {name: scratch / name for name in ("truth", "run.mcap")
-                   if (scratch / name).exists()}
+        include = {**{name: scratch / name for name in ("truth", "run.mcap")
+                      if (scratch / name).exists()}, **(include or {})}
         if full_report:
             report = write_report(run_dir, session.results, session.tracks,
                                   config_toml=config_toml, dropped=session.dropped,
                                   timing=timing, fault_truth=truth, expect=sc.expect, meta=meta,
                                   sections=sections, force=force, include=include,
-                                  command="dm2 run", inputs=[scenario_file])
+                                  command="dm2 run", inputs=[scenario_file],
+                                  toolpath=sim.toolpath, stage=report_stage)
         else:
             report = build_report(session.results, session.tracks, dropped=session.dropped,
                                   timing=timing, fault_truth=truth, expect=sc.expect, meta=meta,

@@ -6,11 +6,11 @@ from pathlib import Path
 
 import typer
 
-from dm2.cli.common import app, bad_input_exits, console, fail
+from dm2.cli.common import app, bad_input_exits, console, fail, log_file
 
 
 def run_live_monitor(cell_path: Path, out: Path, max_duration_s: float | None = None,
-                     force: bool = False) -> None:
+                     force: bool = False, view_port: int | None = None) -> None:
     """``dm2 monitor --live CELL.toml --out DIR``: monitor the cell until it goes quiet or
     Ctrl-C / SIGTERM; ``DIR/live.mcap`` records the stream, ``DIR/report`` the results. Ends
     with one line per drop reason, and exit 1 when nothing was fused or more than
@@ -34,23 +34,36 @@ def run_live_monitor(cell_path: Path, out: Path, max_duration_s: float | None = 
                              "a new folder")
         check_output_dir(out, force=force, inputs=[cell_path])
         out.mkdir(parents=True, exist_ok=True)
-        add_to_manifest(out, ["live.mcap", "report/"], command="dm2 monitor --live")
+        add_to_manifest(out, ["live.mcap", "monitor.log", "report/"],
+                        command="dm2 monitor --live")
         runner = LiveRunner(cell, out, cell_toml=cell_path.read_text(encoding="utf-8"))
     try:
         addresses = runner.open_sources()
     except OSError as exc:
         runner.close()
         fail(f"{cell_path}: cannot open the live sources: {exc}")
+    view = None
+    if view_port is not None:
+        from dm2.cli.cmd_view import start_live_view
+
+        states = runner.analysis.session.states
+        view = start_live_view(runner.calibration, lambda: states.last_T_B_F, view_port)
+        runner.analysis.layer_listeners.append(view.on_layer)
     stop = threading.Event()
     previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
     console.print(f"listening: EGM udp {addresses['egm'][0]}:{addresses['egm'][1]}, profiles "
                   f"tcp {addresses['profiles'][0]}:{addresses['profiles'][1]}; Ctrl-C ends")
     try:
-        runner.run(stop=stop, max_duration_s=max_duration_s)
+        out.mkdir(parents=True, exist_ok=True)
+        with log_file(out / "monitor.log"):  # every record, the real-time alarms included
+            runner.run(stop=stop, max_duration_s=max_duration_s)
     except KeyboardInterrupt:
         runner.finish()
     finally:
         signal.signal(signal.SIGTERM, previous)
+        if view is not None:
+            view.close()
+            view.stop_server()
     a = runner.analysis
     dropped = a.dropped
     console.print(f"{runner.messages_in} messages, {a.monitor.profiles_fused} profiles fused, "

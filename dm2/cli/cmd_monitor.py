@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import typer
 
-from dm2.cli.common import app, bad_input_exits, console, fail, note_cold_kernel_cache
+from dm2.cli.common import app, bad_input_exits, console, fail, log_file, note_cold_kernel_cache
 
 log = logging.getLogger(__name__)
 
@@ -115,6 +115,9 @@ def monitor(
                               "profile sources) instead of a recording; see dm2.live.config."),
     analyse: bool = typer.Option(True, "--analyse/--no-analyse", help="Also compare each layer "
                                  "with the near-net reference and write OUT/report/."),
+    view: bool = typer.Option(False, "--view", help="Show the part growing in the browser "
+                              "(3D, coloured by signed deviation) on 127.0.0.1:--view-port."),
+    view_port: int = typer.Option(8080, "--view-port", min=1, max=65535),
     force: bool = typer.Option(False, "--force", help="Write into a folder holding an earlier "
                                "dm2 run and other files: replace only dm2's files."),
     allow_truncated: bool = typer.Option(False, "--allow-truncated", help="Exit 0 (not 3) "
@@ -141,7 +144,7 @@ def monitor(
 
         if run is not None:
             fail("give either a recording or --live CELL.toml, not both")
-        run_live_monitor(live, out, force=force)
+        run_live_monitor(live, out, force=force, view_port=view_port if view else None)
         return
     if run is None:
         fail("give a recording to replay, or --live CELL.toml")
@@ -185,11 +188,22 @@ def monitor(
         console.print(f"layer {ls.layer}: {ls.surface.n_vertices} vertices, "
                       f"{len(result.regions)} region(s) -> {path}")
 
+    live_view = None
+
+    def on_layer(result) -> None:
+        save(result)
+        if live_view is not None:
+            live_view.on_layer(result)
+
     session = MonitoringSession(cal, monitor_cfg, process, plate_size_mm=plate_mm, toolpath=tp,
-                                on_layer=save, gates=InputGates(monitor_cfg.gates))
+                                on_layer=on_layer, gates=InputGates(monitor_cfg.gates))
+    if view:
+        from dm2.cli.cmd_view import start_live_view
+
+        live_view = start_live_view(cal, lambda: session.states.last_T_B_F, view_port)
     mon = session.monitor
     n_msgs = 0
-    with console.status("fusing profiles"):
+    with console.status("fusing profiles"), log_file(out / "monitor.log"):
         for msg in rec.messages():
             session.feed(msg)
             n_msgs += 1
@@ -206,7 +220,7 @@ def monitor(
                "clock_steps": session.gates.steps, "input": input_info,
                "layer_source": mon.layers.source, "layers": written}
     (out / "monitor.json").write_text(json.dumps(summary, indent=2), encoding="utf-8")
-    add_to_manifest(out, ["monitor.json"])
+    add_to_manifest(out, ["monitor.json", "monitor.log"])
     if hasattr(rec, "close"):  # a rosbag2 recording holds its files open while read
         rec.close()
     if analyse and session.results:
@@ -220,8 +234,10 @@ def monitor(
                      timing={**session.timing.to_dict(),
                              "wall_s": time.perf_counter() - t_start},
                      meta={"recording": str(run), "layers": len(session.results)},
-                     sections={"realtime": session.realtime_summary(), "input": input_info},
-                     inputs=[run], command="dm2 monitor", force=force)
+                     sections={"realtime": session.realtime_summary(),
+                               "process": session.process_summary(), "input": input_info},
+                     inputs=[run], command="dm2 monitor", force=force,
+                     toolpath=tp)
         add_to_manifest(out, ["report/"])
     table = Table(title=f"monitor: {run.name}")
     table.add_column("what")
@@ -248,5 +264,15 @@ def monitor(
         problems = "".join("; " + p for p in getattr(rec, "problems", []))
         console.print(f"{run.name}: {verdict}{problems}", highlight=False, markup=False)
     code = exit_code(code, 3 if damaged and not allow_truncated else 0)
+    if live_view is not None:
+        from dm2.view.live import serve_forever
+
+        live_view.close()
+        console.print(f"3D view: [bold]{live_view.url}[/] (Ctrl-C ends)")
+        try:
+            serve_forever()
+        finally:
+            live_view.stop_server()
+
     if code:
         raise typer.Exit(code)

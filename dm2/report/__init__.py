@@ -17,8 +17,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from dm2.report.contents import Stage, write_contents
 from dm2.report.html import render_index
-from dm2.report.meshes import write_deviation_ply, write_reference_stl
 from dm2.report.outdir import (
     OutputRefused,
     check_output_dir,
@@ -26,12 +26,13 @@ from dm2.report.outdir import (
     install_folder,
     write_manifest,
 )
-from dm2.report.plots import plot_deviation_map, plot_track
-from dm2.report.report_json import REPORT_SCHEMA, build_report, write_tracks_csv
+from dm2.report.report_json import REPORT_SCHEMA, build_report, report_track
+from dm2.report.summary import by_severity
 
 log = logging.getLogger(__name__)
 
-__all__ = ["REPORT_SCHEMA", "OutputRefused", "check_output_dir", "write_report"]
+__all__ = ["REPORT_SCHEMA", "OutputRefused", "check_output_dir", "rerender_index",
+           "write_report"]
 
 
 def write_report(out_dir: str | Path, results, tracks, *, config_toml: str | None = None,
@@ -39,7 +40,7 @@ def write_report(out_dir: str | Path, results, tracks, *, config_toml: str | Non
                  fault_truth=None, expect=None, map_layers=None, limit_mm: float = 1.0,
                  meta: dict | None = None, sections: dict | None = None,
                  force: bool = False, inputs=(), command: str = "",
-                 include: dict | None = None) -> dict:
+                 include: dict | None = None, toolpath=None, stage: Stage | None = None) -> dict:
     """Write the whole run folder; returns the report dict.
 
     Parameters
@@ -52,8 +53,8 @@ def write_report(out_dir: str | Path, results, tracks, *, config_toml: str | Non
     dropped, timing : dicts copied into report.json
     fault_truth : dict/list of injected faults to compare the tracks with (or None)
     expect : dm2.core.config.ExpectConfig to check (or None)
-    map_layers : layers to render as PNG deviation maps (default: up to 6 spread evenly,
-        always including the last)
+    map_layers : layers to render as PNG deviation maps (default: see
+        dm2.report.contents.default_map_layers)
     limit_mm : colour range of the deviation maps and PLY colours [mm]
     meta : run description copied into report.json
     sections : further top-level report.json sections, e.g. ``realtime`` (alarms, latency)
@@ -62,6 +63,9 @@ def write_report(out_dir: str | Path, results, tracks, *, config_toml: str | Non
     command : the dm2 command, recorded in the folder's manifest
     include : name -> path of further files or folders (e.g. the recording) moved into the
         folder with the report, listed in its manifest
+    toolpath : dm2.core.messages.Toolpath for the planned outline on the maps (else the
+        reference's half-height contour)
+    stage : called with (stage name, steps done, steps in stage) as the report is written
     """
     out = check_output_dir(out_dir, force=force, inputs=inputs)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -71,14 +75,22 @@ def write_report(out_dir: str | Path, results, tracks, *, config_toml: str | Non
         umask = os.umask(0o022)
         os.umask(umask)
         tmp.chmod(0o777 & ~umask)  # mkdtemp makes it private; the report folder is not
-        files = _write_contents(tmp, results, tracks, config_toml, map_layers, limit_mm)
+        ranked = by_severity([report_track(t) for t in tracks])
+        stub = {"layers": [{"layer": r.layer, "stamp_s": r.deviation.stamp_s} for r in results],
+                "realtime": (sections or {}).get("realtime")}
+        files = write_contents(tmp, results, tracks, ranked, config_toml=config_toml,
+                               map_layers=map_layers, limit_mm=limit_mm,
+                               outline=_outline(results, toolpath), report_stub=stub,
+                               stage=stage)
+        if stage is not None:
+            stage("report.json and index.html", 0, 1)
         report = build_report(results, tracks, dropped=dropped,
                               timing={**(timing or {}),
                                       "report_write_s": time.perf_counter() - t0},
                               fault_truth=fault_truth, expect=expect, files=files, meta=meta,
                               sections=sections)
         (tmp / "report.json").write_text(json.dumps(report, indent=1), encoding="utf-8")
-        (tmp / "index.html").write_text(render_index(report), encoding="utf-8")
+        (tmp / "index.html").write_text(render_index(report, root=tmp), encoding="utf-8")
         for name, path in (include or {}).items():
             shutil.move(str(path), str(tmp / name))
         write_manifest(tmp, files_below(tmp), command=command or "report")
@@ -90,36 +102,29 @@ def write_report(out_dir: str | Path, results, tracks, *, config_toml: str | Non
     return report
 
 
-def _write_contents(tmp: Path, results, tracks, config_toml, map_layers, limit_mm) -> dict:
-    files: dict[str, list[str]] = {"meshes": [], "deviation_maps": [], "track_plots": [],
-                                   "reference": []}
-    if config_toml is not None:
-        (tmp / "config.toml").write_text(config_toml, encoding="utf-8")
-    write_tracks_csv(tmp / "tracks.csv", tracks)
-    for sub in ("meshes", "maps", "plots"):
-        (tmp / sub).mkdir()
-    for r in results:
-        name = f"meshes/layer_{r.layer:03d}.ply"
-        write_deviation_ply(tmp / name, r.deviation, limit_mm)
-        files["meshes"].append(name)
-    if results:
-        name = f"meshes/reference_layer_{results[-1].layer:03d}.stl"
-        write_reference_stl(tmp / name, results[-1].reference)
-        files["reference"].append(name)
-    by_layer = {r.layer: r for r in results}
-    if map_layers is None:
-        keys = sorted(by_layer)
-        idx = sorted({round(i * (len(keys) - 1) / 5) for i in range(6)}) if keys else []
-        map_layers = [keys[i] for i in idx]
-    for layer in map_layers:
-        r = by_layer.get(layer)
-        if r is None:
-            raise ValueError(f"write_report: no result for requested map layer {layer}")
-        name = f"maps/deviation_layer_{layer:03d}.png"
-        plot_deviation_map(tmp / name, r.deviation, r.regions, r.track_ids, limit_mm)
-        files["deviation_maps"].append(name)
-    for t in tracks:
-        name = f"plots/track_{t.id:03d}_{t.kind}.png"
-        plot_track(tmp / name, t)
-        files["track_plots"].append(name)
-    return files
+
+def _outline(results, toolpath):
+    from dm2.report.outline import planned_outline, reference_outline
+
+    if not results:
+        return []
+    if toolpath is not None:
+        outline = planned_outline(toolpath, results[-1].layer)
+        if outline:
+            return outline
+    return reference_outline(results[-1].reference)
+
+
+def rerender_index(run_dir: str | Path) -> Path:
+    """Write ``index.html`` of a report folder again from its report.json; the injected-fault
+    comparison is kept only while the folder still holds the twin's ``truth/``."""
+    run_dir = Path(run_dir)
+    try:
+        report = json.loads((run_dir / "report.json").read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ValueError(f"{run_dir}: no report.json (not a report folder)") from None
+    if not (run_dir / "truth").is_dir():
+        report.pop("fault_truth", None)
+    path = run_dir / "index.html"
+    path.write_text(render_index(report, root=run_dir), encoding="utf-8")
+    return path
