@@ -29,6 +29,9 @@ _OFFSET = 1 << 20  # block coordinates in [-2**20, 2**20) pack into 21 bits each
 _MASK21 = (1 << 21) - 1
 # Worst case of new blocks one ray can need: rays span at most 2 * truncation, a few blocks.
 MAX_NEW_BLOCKS_PER_RAY = 16
+# Active rays (fresh deposition) also walk this many truncations beyond their band and turn
+# voxels there that still claim free space into material (see carve_voxel).
+CARVE_TRUNCATIONS = 1.0
 
 
 @njit(cache=True, inline="always")
@@ -190,6 +193,27 @@ def update_voxel(voxels, slot, vx, vy, vz, d, truncation_mm, inv_trunc, act, act
         voxels[slot, li, 1] = min(w_new, max_weight)
 
 
+@njit(cache=True, inline="always")
+def carve_voxel(voxels, slot, vx, vy, vz, truncation_mm):
+    """A voxel up to ``CARVE_TRUNCATIONS`` truncations beyond the band of an active ray: if it
+    was observed and still claims free space (``d > 0``), it becomes material (``d =
+    -truncation``) with weight 1, which the next observation outweighs. Returns whether it
+    changed.
+
+    Deposition adds material on top of the surface the sensors saw before. When a spot rises
+    by more than the band reaches behind the new surface (``truncation`` along the ray: 1.2 mm
+    vertically at 55 degrees elevation, less than a double layer) between two observations,
+    the old surface's free-space voxels are never updated again and stay inside the part as a
+    buried surface; on the twisted tower these made 98 % of the squared error of layer 55
+    (1.9 % of its vertices, 2 to 22 mm below the true top)."""
+    li = (vx & 7) + 8 * ((vy & 7) + 8 * (vz & 7))
+    if voxels[slot, li, 1] > 0.0 and voxels[slot, li, 0] > 0.0:
+        voxels[slot, li, 0] = -truncation_mm
+        voxels[slot, li, 1] = 1.0
+        return True
+    return False
+
+
 @njit(cache=True, error_model="numpy")
 def integrate_rays(origins_O, points_O, active, voxel_mm, truncation_mm, active_weight_cap,
                    max_weight, table_keys, table_slots, block_keys, voxels, touched, state,
@@ -248,13 +272,16 @@ def _fuse(register, origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, a
     Signed distance ``d`` [mm] is positive in front of the measured point (free space towards
     the sensor) and negative behind it. Weights: ``w_A = 1`` over the whole band in the active
     region; ``w_I = 1`` in front and ``1 - behind / truncation`` behind the point elsewhere
-    (eqs 4-5). In the active region the stored weight is first capped at ``active_weight_cap``.
+    (eqs 4-5). In the active region the stored weight is first capped at ``active_weight_cap``,
+    and the walk goes on ``CARVE_TRUNCATIONS`` truncations beyond the band through allocated
+    blocks only, carving stale free space (:func:`carve_voxel`).
     ``voxels[slot, li, 0]`` is the signed distance, ``voxels[slot, li, 1]`` the weight.
     """
     capacity = voxels.shape[0]
     table_limit = table_keys.shape[0] // 2
     inv_vox = 1.0 / voxel_mm
     inv_trunc = 1.0 / truncation_mm
+    carve_vox = CARVE_TRUNCATIONS * truncation_mm * inv_vox
     pose = NO_POSE
     ra = rb = (1 << 40, 0, 0, -1)  # the two blocks looked up last (bx, by, bz, slot)
     for k in range(offsets.shape[0] - 1):
@@ -275,17 +302,29 @@ def _fuse(register, origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, a
                 dda_start(ox, oy, oz, dx, dy, dz, r, truncation_mm, voxel_mm, inv_vox)
             last_bx, last_by, last_bz, slot = 1 << 40, 0, 0, -1
             t = 0.0
-            while t <= span:
+            end = span + carve_vox if act else span
+            while t <= end:
                 bx, by, bz = vx >> BLOCK_SHIFT, vy >> BLOCK_SHIFT, vz >> BLOCK_SHIFT
-                if bx != last_bx or by != last_by or bz != last_bz:
-                    slot = recent_slot(bx, by, bz, ra, rb)
-                    if slot < 0:
-                        slot = _get_or_alloc(bx, by, bz, table_keys, table_slots, block_keys,
-                                             touched, state)
-                        ra, rb = (bx, by, bz, slot), ra
-                    last_bx, last_by, last_bz = bx, by, bz
-                update_voxel(voxels, slot, vx, vy, vz, d, truncation_mm, inv_trunc, act,
-                             active_weight_cap, max_weight)
+                if t <= span:
+                    if bx != last_bx or by != last_by or bz != last_bz:
+                        slot = recent_slot(bx, by, bz, ra, rb)
+                        if slot < 0:
+                            slot = _get_or_alloc(bx, by, bz, table_keys, table_slots,
+                                                 block_keys, touched, state)
+                            ra, rb = (bx, by, bz, slot), ra
+                        last_bx, last_by, last_bz = bx, by, bz
+                    update_voxel(voxels, slot, vx, vy, vz, d, truncation_mm, inv_trunc, act,
+                                 active_weight_cap, max_weight)
+                else:  # beyond the band: allocated blocks only
+                    if bx != last_bx or by != last_by or bz != last_bz:
+                        slot = recent_slot(bx, by, bz, ra, rb)
+                        if slot < 0:
+                            slot = hash_find(table_keys, table_slots, pack_key(bx, by, bz))
+                            if slot >= 0:
+                                ra, rb = (bx, by, bz, slot), ra
+                        last_bx, last_by, last_bz = bx, by, bz
+                    if slot >= 0 and carve_voxel(voxels, slot, vx, vy, vz, truncation_mm):
+                        touched[slot] = True
                 t, vx, vy, vz, tmx, tmy, tmz, d = dda_step(vx, vy, vz, stx, sty, stz, tdx, tdy,
                                                            tdz, tmx, tmy, tmz, d, ddx, ddy, ddz)
     return offsets[offsets.shape[0] - 1]

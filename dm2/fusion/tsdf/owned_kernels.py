@@ -24,7 +24,9 @@ from numba import njit
 
 from dm2.fusion.tsdf.kernels import (
     BLOCK_SHIFT,
+    CARVE_TRUNCATIONS,
     MAX_NEW_BLOCKS_PER_RAY,
+    carve_voxel,
     dda_start,
     dda_step,
     hash_find,
@@ -55,6 +57,17 @@ def _staged_slot(key, base, st_keys, st_table_keys, st_table_slots, st_state):
     """Field row of a block the field lacks: its row in the thread's reserved rows (staged
     now when new). Not inlined: the fusion loop stays small, and this path is rare."""
     return base + hash_get_or_insert(key, st_table_keys, st_table_slots, st_keys, st_state)
+
+
+@njit(cache=True, nogil=True)
+def _found_slot(key, table_keys, table_slots, base, st_table_keys, st_table_slots):
+    """Field row of an allocated or staged block, -1 for neither (the carve beyond a ray's
+    band allocates nothing)."""
+    s = hash_find(table_keys, table_slots, key)
+    if s >= 0:
+        return s
+    s = hash_find(st_table_keys, st_table_slots, key)
+    return base + s if s >= 0 else -1
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -94,6 +107,8 @@ def _owned(tid, col_shift, start, register, origins_O, points_O, active, xz_S, o
     constants."""
     inv_vox = 1.0 / voxel_mm
     inv_trunc = 1.0 / truncation_mm
+    carve_mm = CARVE_TRUNCATIONS * truncation_mm
+    carve_vox = carve_mm * inv_vox
     cs = BLOCK_SHIFT + col_shift
     st_capacity = st_keys.shape[0]
     pose = NO_POSE
@@ -111,8 +126,8 @@ def _owned(tid, col_shift, start, register, origins_O, points_O, active, xz_S, o
                 bounds_hi, use_bounds, truncation_mm, counts)
             if not ok:
                 continue
-            # the columns of the ray's band (one voxel of margin for rounding)
-            t0, t1 = r - truncation_mm, r + truncation_mm
+            # the columns of the ray's walk (one voxel of margin for rounding)
+            t0, t1 = r - truncation_mm, r + truncation_mm + (carve_mm if act else 0.0)
             ax0, ax1 = (ox + dx * t0) * inv_vox, (ox + dx * t1) * inv_vox
             ay0, ay1 = (oy + dy * t0) * inv_vox, (oy + dy * t1) * inv_vox
             cx0 = (int(np.floor(min(ax0, ax1))) - 1) >> cs
@@ -126,8 +141,24 @@ def _owned(tid, col_shift, start, register, origins_O, points_O, active, xz_S, o
                 dda_start(ox, oy, oz, dx, dy, dz, r, truncation_mm, voxel_mm, inv_vox)
             last_bx, last_by, last_bz, slot = 1 << 40, 0, 0, -1
             t = 0.0
-            while t <= span:
-                if mine or ((vx >> cs) + (vy >> cs)) & 1 == tid:
+            end = span + carve_vox if act else span
+            while t <= end:
+                if t > span:  # beyond the band: allocated or staged blocks only
+                    if mine or ((vx >> cs) + (vy >> cs)) & 1 == tid:
+                        bx, by, bz = vx >> BLOCK_SHIFT, vy >> BLOCK_SHIFT, vz >> BLOCK_SHIFT
+                        if bx != last_bx or by != last_by or bz != last_bz:
+                            slot = recent_slot(bx, by, bz, ra, rb)
+                            if slot < 0:
+                                slot = _found_slot(pack_key(bx, by, bz), table_keys,
+                                                   table_slots, base, st_table_keys,
+                                                   st_table_slots)
+                                if slot >= 0:
+                                    ra, rb = (bx, by, bz, slot), ra
+                            last_bx, last_by, last_bz = bx, by, bz
+                        if slot >= 0 and carve_voxel(voxels, slot, vx, vy, vz, truncation_mm) \
+                                and slot < base:
+                            touched[slot] = True
+                elif mine or ((vx >> cs) + (vy >> cs)) & 1 == tid:
                     bx, by, bz = vx >> BLOCK_SHIFT, vy >> BLOCK_SHIFT, vz >> BLOCK_SHIFT
                     if bx != last_bx or by != last_by or bz != last_bz:
                         slot = recent_slot(bx, by, bz, ra, rb)
