@@ -73,7 +73,7 @@ class SparseTSDF:
     truncation_mm : float [mm], half width of the band updated around each measured point
     weight_cap : float, stored weight is clipped to this before an active-region update
     inactive_weight_cap : float, stored weights never exceed this (the inactive region's
-        window; at least ``weight_cap``)
+        window; default ``max(INACTIVE_WEIGHT_CAP, weight_cap)``, at least ``weight_cap``)
     initial_blocks : int, preallocated block rows (grows by doubling)
     threads : int, 1 or 2 (default: 2 where the machine has 2 or more cores). With 2, batches
         of at least ``MIN_SPLIT_POINTS`` points are fused by two threads that own alternate
@@ -84,13 +84,15 @@ class SparseTSDF:
     def __init__(self, voxel_mm: float = 0.5, truncation_mm: float = 1.5,
                  weight_cap: float = 8.0, initial_blocks: int = 1024,
                  threads: int | None = None,
-                 inactive_weight_cap: float = INACTIVE_WEIGHT_CAP):
+                 inactive_weight_cap: float | None = None):
         if not 0 < voxel_mm <= 2.0:
             raise ValueError(f"SparseTSDF.voxel_mm: {voxel_mm} outside (0, 2] mm")
         if truncation_mm <= 0:
             raise ValueError(f"SparseTSDF.truncation_mm: must be > 0, got {truncation_mm}")
         if weight_cap <= 0:
             raise ValueError(f"SparseTSDF.weight_cap: must be > 0, got {weight_cap}")
+        if inactive_weight_cap is None:
+            inactive_weight_cap = max(INACTIVE_WEIGHT_CAP, weight_cap)
         if not inactive_weight_cap >= weight_cap:
             raise ValueError(f"SparseTSDF.inactive_weight_cap: {inactive_weight_cap} must be "
                              f">= weight_cap {weight_cap}")

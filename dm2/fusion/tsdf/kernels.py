@@ -19,6 +19,13 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from dm2.fusion.tsdf.carve import (
+    CARVE_RUN_VOXELS,
+    CARVE_TRUNCATIONS,
+    COL_SHIFT,
+    carve_visit,
+    walk_columns,
+)
 from dm2.fusion.tsdf.point_rays import NO_POSE, point_ray, profile_pose
 
 BLOCK = 8  # voxels per block edge
@@ -29,9 +36,6 @@ _OFFSET = 1 << 20  # block coordinates in [-2**20, 2**20) pack into 21 bits each
 _MASK21 = (1 << 21) - 1
 # Worst case of new blocks one ray can need: rays span at most 2 * truncation, a few blocks.
 MAX_NEW_BLOCKS_PER_RAY = 16
-# Active rays (fresh deposition) also walk this many truncations beyond their band and turn
-# voxels there that still claim free space into material (see carve_voxel).
-CARVE_TRUNCATIONS = 1.0
 
 
 @njit(cache=True, inline="always")
@@ -193,27 +197,6 @@ def update_voxel(voxels, slot, vx, vy, vz, d, truncation_mm, inv_trunc, act, act
         voxels[slot, li, 1] = min(w_new, max_weight)
 
 
-@njit(cache=True, inline="always")
-def carve_voxel(voxels, slot, vx, vy, vz, truncation_mm):
-    """A voxel up to ``CARVE_TRUNCATIONS`` truncations beyond the band of an active ray: if it
-    was observed and still claims free space (``d > 0``), it becomes material (``d =
-    -truncation``) with weight 1, which the next observation outweighs. Returns whether it
-    changed.
-
-    Deposition adds material on top of the surface the sensors saw before. When a spot rises
-    by more than the band reaches behind the new surface (``truncation`` along the ray: 1.2 mm
-    vertically at 55 degrees elevation, less than a double layer) between two observations,
-    the old surface's free-space voxels are never updated again and stay inside the part as a
-    buried surface; on the twisted tower these made 98 % of the squared error of layer 55
-    (1.9 % of its vertices, 2 to 22 mm below the true top)."""
-    li = (vx & 7) + 8 * ((vy & 7) + 8 * (vz & 7))
-    if voxels[slot, li, 1] > 0.0 and voxels[slot, li, 0] > 0.0:
-        voxels[slot, li, 0] = -truncation_mm
-        voxels[slot, li, 1] = 1.0
-        return True
-    return False
-
-
 @njit(cache=True, error_model="numpy")
 def integrate_rays(origins_O, points_O, active, voxel_mm, truncation_mm, active_weight_cap,
                    max_weight, table_keys, table_slots, block_keys, voxels, touched, state,
@@ -274,14 +257,18 @@ def _fuse(register, origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, a
     region; ``w_I = 1`` in front and ``1 - behind / truncation`` behind the point elsewhere
     (eqs 4-5). In the active region the stored weight is first capped at ``active_weight_cap``,
     and the walk goes on ``CARVE_TRUNCATIONS`` truncations beyond the band through allocated
-    blocks only, carving stale free space (:func:`carve_voxel`).
+    blocks only, carving enclosed stale free space (:mod:`dm2.fusion.tsdf.carve`; only rays
+    whose walk lies in one two-thread column, as the two-thread kernel can).
     ``voxels[slot, li, 0]`` is the signed distance, ``voxels[slot, li, 1]`` the weight.
     """
     capacity = voxels.shape[0]
     table_limit = table_keys.shape[0] // 2
     inv_vox = 1.0 / voxel_mm
     inv_trunc = 1.0 / truncation_mm
-    carve_vox = CARVE_TRUNCATIONS * truncation_mm * inv_vox
+    carve_mm = CARVE_TRUNCATIONS * truncation_mm
+    carve_vox = carve_mm * inv_vox
+    cs = BLOCK_SHIFT + COL_SHIFT
+    run = np.empty((CARVE_RUN_VOXELS, 2), dtype=np.int64)
     pose = NO_POSE
     ra = rb = (1 << 40, 0, 0, -1)  # the two blocks looked up last (bx, by, bz, slot)
     for k in range(offsets.shape[0] - 1):
@@ -302,7 +289,13 @@ def _fuse(register, origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, a
                 dda_start(ox, oy, oz, dx, dy, dz, r, truncation_mm, voxel_mm, inv_vox)
             last_bx, last_by, last_bz, slot = 1 << 40, 0, 0, -1
             t = 0.0
-            end = span + carve_vox if act else span
+            carve = False
+            if act:
+                cx0, cx1, cy0, cy1 = walk_columns(ox, oy, dx, dy, r, truncation_mm, carve_mm,
+                                                  inv_vox, cs)
+                carve = cx0 == cx1 and cy0 == cy1
+            end = span + carve_vox if carve else span
+            n_run = 0
             while t <= end:
                 bx, by, bz = vx >> BLOCK_SHIFT, vy >> BLOCK_SHIFT, vz >> BLOCK_SHIFT
                 if t <= span:
@@ -323,8 +316,8 @@ def _fuse(register, origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, a
                             if slot >= 0:
                                 ra, rb = (bx, by, bz, slot), ra
                         last_bx, last_by, last_bz = bx, by, bz
-                    if slot >= 0 and carve_voxel(voxels, slot, vx, vy, vz, truncation_mm):
-                        touched[slot] = True
+                    n_run = carve_visit(voxels, slot, vx, vy, vz, truncation_mm, run, n_run,
+                                        touched, capacity)
                 t, vx, vy, vz, tmx, tmy, tmz, d = dda_step(vx, vy, vz, stx, sty, stz, tdx, tdy,
                                                            tdz, tmx, tmy, tmz, d, ddx, ddy, ddz)
     return offsets[offsets.shape[0] - 1]

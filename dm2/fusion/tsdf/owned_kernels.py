@@ -22,11 +22,10 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from dm2.fusion.tsdf.carve import CARVE_RUN_VOXELS, CARVE_TRUNCATIONS, carve_visit, walk_columns
 from dm2.fusion.tsdf.kernels import (
     BLOCK_SHIFT,
-    CARVE_TRUNCATIONS,
     MAX_NEW_BLOCKS_PER_RAY,
-    carve_voxel,
     dda_start,
     dda_step,
     hash_find,
@@ -110,6 +109,7 @@ def _owned(tid, col_shift, start, register, origins_O, points_O, active, xz_S, o
     carve_mm = CARVE_TRUNCATIONS * truncation_mm
     carve_vox = carve_mm * inv_vox
     cs = BLOCK_SHIFT + col_shift
+    run = np.empty((CARVE_RUN_VOXELS, 2), dtype=np.int64)
     st_capacity = st_keys.shape[0]
     pose = NO_POSE
     ra = rb = (1 << 40, 0, 0, -1)  # the two blocks looked up last (bx, by, bz, slot)
@@ -126,14 +126,16 @@ def _owned(tid, col_shift, start, register, origins_O, points_O, active, xz_S, o
                 bounds_hi, use_bounds, truncation_mm, counts)
             if not ok:
                 continue
-            # the columns of the ray's walk (one voxel of margin for rounding)
-            t0, t1 = r - truncation_mm, r + truncation_mm + (carve_mm if act else 0.0)
-            ax0, ax1 = (ox + dx * t0) * inv_vox, (ox + dx * t1) * inv_vox
-            ay0, ay1 = (oy + dy * t0) * inv_vox, (oy + dy * t1) * inv_vox
-            cx0 = (int(np.floor(min(ax0, ax1))) - 1) >> cs
-            cx1 = (int(np.floor(max(ax0, ax1))) + 1) >> cs
-            cy0 = (int(np.floor(min(ay0, ay1))) - 1) >> cs
-            cy1 = (int(np.floor(max(ay0, ay1))) + 1) >> cs
+            # the columns of the ray's walk; an active ray walks on beyond its band (carving)
+            # only when that whole walk lies in one column, as the serial kernel decides
+            carve = False
+            if act:
+                cx0, cx1, cy0, cy1 = walk_columns(ox, oy, dx, dy, r, truncation_mm, carve_mm,
+                                                  inv_vox, cs)
+                carve = cx0 == cx1 and cy0 == cy1
+            if not carve:
+                cx0, cx1, cy0, cy1 = walk_columns(ox, oy, dx, dy, r, truncation_mm, 0.0,
+                                                  inv_vox, cs)
             mine = cx0 == cx1 and cy0 == cy1
             if mine and ((cx0 + cy0) & 1) != tid:
                 continue  # the other thread's column
@@ -141,23 +143,21 @@ def _owned(tid, col_shift, start, register, origins_O, points_O, active, xz_S, o
                 dda_start(ox, oy, oz, dx, dy, dz, r, truncation_mm, voxel_mm, inv_vox)
             last_bx, last_by, last_bz, slot = 1 << 40, 0, 0, -1
             t = 0.0
-            end = span + carve_vox if act else span
+            end = span + carve_vox if carve else span
+            n_run = 0
             while t <= end:
-                if t > span:  # beyond the band: allocated or staged blocks only
-                    if mine or ((vx >> cs) + (vy >> cs)) & 1 == tid:
-                        bx, by, bz = vx >> BLOCK_SHIFT, vy >> BLOCK_SHIFT, vz >> BLOCK_SHIFT
-                        if bx != last_bx or by != last_by or bz != last_bz:
-                            slot = recent_slot(bx, by, bz, ra, rb)
-                            if slot < 0:
-                                slot = _found_slot(pack_key(bx, by, bz), table_keys,
-                                                   table_slots, base, st_table_keys,
-                                                   st_table_slots)
-                                if slot >= 0:
-                                    ra, rb = (bx, by, bz, slot), ra
-                            last_bx, last_by, last_bz = bx, by, bz
-                        if slot >= 0 and carve_voxel(voxels, slot, vx, vy, vz, truncation_mm) \
-                                and slot < base:
-                            touched[slot] = True
+                if t > span:  # beyond the band (a carving ray, all in this thread's column)
+                    bx, by, bz = vx >> BLOCK_SHIFT, vy >> BLOCK_SHIFT, vz >> BLOCK_SHIFT
+                    if bx != last_bx or by != last_by or bz != last_bz:
+                        slot = recent_slot(bx, by, bz, ra, rb)
+                        if slot < 0:
+                            slot = _found_slot(pack_key(bx, by, bz), table_keys, table_slots,
+                                               base, st_table_keys, st_table_slots)
+                            if slot >= 0:
+                                ra, rb = (bx, by, bz, slot), ra
+                        last_bx, last_by, last_bz = bx, by, bz
+                    n_run = carve_visit(voxels, slot, vx, vy, vz, truncation_mm, run, n_run,
+                                        touched, base)
                 elif mine or ((vx >> cs) + (vy >> cs)) & 1 == tid:
                     bx, by, bz = vx >> BLOCK_SHIFT, vy >> BLOCK_SHIFT, vz >> BLOCK_SHIFT
                     if bx != last_bx or by != last_by or bz != last_bz:
