@@ -7,8 +7,9 @@ Printed:
 - the CPU model, the number of cores and the load average before and after the run (the
   machine may be shared: timings are only comparable at a similar load);
 - per stage wall time [s] from ``report.json`` (fusion, reference, layer analysis, real-time
-  deviation; "twin and the rest" is the run's wall time before the report less those; report
-  writing is the child's wall time after that), the real-time factor (process seconds over
+  deviation; "twin and the rest" is the run's wall time before the report less those; "report
+  + start-up" is the rest of the child's wall time: writing the report folder, interpreter
+  start and imports), the real-time factor (process seconds over
   wall seconds) and the child's peak RSS (``wait4``);
 - per band of ``--band`` layers, over all written (observed) vertices of the band's layer
   meshes (``meshes/layer_NNN.ply``), each against the twin's true surface when that layer
@@ -139,7 +140,7 @@ def report(run_dir: Path, wall: float, rss_mib: float, args) -> None:
     stages = {"fusion": t["fusion_s"], "reference": t["reference_s"],
               "layer analysis": t["analysis_s"], "real-time deviation": t["realtime_s"]}
     stages["twin and the rest"] = t["wall_s"] - sum(stages.values())
-    stages["report writing"] = wall - t["wall_s"]
+    stages["report + start-up"] = wall - t["wall_s"]
     n_layers = len(rep.get("layers", []))
     print(f"{args.scenario}: {process_s:.0f} s of process, {n_layers} layers; dm2 run wall "
           f"{wall:.1f} s = {process_s / wall:.1f}x real time; peak RSS {rss_mib:.0f} MiB")

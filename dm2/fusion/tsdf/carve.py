@@ -18,9 +18,9 @@ which the next observation outweighs). A run that ends in unobserved space or at
 walk is left alone: that is where a ray that entered the top near an edge leaves the part
 through a wall, and the free space outside the wall is real.
 
-The enclosure test reads every voxel of the run, so the two-thread kernel may only carve rays
-whose whole walk lies in block columns of one thread; the serial kernel carves the same rays
-(:func:`walk_columns` with the same column width), which keeps the two bit-identical.
+The two-thread kernel deals block columns to its threads and a thread reads only its own
+voxels, so a free run also ends where the walk enters another block column (``2**COL_SHIFT``
+blocks wide); the serial kernel ends runs there too, which keeps the two bit-identical.
 """
 
 from __future__ import annotations

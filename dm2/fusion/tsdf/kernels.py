@@ -24,7 +24,6 @@ from dm2.fusion.tsdf.carve import (
     CARVE_TRUNCATIONS,
     COL_SHIFT,
     carve_visit,
-    walk_columns,
 )
 from dm2.fusion.tsdf.point_rays import NO_POSE, point_ray, profile_pose
 
@@ -257,16 +256,15 @@ def _fuse(register, origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, a
     region; ``w_I = 1`` in front and ``1 - behind / truncation`` behind the point elsewhere
     (eqs 4-5). In the active region the stored weight is first capped at ``active_weight_cap``,
     and the walk goes on ``CARVE_TRUNCATIONS`` truncations beyond the band through allocated
-    blocks only, carving enclosed stale free space (:mod:`dm2.fusion.tsdf.carve`; only rays
-    whose walk lies in one two-thread column, as the two-thread kernel can).
+    blocks only, carving enclosed stale free space (:mod:`dm2.fusion.tsdf.carve`; a free run
+    ends where the walk enters another two-thread column, as the two-thread kernel sees it).
     ``voxels[slot, li, 0]`` is the signed distance, ``voxels[slot, li, 1]`` the weight.
     """
     capacity = voxels.shape[0]
     table_limit = table_keys.shape[0] // 2
     inv_vox = 1.0 / voxel_mm
     inv_trunc = 1.0 / truncation_mm
-    carve_mm = CARVE_TRUNCATIONS * truncation_mm
-    carve_vox = carve_mm * inv_vox
+    carve_vox = CARVE_TRUNCATIONS * truncation_mm * inv_vox
     cs = BLOCK_SHIFT + COL_SHIFT
     run = np.empty((CARVE_RUN_VOXELS, 2), dtype=np.int64)
     pose = NO_POSE
@@ -289,13 +287,8 @@ def _fuse(register, origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, a
                 dda_start(ox, oy, oz, dx, dy, dz, r, truncation_mm, voxel_mm, inv_vox)
             last_bx, last_by, last_bz, slot = 1 << 40, 0, 0, -1
             t = 0.0
-            carve = False
-            if act:
-                cx0, cx1, cy0, cy1 = walk_columns(ox, oy, dx, dy, r, truncation_mm, carve_mm,
-                                                  inv_vox, cs)
-                carve = cx0 == cx1 and cy0 == cy1
-            end = span + carve_vox if carve else span
-            n_run = 0
+            end = span + carve_vox if act else span
+            n_run, run_cx, run_cy = 0, 1 << 40, 0
             while t <= end:
                 bx, by, bz = vx >> BLOCK_SHIFT, vy >> BLOCK_SHIFT, vz >> BLOCK_SHIFT
                 if t <= span:
@@ -308,7 +301,9 @@ def _fuse(register, origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, a
                         last_bx, last_by, last_bz = bx, by, bz
                     update_voxel(voxels, slot, vx, vy, vz, d, truncation_mm, inv_trunc, act,
                                  active_weight_cap, max_weight)
-                else:  # beyond the band: allocated blocks only
+                else:  # beyond the band: allocated blocks only; a run ends at a column edge
+                    if (vx >> cs) != run_cx or (vy >> cs) != run_cy:
+                        n_run, run_cx, run_cy = 0, vx >> cs, vy >> cs
                     if bx != last_bx or by != last_by or bz != last_bz:
                         slot = recent_slot(bx, by, bz, ra, rb)
                         if slot < 0:

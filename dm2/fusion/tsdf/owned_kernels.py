@@ -126,16 +126,9 @@ def _owned(tid, col_shift, start, register, origins_O, points_O, active, xz_S, o
                 bounds_hi, use_bounds, truncation_mm, counts)
             if not ok:
                 continue
-            # the columns of the ray's walk; an active ray walks on beyond its band (carving)
-            # only when that whole walk lies in one column, as the serial kernel decides
-            carve = False
-            if act:
-                cx0, cx1, cy0, cy1 = walk_columns(ox, oy, dx, dy, r, truncation_mm, carve_mm,
-                                                  inv_vox, cs)
-                carve = cx0 == cx1 and cy0 == cy1
-            if not carve:
-                cx0, cx1, cy0, cy1 = walk_columns(ox, oy, dx, dy, r, truncation_mm, 0.0,
-                                                  inv_vox, cs)
+            # the columns of the ray's walk (an active ray walks on beyond its band, carving)
+            cx0, cx1, cy0, cy1 = walk_columns(ox, oy, dx, dy, r, truncation_mm,
+                                              carve_mm if act else 0.0, inv_vox, cs)
             mine = cx0 == cx1 and cy0 == cy1
             if mine and ((cx0 + cy0) & 1) != tid:
                 continue  # the other thread's column
@@ -143,21 +136,25 @@ def _owned(tid, col_shift, start, register, origins_O, points_O, active, xz_S, o
                 dda_start(ox, oy, oz, dx, dy, dz, r, truncation_mm, voxel_mm, inv_vox)
             last_bx, last_by, last_bz, slot = 1 << 40, 0, 0, -1
             t = 0.0
-            end = span + carve_vox if carve else span
-            n_run = 0
+            end = span + carve_vox if act else span
+            n_run, run_cx, run_cy = 0, 1 << 40, 0
             while t <= end:
-                if t > span:  # beyond the band (a carving ray, all in this thread's column)
-                    bx, by, bz = vx >> BLOCK_SHIFT, vy >> BLOCK_SHIFT, vz >> BLOCK_SHIFT
-                    if bx != last_bx or by != last_by or bz != last_bz:
-                        slot = recent_slot(bx, by, bz, ra, rb)
-                        if slot < 0:
-                            slot = _found_slot(pack_key(bx, by, bz), table_keys, table_slots,
-                                               base, st_table_keys, st_table_slots)
-                            if slot >= 0:
-                                ra, rb = (bx, by, bz, slot), ra
-                        last_bx, last_by, last_bz = bx, by, bz
-                    n_run = carve_visit(voxels, slot, vx, vy, vz, truncation_mm, run, n_run,
-                                        touched, base)
+                if t > span:  # beyond the band: runs end at column edges, as in the serial walk
+                    if mine or ((vx >> cs) + (vy >> cs)) & 1 == tid:
+                        if (vx >> cs) != run_cx or (vy >> cs) != run_cy:
+                            n_run, run_cx, run_cy = 0, vx >> cs, vy >> cs
+                        bx, by, bz = vx >> BLOCK_SHIFT, vy >> BLOCK_SHIFT, vz >> BLOCK_SHIFT
+                        if bx != last_bx or by != last_by or bz != last_bz:
+                            slot = recent_slot(bx, by, bz, ra, rb)
+                            if slot < 0:
+                                slot = _found_slot(pack_key(bx, by, bz), table_keys,
+                                                   table_slots, base, st_table_keys,
+                                                   st_table_slots)
+                                if slot >= 0:
+                                    ra, rb = (bx, by, bz, slot), ra
+                            last_bx, last_by, last_bz = bx, by, bz
+                        n_run = carve_visit(voxels, slot, vx, vy, vz, truncation_mm, run,
+                                            n_run, touched, base)
                 elif mine or ((vx >> cs) + (vy >> cs)) & 1 == tid:
                     bx, by, bz = vx >> BLOCK_SHIFT, vy >> BLOCK_SHIFT, vz >> BLOCK_SHIFT
                     if bx != last_bx or by != last_by or bz != last_bz:
