@@ -13,7 +13,7 @@ profilers, deposition and robot states and prints the median rate over ``--runs`
 - one thread: the same stream with ``scan_thread=False`` (everything on the calling thread),
 - per-sample baseline: the same stream from the plain per-sample loop measured in the same
   process (one deposition call, one validated robot state per 250 Hz motion sample, and the
-  profilers' numpy reference path), with the ratio of the two; the baseline is also checked to
+  profilers' numpy path), with the ratio of the two; the baseline is also checked to
   give the same messages, bit for bit,
 - recorded: the stream written to MCAP (what ``dm2 simulate`` does),
 

@@ -99,7 +99,7 @@ def scan_profile(scene, cal, sid, T_B_F, stamp_s, counter, rng, noise_mm=0.0, n_
 
 
 def raster_run(scene, cal, lines_O, step_mm=1.0, dt_s=0.1, state_hz=250.0, noise_mm=0.0,
-               seed=0, t0_s=0.0, counter0=0, cascade_s=0.02):
+               seed=0, t0_s=0.0, counter0=0, cascade_s=0.02, n_rays=640):
     """Messages of a run along straight ``lines_O`` [(start (3,), end (3,)), ...] of the spot,
     one frame set per ``step_mm`` at ``dt_s`` intervals; robot states at ``state_hz``.
 
@@ -127,7 +127,7 @@ def raster_run(scene, cal, lines_O, step_mm=1.0, dt_s=0.1, state_hz=250.0, noise
         for j, sid in enumerate(("S1", "S2", "S3")):
             ts = t + j * cascade_s
             prof, h = scan_profile(scene, cal, sid, T_B_F_for_spot(cal, spot_at(ts)[0]), ts,
-                                   counter % (1 << 24), rng, noise_mm)
+                                   counter % (1 << 24), rng, noise_mm, n_rays)
             msgs.append(prof)
             hits.append(h[prof.valid])
         counter += 1

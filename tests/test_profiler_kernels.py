@@ -1,5 +1,5 @@
 """The profiler's numba scan (trace, noise, and both in one call) gives the same bits as its
-numpy reference: on a rough deposit, at the plate's edge, behind an occluder and in the dark,
+numpy path: on a rough deposit, at the plate's edge, behind an occluder and in the dark,
 with every noise term switched on."""
 
 from __future__ import annotations
@@ -77,7 +77,7 @@ def test_numba_scan_equals_numpy_reference(target, elevation, azimuth, flip):
     seen = set()
     for occluders in ((), _rods(T_B_S, sensors)):
         fast = prof.trace(hf, T_B_O, occluders)
-        ref = prof.trace_reference(hf, T_B_O, occluders)
+        ref = prof.trace_numpy(hf, T_B_O, occluders)
         for name in ("range_mm", "reason", "cos_incidence", "points_O"):
             np.testing.assert_array_equal(getattr(fast, name), getattr(ref, name), err_msg=name)
         seen |= set(np.unique(fast.reason).tolist())
@@ -89,7 +89,7 @@ def test_numba_scan_equals_numpy_reference(target, elevation, azimuth, flip):
                                           err_msg=name)
         for counter in (0, 77):
             a = prof.measure(fast, 1.5, counter)
-            b = prof.measure_reference(ref, 1.5, counter)
+            b = prof.measure_numpy(ref, 1.5, counter)
             for name in ("xz_S", "valid", "intensity"):
                 np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
             assert a.intensity.dtype == np.float32 and 0 < a.valid.sum() < a.n_points

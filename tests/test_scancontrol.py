@@ -26,7 +26,7 @@ Z_OFFSET_MM = 100.0
 RES = 8
 
 
-def make_fake_llt(interfaces=("192.168.0.11",), resolutions=(RES, 160)):
+def make_fake_llt(interfaces=("218020093", "218020117"), resolutions=(RES, 160)):
     """A module with the wrapper's names and calling conventions, recording every call."""
     m = types.ModuleType("pyllt")
     m.calls = []
@@ -135,7 +135,8 @@ def fake(monkeypatch):
 
 def test_profiles_convert_exactly_with_counter_stamp_and_invalid_points(fake):
     inbox = Inbox(100)
-    src = ScanControlSource(inbox, "S2", "192.168.0.11", RES, exposure_us=500).start()
+    src = ScanControlSource(inbox, "S2", "218020117", RES, exposure_us=500,
+                            idle_us=3500).start()
     (dev,) = fake.devices
     dev.emit(profile_buffer(X, Z, PEAK, counter=4242, open_s=12.5, close_s=12.5005))
     p, source, _arrival = inbox.get(timeout_s=0)
@@ -154,14 +155,17 @@ def test_profiles_convert_exactly_with_counter_stamp_and_invalid_points(fake):
     assert ("set_resolution", (RES,)) in fake.calls
     assert ("set_profile_config", (fake.TProfileConfig.PROFILE,)) in fake.calls
     assert ("set_feature", (fake.FEATURE_FUNCTION_TRIGGER, 0)) in fake.calls
-    assert ("set_feature", (fake.FEATURE_FUNCTION_SHUTTERTIME, 500)) in fake.calls
+    assert ("set_device_interface", (b"218020117",)) in fake.calls
+    # the sensor takes times in 10 us steps: 500 us -> 50, 3500 us -> 350
+    assert ("set_feature", (fake.FEATURE_FUNCTION_SHUTTERTIME, 50)) in fake.calls
+    assert ("set_feature", (fake.FEATURE_FUNCTION_IDLETIME, 350)) in fake.calls
     assert names[-3:] == ["transfer_profiles", "disconnect", "del_device"]
     assert fake.calls[-3][1] == (0, 0)  # NORMAL_TRANSFER, stop
 
 
 def test_counter_wraps_at_24_bits_and_sensor_clock_unwraps_at_128_s(fake):
     inbox = Inbox(100)
-    with ScanControlSource(inbox, "S1", "192.168.0.11", RES):
+    with ScanControlSource(inbox, "S1", "218020093", RES):
         (dev,) = fake.devices
         for counter, t in [(COUNTER_MODULO - 1, 127.9), (COUNTER_MODULO, 127.95), (1, 0.0)]:
             dev.emit(profile_buffer(X, Z, PEAK, counter, t, t))
@@ -172,7 +176,7 @@ def test_counter_wraps_at_24_bits_and_sensor_clock_unwraps_at_128_s(fake):
 
 def test_bad_buffers_are_counted_and_arrival_stamps_used_on_request(fake):
     inbox = Inbox(100)
-    with ScanControlSource(inbox, "S3", "192.168.0.11", RES, stamp="arrival"):
+    with ScanControlSource(inbox, "S3", "218020093", RES, stamp="arrival"):
         (dev,) = fake.devices
         dev.emit(b"\0" * 100)  # not resolution x 64 bytes
         dev.emit(profile_buffer(X, Z, PEAK, 7, 3.0, 3.0))
@@ -182,10 +186,13 @@ def test_bad_buffers_are_counted_and_arrival_stamps_used_on_request(fake):
 
 
 def test_setup_errors_name_the_sensor_and_release_the_device(fake):
-    with pytest.raises(ScanControlError, match=r"S1: interface 10\.0\.0\.9 not found"):
-        ScanControlSource(Inbox(10), "S1", "10.0.0.9", RES).start()
+    with pytest.raises(ScanControlError, match=r"S1: serial number 192\.168\.0\.11 not found "
+                       r"\(the SDK lists \['218020093', '218020117'\]\)"):
+        ScanControlSource(Inbox(10), "S1", "192.168.0.11", RES).start()
+    with pytest.raises(ValueError, match="exposure_us = 505: the sensor takes times in 10 us"):
+        ScanControlSource(Inbox(10), "S1", "218020093", RES, exposure_us=505)
     with pytest.raises(ScanControlError, match="resolution 1280 not offered"):
-        ScanControlSource(Inbox(10), "S1", "192.168.0.11", 1280).start()
+        ScanControlSource(Inbox(10), "S1", "218020093", 1280).start()
     assert [c[0] for c in fake.calls].count("del_device") == 2
 
 
@@ -208,7 +215,7 @@ def _cell(tmp_path):
     (tmp_path / "cell.toml").write_text(
         'schema = 1\ncalibration = "calibration.toml"\n[live]\negm = "127.0.0.1:0"\n'
         'profiles = "127.0.0.1:0"\n[[live.scancontrol]]\nsensor_id = "S2"\n'
-        f'interface = "192.168.0.11"\nresolution = {RES}\n')
+        f'serial = "218020093"\nresolution = {RES}\n')
     return load_cell_file(tmp_path / "cell.toml")
 
 
@@ -218,7 +225,7 @@ def test_live_runner_opens_the_listed_sensors(fake, tmp_path):
     runner = LiveRunner(_cell(tmp_path), tmp_path / "out", record=False)
     try:
         addresses = runner.open_sources()
-        assert addresses["scancontrol S2"] == ("192.168.0.11", "S2")
+        assert addresses["scancontrol S2"] == ("218020093", "S2")
         fake.devices[0].emit(profile_buffer(X, Z, PEAK, 9, 1.0, 1.0))
         p, source, _ = runner.inbox.get(timeout_s=0)
         assert (p.sensor_id, p.counter, source) == ("S2", 9, "scancontrol")
@@ -236,3 +243,19 @@ def test_live_runner_without_the_wrapper_fails_clearly_and_closes_sockets(monkey
     with pytest.raises(ScanControlUnavailable, match="live.scancontrol"):
         runner.open_sources()
     assert runner.sources == []
+
+
+def test_cell_file_selects_sensors_by_serial_number_in_10_us_steps(tmp_path):
+    from dm2.core.config import ConfigError
+
+    _cell(tmp_path)  # writes calibration.toml and a valid cell.toml
+    from dm2.live.config import load_cell_file
+
+    text = (tmp_path / "cell.toml").read_text()
+    for bad, expect in (('serial = "218020093"', "selects sensors by serial number"),
+                        (f"resolution = {RES}", "multiple of 10")):
+        new = 'interface = "192.168.0.11"' if "serial" in bad else \
+            f"resolution = {RES}\nexposure_us = 505"
+        (tmp_path / "bad.toml").write_text(text.replace(bad, new))
+        with pytest.raises(ConfigError, match=expect):
+            load_cell_file(tmp_path / "bad.toml")

@@ -1,5 +1,5 @@
 """The batched simulation loop gives, bit for bit, the stream of the plain per-sample loop:
-one deposition call per motion sample, validated robot states, the numpy reference profiler
+one deposition call per motion sample, validated robot states, the numpy path of the profilers
 (trace and noise), robot noise drawn three values at a time; and the trusted state constructor
 equals the validating one."""
 

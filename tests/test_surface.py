@@ -88,6 +88,40 @@ def test_ply_round_trip_keeps_weights_and_opens_in_open3d(tmp_path):
     assert len(surf.to_open3d().triangles) == surf.n_faces
 
 
+def test_ply_re_saved_by_another_tool_reads_back(tmp_path):
+    """A file re-saved as ASCII with the properties in another order and the faces as a
+    variable-length list (as mesh tools write it) reads back to the same mesh."""
+    from plyfile import PlyData, PlyElement
+
+    surf = SurfaceExtractor(_fused_plane(extent=12.0)).update()
+    path = tmp_path / "s.ply"
+    surf.write_ply(path)
+    original = PlyData.read(str(path))
+    order = ["scalar_weight", "nz", "ny", "nx", "z", "y", "x"]
+    data = original["vertex"].data
+    vertex = np.empty(len(data), dtype=[(k, data.dtype[k].str) for k in order])
+    for k in order:
+        vertex[k] = data[k]
+    faces = np.empty(surf.n_faces, dtype=[("vertex_indices", object)])
+    faces["vertex_indices"] = [np.asarray(f, dtype=np.int32) for f in surf.faces]
+    resaved = tmp_path / "resaved.ply"
+    PlyData([PlyElement.describe(vertex, "vertex"),
+             PlyElement.describe(faces, "face")], text=True).write(str(resaved))
+    back = read_ply(resaved)
+    np.testing.assert_array_equal(back.vertices_O, surf.vertices_O)
+    np.testing.assert_array_equal(back.normals_O, surf.normals_O)
+    np.testing.assert_array_equal(back.faces, surf.faces)
+    np.testing.assert_array_equal(back.weight, surf.weight)
+    no_weight = tmp_path / "no_weight.ply"
+    xyz = np.empty(len(data), dtype=[(k, "<f8") for k in "xyz"])
+    for k in "xyz":
+        xyz[k] = data[k]
+    PlyData([PlyElement.describe(xyz, "vertex"),
+             PlyElement.describe(faces, "face")]).write(str(no_weight))
+    with pytest.raises(MessageError, match="no_weight.ply.*scalar_weight"):
+        read_ply(no_weight)
+
+
 def test_surface_mesh_validates():
     with pytest.raises(MessageError, match="faces"):
         SurfaceMesh(np.zeros((3, 3)), [[0, 1, 5]], np.ones(3), np.zeros((3, 3)))

@@ -15,19 +15,38 @@ from dm2.cli.common import app, bad_input_exits, console, fail, note_cold_kernel
 log = logging.getLogger(__name__)
 
 
-def _load_inputs(run: Path, calibration: Path | None, toolpath: Path | None):
+def _read_toolpath(path: Path):
+    """A toolpath file: the canonical CSV, or the RAPID module ``dm2 toolpath`` writes (told
+    apart by its ``MODULE`` line)."""
+    import re
+
+    from dm2.toolpath.formats import read_csv, read_rapid
+
+    try:
+        with open(path, encoding="utf-8", errors="replace") as f:
+            head = f.read(4096)
+    except OSError as exc:
+        raise FileNotFoundError(f"--toolpath {path}: cannot read: {exc.strerror}") from None
+    if re.search(r"^\s*MODULE\s+\w+", head, re.MULTILINE):
+        return read_rapid(path)
+    return read_csv(path)
+
+
+def _load_inputs(run: Path, calibration: Path | None, toolpath: Path | None,
+                 map_path: Path | None = None):
     """Open the recording and resolve calibration, toolpath and configuration."""
     from dm2.core.calibration_io import read_calibration_toml
     from dm2.core.config import CellConfig, MonitorConfig, ProcessConfig, parse_scenario
-    from dm2.io.recording import read_recording
-    from dm2.toolpath.formats import read_csv
+    from dm2.io.bag_recording import open_recording
+    from dm2.io.recording_map import read_map
 
-    rec = read_recording(run)
+    rmap = read_map(map_path) if map_path is not None else None
+    rec = open_recording(run, rmap)
     cal = read_calibration_toml(calibration) if calibration is not None else rec.calibration
     if cal is None:
         raise ValueError(f"{run}: no calibration attached and no complete /tf_static; "
                          "give one with --calibration FILE.toml")
-    tp = read_csv(toolpath) if toolpath is not None else rec.toolpath
+    tp = _read_toolpath(toolpath) if toolpath is not None else rec.toolpath
     monitor_cfg, process, plate_mm = MonitorConfig(), ProcessConfig(), CellConfig().plate_size_mm
     if rec.scenario_toml is not None:
         import tomllib
@@ -37,6 +56,8 @@ def _load_inputs(run: Path, calibration: Path | None, toolpath: Path | None):
         except tomllib.TOMLDecodeError as exc:
             raise ValueError(f"{run}: attached scenario is not valid TOML: {exc}") from None
         monitor_cfg, process, plate_mm = sc.monitor, sc.process, sc.cell.plate_size_mm
+    if hasattr(rec, "max_pose_gap_s"):  # rosbag2: tf lookups within the configured gap
+        rec.max_pose_gap_s = monitor_cfg.max_pose_gap_s
     if tp is not None:
         check_toolpath_matches(rec, cal, tp, process, toolpath or "the attached toolpath")
     return rec, cal, tp, monitor_cfg, process, plate_mm
@@ -77,12 +98,17 @@ def check_toolpath_matches(rec, cal, tp, process, tp_name, n_states: int = 500,
 
 @app.command()
 def monitor(
-    run: Path = typer.Argument(None, help="MCAP recording (from `dm2 simulate` or the cell)."),
+    run: Path = typer.Argument(None, help="Recording: MCAP (from `dm2 simulate` or the "
+                               "cell), a rosbag2 bag folder, or a .db3 bag."),
     out: Path = typer.Option(..., "--out", "-o", help="Folder for the per-layer surfaces."),
     calibration: Path = typer.Option(None, "--calibration", help="Calibration TOML (default: "
                                      "the recording's attachment, else its /tf_static)."),
-    toolpath: Path = typer.Option(None, "--toolpath", help="Toolpath CSV (default: the "
-                                  "recording's attachment); splits layers without layer marks."),
+    toolpath: Path = typer.Option(None, "--toolpath", help="Toolpath CSV or RAPID module "
+                                  "(default: the recording's attachment); splits layers "
+                                  "without layer marks."),
+    map_path: Path = typer.Option(None, "--map", help="Map TOML from a cell's own topic and "
+                                  "frame names onto the pipeline's (see README, 'Your own "
+                                  "cell's recordings')."),
     voxel_mm: float = typer.Option(None, "--voxel-mm", min=0.05, max=2.0,
                                    help="Override the TSDF voxel size [mm]."),
     live: Path = typer.Option(None, "--live", help="Cell file: monitor the live cell (EGM + "
@@ -99,7 +125,8 @@ def monitor(
     outputs of an earlier replay in the folder. With `--live`, the folder must not hold a live
     recording yet (`live.mcap`, or a `live.mcap.part` left by a crash: `dm2 recover` it).
 
-    Example: `dm2 monitor run.mcap --out runs/replay`
+    Example: `dm2 monitor run.mcap --out runs/replay`;
+    a cell's rosbag2 bag: `dm2 monitor bag_folder --map cell_map.toml --out runs/cell`
     """
     note_cold_kernel_cache()
     if live is not None:
@@ -119,7 +146,8 @@ def monitor(
 
     t_start = time.perf_counter()
     with bad_input_exits():
-        rec, cal, tp, monitor_cfg, process, plate_mm = _load_inputs(run, calibration, toolpath)
+        rec, cal, tp, monitor_cfg, process, plate_mm = _load_inputs(run, calibration,
+                                                                      toolpath, map_path)
         if voxel_mm is not None:
             monitor_cfg = monitor_cfg.model_copy(update={"voxel_mm": voxel_mm})
         if out.exists() and not out.is_dir():
@@ -157,12 +185,16 @@ def monitor(
             session.feed(msg)
             n_msgs += 1
         session.finish()
-    summary = {"schema": 1, "recording": str(run), "messages": n_msgs,
+    summary = {"schema": 1, "recording": str(run),
+               **({"map": str(map_path)} if map_path is not None else {}), "messages": n_msgs,
                "profiles_fused": mon.profiles_fused, "points_fused": mon.points_fused,
                "tsdf_blocks": mon.tsdf.n_blocks, "dropped": mon.dropped,
                "recording_skipped": {k: int(v) for k, v in rec.skipped.items()},
+               "recording_problems": list(getattr(rec, "problems", [])),
                "layer_source": mon.layers.source, "layers": written}
     (out / "monitor.json").write_text(json.dumps(summary, indent=2), encoding="utf-8")
+    if hasattr(rec, "close"):  # a rosbag2 recording holds its files open while read
+        rec.close()
     if analyse and session.results:
         write_report(out / "report", session.results, session.tracks,
                      config_toml=dump_toml({"recording": str(run),
@@ -186,10 +218,16 @@ def monitor(
     for reason, count in mon.dropped.items():
         table.add_row(f"dropped: {reason}", str(count))
     console.print(table)
+    from rich.markup import escape
+
+    for problem in getattr(rec, "problems", []):
+        console.print(f"[bold yellow]warning:[/] {escape(problem)}", highlight=False)
     if analyse and session.results:
         console.print(f"report: [bold]{out / 'report' / 'index.html'}[/]")
     if mon.points_fused == 0:
-        fail(f"{run}: no profile could be fused (dropped: {mon.dropped})", code=1)
+        fail(f"{run}: no profile could be fused (dropped: {mon.dropped}, recording: "
+             f"{dict(rec.skipped)}){''.join('; ' + p for p in getattr(rec, 'problems', []))}",
+             code=1)
 
 
 def _clear_earlier_outputs(out: Path) -> None:

@@ -54,7 +54,8 @@ class Profile:
     ----------
     sensor_id : str, one of ``SENSOR_IDS``
     stamp_s : float [s], acquisition time on the cell clock
-    counter : int, 24-bit profile counter (wraps at 2**24)
+    counter : int or None, 24-bit profile counter (wraps at 2**24); None where the source
+        carries none (rosbag2 recordings): duplicates are then recognised by (sensor, stamp)
     xz_S : (n, 2) float64 [mm], points in the laser plane (y_S = 0); may hold NaN where invalid
     valid : (n,) bool, False where the sensor reported no point
     intensity : (n,) float32, reflected intensity (0..1)
@@ -62,7 +63,7 @@ class Profile:
 
     sensor_id: str
     stamp_s: float
-    counter: int
+    counter: int | None
     xz_S: np.ndarray
     valid: np.ndarray
     intensity: np.ndarray
@@ -71,10 +72,11 @@ class Profile:
         if self.sensor_id not in SENSOR_IDS:
             raise MessageError(f"Profile.sensor_id: {self.sensor_id!r} not in {SENSOR_IDS}")
         object.__setattr__(self, "stamp_s", _scalar("Profile", "stamp_s", self.stamp_s))
-        c = int(self.counter)
-        if not 0 <= c < COUNTER_MODULO:
-            raise MessageError(f"Profile.counter: {c} outside the 24-bit range")
-        object.__setattr__(self, "counter", c)
+        if self.counter is not None:
+            c = int(self.counter)
+            if not 0 <= c < COUNTER_MODULO:
+                raise MessageError(f"Profile.counter: {c} outside the 24-bit range")
+            object.__setattr__(self, "counter", c)
         xz = _array("Profile", "xz_S", self.xz_S, np.float64, (None, 2))
         n = xz.shape[0]
         valid = _array("Profile", "valid", self.valid, bool, (n,))

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from dm2.core.messages import MessageError
+from dm2.io.ply import read_mesh_ply, write_mesh_ply
 
 
 @dataclass(frozen=True)
@@ -79,44 +80,20 @@ class SurfaceMesh:
         return m
 
     def write_ply(self, path: str | Path) -> None:
-        """Binary little-endian PLY with normals and a ``scalar_weight`` vertex property."""
-        path = Path(path)
-        n, m = self.n_vertices, self.n_faces
-        header = (
-            "ply\nformat binary_little_endian 1.0\ncomment frame O, units mm\n"
-            f"element vertex {n}\nproperty double x\nproperty double y\nproperty double z\n"
-            "property double nx\nproperty double ny\nproperty double nz\n"
-            "property float scalar_weight\n"
-            f"element face {m}\nproperty list uchar int vertex_indices\nend_header\n"
-        )
-        vdt = np.dtype([("p", "<f8", 3), ("n", "<f8", 3), ("w", "<f4")])
-        vert = np.empty(n, dtype=vdt)
-        vert["p"], vert["n"], vert["w"] = self.vertices_O, self.normals_O, self.weight
-        fdt = np.dtype([("k", "u1"), ("i", "<i4", 3)])
-        face = np.empty(m, dtype=fdt)
-        face["k"], face["i"] = 3, self.faces
-        tmp = path.with_name(path.name + ".part")
-        with open(tmp, "wb") as fh:
-            fh.write(header.encode("ascii"))
-            fh.write(vert.tobytes())
-            fh.write(face.tobytes())
-        tmp.replace(path)
+        """Binary PLY in ``O`` [mm]: double ``x y z`` and ``nx ny nz``, float ``scalar_weight``."""
+        v, nrm = self.vertices_O, self.normals_O
+        write_mesh_ply(path, {"x": v[:, 0], "y": v[:, 1], "z": v[:, 2], "nx": nrm[:, 0],
+                              "ny": nrm[:, 1], "nz": nrm[:, 2],
+                              "scalar_weight": self.weight.astype(np.float32)},
+                       self.faces, comments=["frame O, units mm"])
 
 
 def read_ply(path: str | Path) -> SurfaceMesh:
-    """Read a PLY written by :meth:`SurfaceMesh.write_ply`."""
-    data = Path(path).read_bytes()
-    end = data.find(b"end_header\n")
-    if end < 0:
-        raise MessageError(f"{path}: not a PLY file (no end_header)")
-    header = data[:end].decode("ascii", "replace").splitlines()
-    counts = {ln.split()[1]: int(ln.split()[2]) for ln in header if ln.startswith("element")}
-    if "scalar_weight" not in " ".join(header):
-        raise MessageError(f"{path}: PLY has no scalar_weight property")
-    n, m = counts.get("vertex", 0), counts.get("face", 0)
-    vdt = np.dtype([("p", "<f8", 3), ("n", "<f8", 3), ("w", "<f4")])
-    fdt = np.dtype([("k", "u1"), ("i", "<i4", 3)])
-    off = end + len(b"end_header\n")
-    vert = np.frombuffer(data, vdt, n, off)
-    face = np.frombuffer(data, fdt, m, off + n * vdt.itemsize)
-    return SurfaceMesh(vert["p"], face["i"].astype(np.int64), vert["w"], vert["n"])
+    """Read a fused surface PLY (:meth:`SurfaceMesh.write_ply`, or the same fields re-saved)."""
+    fields, faces = read_mesh_ply(path)
+    missing = [k for k in ("x", "y", "z", "nx", "ny", "nz", "scalar_weight") if k not in fields]
+    if missing:
+        raise MessageError(f"{path}: PLY has no vertex properties {', '.join(missing)}")
+    xyz = np.column_stack([fields[k] for k in "xyz"]).astype(np.float64)
+    nrm = np.column_stack([fields[k] for k in ("nx", "ny", "nz")]).astype(np.float64)
+    return SurfaceMesh(xyz, faces, fields["scalar_weight"].astype(np.float32), nrm)

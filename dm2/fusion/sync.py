@@ -13,6 +13,7 @@ Drop reasons (``StreamSync.dropped``; message counts unless marked as points):
 ``unknown_sensor``   profile from a sensor the calibration does not know
 ``late_message``     stamp older than the newest stamp seen minus ``reorder_window_s``
 ``duplicate_counter`` a profile whose (sensor, counter) was already received
+``duplicate_stamp``  a profile without counter (rosbag2) whose (sensor, stamp) was already received
 ``duplicate_state``  a robot state with the stamp of one already buffered
 ``duplicate_mark``   a layer mark for a layer already marked
 ``nan_points``       points (not profiles) flagged valid whose coordinates are not finite
@@ -72,6 +73,7 @@ class StreamSync:
         self._heap: list = []
         self._tie = 0
         self._seen_counters: dict[str, dict[int, float]] = {s: {} for s in self.sensor_ids}
+        self._seen_stamps: dict[str, dict[float, float]] = {s: {} for s in self.sensor_ids}
         self._marked_layers: set[int] = set()
 
     def push(self, msg) -> list:
@@ -129,11 +131,18 @@ class StreamSync:
         if p.stamp_s < self.watermark_s - self.reorder_window_s:
             self.dropped["late_message"] += 1
             return False
-        seen = self._seen_counters[p.sensor_id]
-        if p.counter in seen:
-            self.dropped["duplicate_counter"] += 1
-            return False
-        seen[p.counter] = p.stamp_s
+        if p.counter is None:  # no counter in the source: (sensor, stamp) identifies it
+            seen = self._seen_stamps[p.sensor_id]
+            if p.stamp_s in seen:
+                self.dropped["duplicate_stamp"] += 1
+                return False
+            seen[p.stamp_s] = p.stamp_s
+        else:
+            seen = self._seen_counters[p.sensor_id]
+            if p.counter in seen:
+                self.dropped["duplicate_counter"] += 1
+                return False
+            seen[p.counter] = p.stamp_s
         if len(seen) > 4096:  # forget counters far outside the window (24-bit counters wrap)
             horizon = self.watermark_s - 10 * (self.reorder_window_s + 1.0)
             for c in [c for c, t in seen.items() if t < horizon]:

@@ -14,7 +14,9 @@ topic               type                              content
 
 Every message's MCAP ``log_time`` and ``publish_time`` equal its header stamp in nanoseconds.
 ROS 2 headers carry no sequence number, so the 24-bit profile ``counter`` and the robot
-state's ``seq`` travel, losslessly, in the MCAP message record's ``sequence`` field. A
+state's ``seq`` travel, losslessly, in the MCAP message record's ``sequence`` field. A file whose
+first profiles all have sequence 0 carries no counters (profiles written without one): its
+profiles are read with ``counter = None`` and de-duplicated by (sensor, stamp). A
 ``RobotState`` is written as a ``/joint_states`` and a ``/tf`` message with the same stamp and
 sequence; the reader pairs them back. Attachments make a recording self-contained:
 ``scenario.toml``, ``toolpath.csv`` (canonical CSV) and ``calibration.toml``
@@ -49,6 +51,7 @@ SCAN_TOPICS = {sid: f"/scan/{sid}" for sid in SENSOR_IDS}
 JOINT_TOPIC, TF_TOPIC, TF_STATIC_TOPIC, LAYER_TOPIC = ("/joint_states", "/tf", "/tf_static",
                                                       "/dm2/layer")
 MCAP_MAGIC = b"\x89MCAP0\r\n"
+COUNTER_PEEK = 64  # profiles looked at to tell whether a recording carries counters
 
 
 def stamp_to_ns(stamp_s: float) -> int:
@@ -77,6 +80,7 @@ class Recording:
         self.skipped: Counter = Counter()
         self.attachments: dict[str, bytes] = {}
         self.complete = True
+        self._has_counters: bool | None = None
         with open(path, "rb") as f:
             if f.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
                 raise ValueError(f"{path}: not an MCAP file (bad magic bytes)")
@@ -130,15 +134,7 @@ class Recording:
     @property
     def toolpath(self):
         """The attached toolpath (:class:`~dm2.core.messages.Toolpath`) or None."""
-        data = self.attachments.get(TOOLPATH_ATTACHMENT)
-        if data is None:
-            return None
-        from dm2.toolpath.formats import read_csv
-
-        with tempfile.TemporaryDirectory() as tmp:
-            p = Path(tmp) / TOOLPATH_ATTACHMENT
-            p.write_bytes(data)
-            return read_csv(p)
+        return attached_toolpath(self.attachments)
 
     def _iter_raw(self, topics=None):
         with open(self.path, "rb") as f:
@@ -152,9 +148,27 @@ class Recording:
                 log.warning("%s: stopped at a truncated record (%s)", self.path,
                             str(exc) or type(exc).__name__)
 
+    @property
+    def has_counters(self) -> bool:
+        """False when the first ``COUNTER_PEEK`` profiles all have sequence 0."""
+        if self._has_counters is None:
+            seqs = []
+            raw = self._iter_raw(list(SCAN_TOPICS.values()))
+            for _schema, _channel, message in raw:
+                seqs.append(message.sequence)
+                if len(seqs) >= COUNTER_PEEK:
+                    break
+            raw.close()
+            self._has_counters = any(seqs)
+        return self._has_counters
+
     def messages(self) -> Iterator[Profile | RobotState | LayerMark]:
         """Pipeline messages in stamp order (a RobotState once its joints and pose both came)."""
         scan_ids = {t: sid for sid, t in SCAN_TOPICS.items()}
+        counters = self.has_counters
+        if not counters:
+            log.info("%s: no profile counters (every MCAP sequence is 0); duplicate profiles "
+                     "are recognised by (sensor, stamp)", self.path)
         pending_joints: dict[int, tuple] = {}
         pending_tf: dict[int, tuple] = {}
         for _schema, channel, message in self._iter_raw():
@@ -162,8 +176,8 @@ class Recording:
             try:
                 if topic in scan_ids:
                     ns, frame_id, xz, valid, inten = ros.decode_cloud(message.data)
-                    yield Profile(scan_ids[topic], ns_to_stamp(ns), message.sequence, xz, valid,
-                                  inten)
+                    yield Profile(scan_ids[topic], ns_to_stamp(ns),
+                                  message.sequence if counters else None, xz, valid, inten)
                 elif topic == JOINT_TOPIC:
                     ns, _names, pos = ros.decode_joint_state(message.data)
                     state = self._pair(ns, message.sequence, pending_tf, pending_joints, pos)
@@ -194,6 +208,19 @@ class Recording:
             return None
         joints, T = (value, partner[1]) if joints_first else (partner[1], value)
         return RobotState(ns_to_stamp(ns), seq, joints, T)
+
+
+def attached_toolpath(attachments: dict[str, bytes]):
+    """The ``toolpath.csv`` attachment as a :class:`~dm2.core.messages.Toolpath`, or None."""
+    data = attachments.get(TOOLPATH_ATTACHMENT)
+    if data is None:
+        return None
+    from dm2.toolpath.formats import read_csv
+
+    with tempfile.TemporaryDirectory() as tmp:
+        p = Path(tmp) / TOOLPATH_ATTACHMENT
+        p.write_bytes(data)
+        return read_csv(p)
 
 
 def read_recording(path: str | Path) -> Recording:

@@ -88,7 +88,8 @@ class RecordingWriter:
     def write_profile(self, p: Profile) -> None:
         ns = stamp_to_ns(p.stamp_s)
         data = ros.encode_cloud(ns, p.sensor_id, p.xz_S, p.valid, p.intensity)
-        self._add(SCAN_TOPICS[p.sensor_id], ros.POINTCLOUD2, ns, data, p.counter)
+        self._add(SCAN_TOPICS[p.sensor_id], ros.POINTCLOUD2, ns, data,
+                  0 if p.counter is None else p.counter)  # no counter: sequence 0
 
     def write_robot_state(self, s: RobotState) -> None:
         if not 0 <= s.seq < _U32:

@@ -23,7 +23,7 @@ Example::
 
     [[live.scancontrol]]                  # optional: sensors driven through the vendor's
     sensor_id = "S1"                      # wrapper (dm2.live.scancontrol), besides bridges
-    interface = "192.168.0.11"
+    serial = "218020093"                  # the SDK selects sensors by serial number
 
 Every model rejects unknown keys; errors are :class:`~dm2.core.config.ConfigError` naming the file
 and the field.
@@ -76,11 +76,20 @@ class ScanControlSensor(_Model):
     """One scanCONTROL profiler driven directly through the vendor's Python wrapper."""
 
     sensor_id: Literal["S1", "S2", "S3"]
-    interface: str  # the sensor's IP address (Ethernet interface)
+    serial: str = Field(min_length=1)  # serial number, as the SDK's get_device_interfaces lists
     resolution: int = Field(640, gt=0)
     stamp: Literal["sensor", "arrival"] = "sensor"  # timestamp block or host arrival time
-    exposure_us: int | None = Field(None, gt=0)
-    idle_us: int | None = Field(None, ge=0)
+    exposure_us: int | None = Field(None, gt=0, multiple_of=10)  # sent in 10 us steps
+    idle_us: int | None = Field(None, ge=0, multiple_of=10)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _no_interface(cls, data):
+        if isinstance(data, dict) and "interface" in data:
+            raise ValueError("interface: the scanCONTROL Linux SDK selects sensors by serial "
+                             "number (get_device_interfaces lists serial numbers, not IP "
+                             "addresses); write serial = \"<the sensor's serial number>\"")
+        return data
 
 
 class LiveConfig(_Model):

@@ -148,7 +148,7 @@ class LiveRunner:
 
                 llt = load_wrapper()
                 for sensor in live.scancontrol:
-                    src = ScanControlSource(self.inbox, sensor.sensor_id, sensor.interface,
+                    src = ScanControlSource(self.inbox, sensor.sensor_id, sensor.serial,
                                             sensor.resolution, llt=llt, stamp=sensor.stamp,
                                             exposure_us=sensor.exposure_us,
                                             idle_us=sensor.idle_us)

@@ -11,18 +11,20 @@ and list the sensors in the cell file::
 
     [[live.scancontrol]]
     sensor_id = "S1"
-    interface = "192.168.0.11"        # the sensor's address as the SDK lists it
+    serial = "218020093"              # the sensor's serial number (on its type label)
     resolution = 640
+    exposure_us = 1000                # optional, a multiple of 10 us
+    idle_us = 3000                    # optional, a multiple of 10 us
 
 The wrapper is imported only when a cell file names scanCONTROL sensors; without it
 :func:`load_wrapper` raises :class:`ScanControlUnavailable` with these instructions. Sensors on
 another machine can instead run a bridge that speaks :mod:`dm2.live.tcp_frames`.
 
-Per sensor, :class:`ScanControlSource` selects the interface, connects, checks and sets the
-resolution, selects the ``PROFILE`` transfer format, sets internal triggering (and exposure and
-idle time when given), registers a buffer callback and starts the transfer. Every buffer the
-SDK hands over (``resolution * 64`` bytes: four reflections of 16 bytes per point, the last 16
-bytes of the buffer holding the profile's timestamp block) becomes one
+Per sensor, :class:`ScanControlSource` selects the sensor by its serial number, connects, checks
+and sets the resolution, selects the ``PROFILE`` transfer format, sets internal triggering (and
+exposure and idle time when given), registers a buffer callback and starts the transfer.
+Every buffer the SDK hands over (``resolution * 64`` bytes: four reflections of 16 bytes per
+point, the last 16 bytes of the buffer holding the profile's timestamp block) becomes one
 :class:`~dm2.core.messages.Profile`:
 
 - ``xz_S`` [mm] from ``convert_profile_2_values`` (first reflection; x along the line, z the
@@ -38,6 +40,33 @@ bytes of the buffer holding the profile's timestamp block) becomes one
   wanted), which the aligner treats the same way.
 
 Buffers that do not convert count ``scancontrol_bad_profile`` in the inbox.
+
+What the tests' fake wrapper (``tests/test_scancontrol.py``) assumes of the SDK, and where each
+assumption comes from (no real sensor has been driven by this module yet):
+
+- Sensor selection: the Linux SDK's ``get_device_interfaces(names, n)`` fills an array of
+  C strings with the sensors it found, one per sensor, *identified by serial number* (the
+  vendor's Linux Python examples pick ``available_interfaces[0]``; ROS drivers built on them
+  match a configured ``serial`` against the listed names), and ``set_device_interface(h,
+  name)`` takes one of those names. An IP address is what the Windows SDK's
+  ``get_device_interfaces_fast`` returns (as integers), not the Linux one: the cell file
+  therefore names ``serial``, matched exactly or as the end of a listed name.
+- Exposure and idle time: ``set_feature(h, FEATURE_FUNCTION_SHUTTERTIME`` (newer wrappers:
+  ``FEATURE_FUNCTION_EXPOSURE_TIME``) ``, value)`` and ``FEATURE_FUNCTION_IDLETIME``
+  (``FEATURE_FUNCTION_IDLE_TIME``) take the time in *10 us steps*: the vendor's Python
+  polling example sets exposure 100 and idle 3900 and then waits ``(idle + exposure) / 100000``
+  seconds for a profile, i.e. 40 ms = 4000 x 10 us. The cell file gives microseconds; they are
+  sent as ``us / 10`` and must be multiples of 10.
+- Triggering: ``FEATURE_FUNCTION_TRIGGER`` value 0 is the internal trigger (the vendor's C++
+  examples write ``0x00000000``; newer wrappers name it ``TRIG_INTERNAL``).
+- Buffers: the callback ``buffer_cb_func(data, size, user_data)`` delivers ``resolution * 64``
+  bytes in ``PROFILE`` format, the last 16 bytes the timestamp block, converted by
+  ``convert_profile_2_values(buffer, size, resolution, PROFILE, scanner_type, 0, ...,
+  intensity, ..., x, z, ...)`` and ``timestamp_2_time_and_count`` (the vendor's Linux
+  callback examples); the return value's ``CONVERT_X``, ``CONVERT_Z`` and ``CONVERT_MAXIMUM``
+  bits tell which arrays were filled. The fake encodes raw points as big-endian 16-bit words
+  with a fixed x scale and z offset of its own: only the calling convention is the vendor's,
+  not the raw encoding (the SDK's converter does that on real data).
 """
 
 from __future__ import annotations
@@ -60,6 +89,7 @@ TIMESTAMP_BYTES = 16  # the profile's trailing timestamp block
 MAX_INTENSITY = 1023.0  # the reflection maximum is a 10-bit value
 CLOCK_WRAP_S = 128.0  # the sensor's timestamp seconds field wraps after 128 s
 TRIGGER_INTERNAL = 0  # FEATURE_FUNCTION_TRIGGER value for the sensor's own clock
+TIME_STEP_US = 10  # exposure and idle time go to the sensor in 10 us steps
 SETUP_HINT = ("install Micro-Epsilon's scanCONTROL Linux SDK and put its Python bindings "
               "(the `pyllt` package in the SDK's python_bindings folder) on PYTHONPATH; see "
               "dm2.live.scancontrol or README 'Live hardware'. Sensors on another machine can "
@@ -181,23 +211,30 @@ class ScanControlSource:
     ----------
     inbox : where profiles go
     sensor_id : "S1".."S3"
-    interface : the sensor's interface as ``get_device_interfaces`` lists it (its IP address)
+    serial : the sensor's serial number, as ``get_device_interfaces`` lists it
     resolution : points per profile (one the sensor offers)
     llt : the wrapper module (default: :func:`load_wrapper`)
     stamp : "sensor" (timestamp block) or "arrival" (host clock at the callback)
-    exposure_us, idle_us : optional exposure and idle time [us] to set
+    exposure_us, idle_us : optional exposure and idle time [us] to set (multiples of 10 us:
+        the sensor takes them in 10 us steps)
     """
 
     name = "scancontrol"
 
-    def __init__(self, inbox: Inbox, sensor_id: str, interface: str, resolution: int = 640, *,
+    def __init__(self, inbox: Inbox, sensor_id: str, serial: str, resolution: int = 640, *,
                  llt=None, stamp: str = "sensor", exposure_us: int | None = None,
                  idle_us: int | None = None):
         if stamp not in ("sensor", "arrival"):
             raise ValueError(f"ScanControlSource.stamp: 'sensor' or 'arrival', got {stamp!r}")
         self.inbox = inbox
         self.sensor_id = sensor_id
-        self.interface = str(interface)
+        self.serial = str(serial)
+        for name, value in (("exposure_us", exposure_us), ("idle_us", idle_us)):
+            if value is not None and (int(value) != value or value < 0
+                                      or int(value) % TIME_STEP_US):
+                raise ValueError(f"scanCONTROL {sensor_id}: {name} = {value}: the sensor takes "
+                                 f"times in {TIME_STEP_US} us steps; give a multiple of "
+                                 f"{TIME_STEP_US}")
         self.resolution = int(resolution)
         self.stamp = stamp
         self.exposure_us = exposure_us
@@ -208,12 +245,12 @@ class ScanControlSource:
         self._handle = None
         self._callback = None  # keeps the ctypes callback alive while the SDK holds it
         self._transferring = False
-        self.address = (self.interface, self.sensor_id)
+        self.address = (self.serial, self.sensor_id)
 
     def _check(self, ret: int, call: str) -> int:
         if ret < 1:
-            raise ScanControlError(f"scanCONTROL {self.sensor_id} at {self.interface}: {call} "
-                                   f"failed with {ret}")
+            raise ScanControlError(f"scanCONTROL {self.sensor_id} (serial {self.serial}): "
+                                   f"{call} failed with {ret}")
         return ret
 
     def start(self) -> ScanControlSource:
@@ -226,10 +263,11 @@ class ScanControlSource:
             found = self._check(llt.get_device_interfaces(listed, len(names)),
                                 "get_device_interfaces")
             offered = [b.value.decode(errors="replace") for b in names[:found]]
-            if self.interface not in offered:
-                raise ScanControlError(f"scanCONTROL {self.sensor_id}: interface "
-                                       f"{self.interface} not found (the SDK lists {offered})")
-            self._check(llt.set_device_interface(h, self.interface.encode()),
+            chosen = [n for n in offered if n == self.serial or n.endswith(self.serial)]
+            if len(chosen) != 1:
+                raise ScanControlError(f"scanCONTROL {self.sensor_id}: serial number "
+                                       f"{self.serial} not found (the SDK lists {offered})")
+            self._check(llt.set_device_interface(h, chosen[0].encode()),
                         "set_device_interface")
             self._check(llt.connect(h), "connect")
             scanner_type = ct.c_int(0)
@@ -246,12 +284,15 @@ class ScanControlSource:
                         "set_profile_config")
             self._check(llt.set_feature(h, llt.FEATURE_FUNCTION_TRIGGER, TRIGGER_INTERNAL),
                         "set_feature(trigger)")
-            if self.exposure_us is not None:
-                self._check(llt.set_feature(h, llt.FEATURE_FUNCTION_SHUTTERTIME,
-                                            int(self.exposure_us)), "set_feature(exposure)")
-            if self.idle_us is not None:
-                self._check(llt.set_feature(h, llt.FEATURE_FUNCTION_IDLETIME,
-                                            int(self.idle_us)), "set_feature(idle time)")
+            for value, names, what in (
+                    (self.exposure_us, ("FEATURE_FUNCTION_EXPOSURE_TIME",
+                                        "FEATURE_FUNCTION_SHUTTERTIME"), "exposure"),
+                    (self.idle_us, ("FEATURE_FUNCTION_IDLE_TIME", "FEATURE_FUNCTION_IDLETIME"),
+                     "idle time")):
+                if value is not None:
+                    feature = next(getattr(llt, n) for n in names if hasattr(llt, n))
+                    self._check(llt.set_feature(h, feature, int(value) // TIME_STEP_US),
+                                f"set_feature({what}, {int(value) // TIME_STEP_US} x 10 us)")
             self.converter = ProfileConverter(llt, self.sensor_id, self.resolution,
                                               scanner_type.value)
             self._callback = llt.buffer_cb_func(self._on_buffer)
@@ -263,8 +304,8 @@ class ScanControlSource:
         except BaseException:
             self.close()
             raise
-        log.info("scanCONTROL %s streaming from %s (%d points)", self.sensor_id,
-                 self.interface, self.resolution)
+        log.info("scanCONTROL %s streaming from serial %s (%d points)", self.sensor_id,
+                 self.serial, self.resolution)
         return self
 
     def _on_buffer(self, data, size, _user_data) -> None:

@@ -63,6 +63,24 @@ STATE_SLICE = 25  # robot states per reference update while catching up (0.1 s a
 PREMESH_EVERY_S = 0.25  # [s] wall, pre-meshing of touched surface chunks at most this often
 
 
+@dataclass(frozen=True)
+class LayerStarted:
+    """The stream's mark that layer ``layer`` starts at ``stamp_s``: the reference of
+    ``layer - 1`` is complete once the robot states up to the mark are integrated."""
+
+    stamp_s: float
+    layer: int
+
+
+@dataclass(frozen=True)
+class LayerClosed:
+    """The fusion closed a layer (its last profile at ``stamp_s``; inf: at the end of the
+    stream): take that layer's reference and hand the layer to the analysis."""
+
+    stamp_s: float
+    layer_surface: LayerSurface
+
+
 @dataclass
 class SessionTiming:
     """Wall seconds spent per stage, summed over the run."""
@@ -116,10 +134,9 @@ class MonitoringSession:
         self._rt_latency_s: list[float] = []
         self._finished = False
         self._last_premesh = 0.0
-        # reference steps due at a stamp, in stream order: ("mark", layer) ends the reference
-        # of layer - 1; ("layer", LayerSurface) takes a finished layer's reference and hands
-        # the layer to the analysis (deferred feeding runs them when catching up)
-        self._ops: deque = deque()
+        # reference steps due at a stamp, in stream order (deferred feeding runs them when
+        # catching up)
+        self._ops: deque[LayerStarted | LayerClosed] = deque()
         self._marked_layer = self.reference.layer
         self._defer_layers = bool(analysis_thread)
         self._worker = LayerWorker(self._analyse) if analysis_thread else None
@@ -150,7 +167,7 @@ class MonitoringSession:
             self.states.push(msg.stamp_s, msg.T_B_F)
         elif isinstance(msg, LayerMark) and msg.layer > self._marked_layer:
             self._marked_layer = msg.layer
-            self._ops.append((msg.stamp_s, "mark", msg.layer))
+            self._ops.append(LayerStarted(msg.stamp_s, msg.layer))
             if not defer:
                 self._advance(upto_s=msg.stamp_s)
         t0 = time.perf_counter()
@@ -185,8 +202,8 @@ class MonitoringSession:
                 if stop():
                     return False
             self._realtime()
-        while self._ops and np.isfinite(self._ops[0][0]):
-            self._advance(upto_s=self._ops[0][0], max_states=STATE_SLICE)
+        while self._ops and np.isfinite(self._ops[0].stamp_s):
+            self._advance(upto_s=self._ops[0].stamp_s, max_states=STATE_SLICE)
             if stop():
                 return False
         while len(self.states) >= STATE_BACKLOG:
@@ -225,15 +242,15 @@ class MonitoringSession:
         """Integrate the robot states up to ``upto_s``, running the reference steps due on the
         way in order; with ``max_states`` it returns False after that many states or after one
         step (call again). True when nothing stamped up to ``upto_s`` is left."""
-        while self._ops and self._ops[0][0] <= upto_s:
-            if not self._flush_states(upto_s=self._ops[0][0], max_states=max_states):
+        while self._ops and self._ops[0].stamp_s <= upto_s:
+            if not self._flush_states(upto_s=self._ops[0].stamp_s, max_states=max_states):
                 return False
-            _, kind, what = self._ops.popleft()
-            if kind == "mark":
-                self.reference.end_layer(what - 1)
-                self.reference.layer = what
+            step = self._ops.popleft()
+            if isinstance(step, LayerStarted):
+                self.reference.end_layer(step.layer - 1)
+                self.reference.layer = step.layer
             else:
-                self._take_layer(what)
+                self._take_layer(step.layer_surface)
             if max_states is not None:
                 return False
         return self._flush_states(upto_s=upto_s, max_states=max_states)
@@ -280,9 +297,9 @@ class MonitoringSession:
         if self._worker is None and done.surface.vertices_O.shape[0] == 0:
             log.warning("layer %d: no surface was reconstructed; skipped", done.layer)
             return
-        self._ops.append((done.stamp_s if np.isfinite(done.stamp_s) else np.inf, "layer", done))
+        self._ops.append(LayerClosed(done.stamp_s if np.isfinite(done.stamp_s) else np.inf, done))
         if not self._defer_layers:
-            self._advance(upto_s=self._ops[-1][0])
+            self._advance(upto_s=self._ops[-1].stamp_s)
 
     def _take_layer(self, done: LayerSurface) -> None:
         """The finished layer's reference (states flushed up to its last profile), then its

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from dm2.defects.deviation import LayerDeviation
+from dm2.io.ply import read_mesh_ply, write_mesh_ply
 from dm2.reference.height_map import ReferenceMap
 
 CLASS_RGB = np.array([[200, 200, 200],   # normal
@@ -37,52 +38,20 @@ def write_deviation_ply(path: str | Path, dev: LayerDeviation, limit_mm: float =
     ``scalar_signed_distance`` (float32, mm), ``scalar_class`` (float32 class code),
     ``scalar_weight`` (float32); CloudCompare shows the ``scalar_*`` ones as scalar fields.
     """
-    n = dev.n_vertices
-    vdt = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"),
-                    ("blue", "u1"), ("scalar_signed_distance", "<f4"), ("scalar_class", "<f4"),
-                    ("scalar_weight", "<f4")])
-    verts = np.empty(n, vdt)
-    for k, name in enumerate("xyz"):
-        verts[name] = dev.vertices_O[:, k]
+    v = dev.vertices_O.astype(np.float32)
     rgb = deviation_colours(dev.signed_distance_mm, dev.class_code, limit_mm)
-    verts["red"], verts["green"], verts["blue"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
-    verts["scalar_signed_distance"] = dev.signed_distance_mm
-    verts["scalar_class"] = dev.class_code
-    verts["scalar_weight"] = np.minimum(dev.weight, np.finfo(np.float32).max)
-    fdt = np.dtype([("n", "u1"), ("v", "<i4", (3,))])
-    faces = np.empty(len(dev.faces), fdt)
-    faces["n"] = 3
-    faces["v"] = dev.faces
-    header = ("ply\nformat binary_little_endian 1.0\ncomment dm2 deviation map, frame O, mm\n"
-              f"comment layer {dev.layer}\nelement vertex {n}\n"
-              "property float x\nproperty float y\nproperty float z\n"
-              "property uchar red\nproperty uchar green\nproperty uchar blue\n"
-              "property float scalar_signed_distance\nproperty float scalar_class\n"
-              "property float scalar_weight\n"
-              f"element face {len(faces)}\nproperty list uchar int vertex_indices\nend_header\n")
-    with open(path, "wb") as fh:
-        fh.write(header.encode("ascii"))
-        fh.write(verts.tobytes())
-        fh.write(faces.tobytes())
+    fields = {"x": v[:, 0], "y": v[:, 1], "z": v[:, 2],
+              "red": rgb[:, 0], "green": rgb[:, 1], "blue": rgb[:, 2],
+              "scalar_signed_distance": np.asarray(dev.signed_distance_mm, dtype=np.float32),
+              "scalar_class": np.asarray(dev.class_code, dtype=np.float32),
+              "scalar_weight": np.minimum(dev.weight, np.finfo(np.float32).max).astype(np.float32)}
+    write_mesh_ply(path, fields, dev.faces,
+                   comments=["dm2 deviation map, frame O, mm", f"layer {dev.layer}"])
 
 
 def read_ply_vertex_fields(path: str | Path) -> dict[str, np.ndarray]:
-    """Vertex properties of a PLY written by :func:`write_deviation_ply` (for checks)."""
-    data = Path(path).read_bytes()
-    end = data.index(b"end_header\n") + len(b"end_header\n")
-    lines = data[:end].decode("ascii").splitlines()
-    n = next(int(x.split()[2]) for x in lines if x.startswith("element vertex"))
-    types = {"float": "<f4", "uchar": "u1", "int": "<i4"}
-    props = []
-    in_vertex = False
-    for x in lines:
-        if x.startswith("element"):
-            in_vertex = x.startswith("element vertex")
-        elif x.startswith("property") and in_vertex:
-            _, t, name = x.split()
-            props.append((name, types[t]))
-    arr = np.frombuffer(data, np.dtype(props), count=n, offset=end)
-    return {name: arr[name].copy() for name, _ in props}
+    """Vertex properties of a deviation map PLY (:func:`write_deviation_ply`), by name."""
+    return read_mesh_ply(path)[0]
 
 
 def write_reference_stl(path: str | Path, reference: ReferenceMap, margin_mm: float = 3.0,

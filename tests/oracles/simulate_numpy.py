@@ -4,7 +4,7 @@
 builds
 robot states with the trusted constructor and scans with the numba profiler kernels. This
 module keeps the straightforward loop it must equal bit for bit — one deposition call and one
-validated ``RobotState`` per motion sample, the profilers' numpy reference path — so the tests
+validated ``RobotState`` per motion sample, the profilers' numpy path — so the tests
 can prove the equality and the twin benchmark can measure the speed-up against it.
 """
 
@@ -67,6 +67,6 @@ def per_sample_messages(sim, hf=None) -> Iterator[Profile | RobotState | LayerMa
         t_next = float(t[i + 1]) if i + 1 < n else np.inf
         while k < trig_s.size and trig_s[k] < t_next:
             p = profs[int(trig_j[k])]
-            yield p.measure_reference(p.trace_reference(hf, poses[k], occ), float(trig_s[k]),
+            yield p.measure_numpy(p.trace_numpy(hf, poses[k], occ), float(trig_s[k]),
                                       int(trig_c[k]))
             k += 1

@@ -1,10 +1,9 @@
-"""Numba kernels for :class:`twin.profiler.sensor.VirtualProfiler`'s geometry: one pass per scan
-stage
-(the sensor noise is in :mod:`twin.profiler.noise_kernels`).
+"""Numba kernels for :class:`twin.profiler.sensor.VirtualProfiler`'s geometry: one pass per
+scan stage (the sensor noise is in :mod:`twin.profiler.noise_kernels`).
 
-They do, ray by ray and in the same floating-point operations, what the profiler's numpy
-reference path (:meth:`twin.profiler.sensor.VirtualProfiler.trace_reference`) does with whole-array
-operations, so both give the same bits: the reference writes its small dot and matrix
+They do, ray by ray and in the same floating-point operations, what the profiler's numpy path
+(:meth:`twin.profiler.sensor.VirtualProfiler.trace_numpy`) does with whole-array
+operations, so both give the same bits: the numpy path writes its small dot and matrix
 products out term by term (x, y, z) rather than leave the summation order to ``einsum`` or
 BLAS.
 """
@@ -146,7 +145,7 @@ def trace_pass(H, bmax, cell, thickness, zmax, lx, ly, face_tol, origin, dirs, t
     camera verdicts (BACK_FACING, CAMERA_SHADOW, CAMERA_BLOCKED by the capped cylinders
     ``occ_T_C_O (k, 4, 4)`` (O into each cylinder's frame), ``occ_r2 (k,)`` [mm^2],
     ``occ_length (k,)`` [mm]) and TOO_DARK below ``min_intensity``, in the order and operations
-    of the numpy reference."""
+    of the numpy path."""
     n = dirs.shape[0]
     normals = np.empty((n, 3))
     n_cand = laser_pass(H, bmax, cell, thickness, zmax, lx, ly, face_tol, origin, dirs, t_min,

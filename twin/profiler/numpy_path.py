@@ -1,4 +1,4 @@
-"""The virtual profiler's numpy reference path: whole-array operations, one stage at a time.
+"""The virtual profiler's numpy path: whole-array operations, one stage at a time.
 
 :meth:`twin.profiler.sensor.VirtualProfiler.trace` and ``measure`` run the numba kernels of
 :mod:`twin.profiler.kernels`; these functions are the same model written plainly (and cast on
@@ -29,7 +29,7 @@ from twin.profiler.model import (
 )
 
 
-def trace_reference(prof, hf, T_B_O: np.ndarray,
+def trace_numpy(prof, hf, T_B_O: np.ndarray,
                     occluders: Sequence | None = None) -> ProfileTrace:
     """``prof.trace`` in whole-array numpy operations on any surface object with
     ``raycast``, ``normals_at``, ``height_at``, ``size_mm`` and ``thickness_mm``."""
@@ -107,7 +107,7 @@ def _camera_visibility(hf, T_B_O, camera_O, camera_reach_mm, hits_O, normals_O,
     return out
 
 
-def measure_reference(prof, trace: ProfileTrace, stamp_s: float, counter: int) -> Profile:
+def measure_numpy(prof, trace: ProfileTrace, stamp_s: float, counter: int) -> Profile:
     """``prof.measure`` in whole-array numpy operations."""
     counter = int(counter)
     noisy_range, reason, intensity = _noise(prof, trace, counter)

@@ -90,12 +90,12 @@ class VirtualProfiler:
         A :class:`~twin.world.heightfield.HeightField` seen past capped-cylinder occluders is cast
         in
         one call of :func:`twin.profiler.scan_kernels.trace_posed`; any other surface object or
-        occluder goes through :meth:`trace_reference`. Both give the same bits.
+        occluder goes through :meth:`trace_numpy`. Both give the same bits.
         """
         occluders = tuple(occluders or ())
         setup = self._kernel_setup(occluders)
         if not isinstance(hf, HeightField) or setup is None:
-            return self.trace_reference(hf, T_B_O, occluders)
+            return self.trace_numpy(hf, T_B_O, occluders)
         out = self.empty_trace()
         self.trace_rays(hf, T_B_O, occluders, out, 0, out.range_mm.size)
         return out
@@ -155,12 +155,12 @@ class VirtualProfiler:
         self._kernel_cache = (key, occluders, setup)
         return setup
 
-    def trace_reference(self, hf, T_B_O: np.ndarray,
+    def trace_numpy(self, hf, T_B_O: np.ndarray,
                         occluders: Sequence | None = None) -> ProfileTrace:
         """:meth:`trace` in plain numpy (:mod:`twin.profiler.numpy_path`), on any surface."""
-        from twin.profiler.numpy_path import trace_reference
+        from twin.profiler.numpy_path import trace_numpy
 
-        return trace_reference(self, hf, T_B_O, occluders)
+        return trace_numpy(self, hf, T_B_O, occluders)
 
     def _laser_occluder_t(self, occluders: tuple) -> np.ndarray:
         """Distance (n,) [mm] along each laser ray to the first occluder (inf: none).
@@ -242,11 +242,11 @@ class VirtualProfiler:
                        float(lo), float(hi), *draws)
         return draws
 
-    def measure_reference(self, trace: ProfileTrace, stamp_s: float, counter: int) -> Profile:
+    def measure_numpy(self, trace: ProfileTrace, stamp_s: float, counter: int) -> Profile:
         """:meth:`measure` in plain numpy (:mod:`twin.profiler.numpy_path`)."""
-        from twin.profiler.numpy_path import measure_reference
+        from twin.profiler.numpy_path import measure_numpy
 
-        return measure_reference(self, trace, stamp_s, counter)
+        return measure_numpy(self, trace, stamp_s, counter)
 
     def _noise(self, trace: ProfileTrace, counter: int):
         """Noisy ranges, reasons (DROPOUT marked) and intensities, before the measuring range."""

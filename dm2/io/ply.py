@@ -1,0 +1,52 @@
+"""Triangle meshes with per-vertex fields as binary PLY, through ``plyfile``.
+
+One writer and one reader for every PLY dm2 writes (fused surfaces, deviation maps). The reader
+takes any valid PLY with a ``vertex`` and a ``face`` element, whatever the property order or
+types, so a file re-saved by another tool (CloudCompare, MeshLab, Open3D) reads back.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from plyfile import PlyData, PlyElement
+
+from dm2.core.messages import MessageError
+
+
+def write_mesh_ply(path: str | Path, vertex_fields: dict[str, np.ndarray], faces: np.ndarray,
+                   comments: list[str] = ()) -> None:
+    """Write ``vertex_fields`` (name -> (n,) array, in column order, each with the dtype it is
+    to have in the file) and ``faces`` (m, 3) int as binary little-endian PLY, atomically."""
+    path = Path(path)
+    n = len(next(iter(vertex_fields.values()))) if vertex_fields else 0
+    vertex = np.empty(n, dtype=[(k, v.dtype.str) for k, v in vertex_fields.items()])
+    for k, v in vertex_fields.items():
+        vertex[k] = v
+    face = np.empty(len(faces), dtype=[("vertex_indices", "<i4", (3,))])
+    face["vertex_indices"] = faces
+    ply = PlyData([PlyElement.describe(vertex, "vertex"),
+                   PlyElement.describe(face, "face", len_types={"vertex_indices": "u1"})],
+                  text=False, byte_order="<", comments=list(comments))
+    tmp = path.with_name(path.name + ".part")
+    ply.write(str(tmp))
+    tmp.replace(path)
+
+
+def read_mesh_ply(path: str | Path) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """``(vertex_fields, faces)`` of a PLY triangle mesh: name -> (n,) array, and (m, 3) int64."""
+    try:
+        ply = PlyData.read(str(path))
+        vertex = ply["vertex"].data
+    except (OSError, ValueError, KeyError) as exc:
+        raise MessageError(f"{path}: not a readable PLY mesh ({exc})") from None
+    fields = {name: np.array(vertex[name]) for name in vertex.dtype.names}
+    if "face" not in ply or len(ply["face"].data) == 0:
+        return fields, np.empty((0, 3), dtype=np.int64)
+    face_data = ply["face"].data
+    names = face_data.dtype.names
+    lists = face_data["vertex_indices" if "vertex_indices" in names else names[0]]
+    if any(len(f) != 3 for f in lists):
+        raise MessageError(f"{path}: faces are not all triangles")
+    return fields, np.vstack(lists).astype(np.int64)
