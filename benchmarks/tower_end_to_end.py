@@ -20,6 +20,7 @@ Printed:
 - the track count of the report.
 
     .venv/bin/python benchmarks/tower_end_to_end.py [--duration S] [--band 8] [--out DIR]
+    .venv/bin/python benchmarks/tower_end_to_end.py --analyse DIR   (a folder kept with --out)
 """
 
 from __future__ import annotations
@@ -112,7 +113,14 @@ def main() -> None:
     ap.add_argument("--band", type=int, default=8, help="layers per band")
     ap.add_argument("--cover-mm", type=float, default=1.0)
     ap.add_argument("--out", type=Path, default=None, help="keep the run folder here")
+    ap.add_argument("--analyse", type=Path, default=None, metavar="RUN_DIR",
+                    help="only print the figures of a run folder this script kept with --out")
     args = ap.parse_args()
+    if args.analyse is not None:
+        log = args.analyse.parent / f"{args.analyse.name}.wall"
+        wall, rss = (float(x) for x in log.read_text().split()) if log.exists() else (0.0, 0.0)
+        report(args.analyse, wall, rss, args)
+        return
     print(f"CPU: {cpu_model()}, {os.cpu_count()} cores; load average before: {load_avg()}")
     tmp = None
     if args.out is None:
@@ -124,6 +132,7 @@ def main() -> None:
     try:
         wall, rss_mib, rc = run_child(args, run_dir)
         print(f"load average after: {load_avg()}")
+        (run_dir.parent / f"{run_dir.name}.wall").write_text(f"{wall} {rss_mib}\n")
         if rc != 0:
             log = (run_dir.parent / f"{run_dir.name}.log").read_text()[-3000:]
             raise SystemExit(f"dm2 run failed (exit {rc}):\n{log}")
@@ -140,10 +149,16 @@ def report(run_dir: Path, wall: float, rss_mib: float, args) -> None:
     stages = {"fusion": t["fusion_s"], "reference": t["reference_s"],
               "layer analysis": t["analysis_s"], "real-time deviation": t["realtime_s"]}
     stages["twin and the rest"] = t["wall_s"] - sum(stages.values())
-    stages["report + start-up"] = wall - t["wall_s"]
+    if wall > 0:
+        stages["report + start-up"] = wall - t["wall_s"]
     n_layers = len(rep.get("layers", []))
-    print(f"{args.scenario}: {process_s:.0f} s of process, {n_layers} layers; dm2 run wall "
-          f"{wall:.1f} s = {process_s / wall:.1f}x real time; peak RSS {rss_mib:.0f} MiB")
+    if wall > 0:
+        print(f"{args.scenario}: {process_s:.0f} s of process, {n_layers} layers; dm2 run wall "
+              f"{wall:.1f} s = {process_s / wall:.1f}x real time; peak RSS {rss_mib:.0f} MiB")
+    else:  # a folder not written by this script: no child wall time or RSS
+        wall = t["wall_s"]
+        print(f"{args.scenario}: {process_s:.0f} s of process, {n_layers} layers; run wall "
+              f"before the report {wall:.1f} s = {process_s / wall:.1f}x real time")
     for name, s in stages.items():
         extra = f" ({s / max(n_layers, 1):.2f} s per layer)" if name == "layer analysis" else ""
         print(f"  {name:>20s}: {s:7.1f} s{extra}")
