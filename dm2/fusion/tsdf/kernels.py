@@ -287,32 +287,37 @@ def _fuse(register, origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, a
                 dda_start(ox, oy, oz, dx, dy, dz, r, truncation_mm, voxel_mm, inv_vox)
             last_bx, last_by, last_bz, slot = 1 << 40, 0, 0, -1
             t = 0.0
-            end = span + carve_vox if act else span
+            while t <= span:
+                bx, by, bz = vx >> BLOCK_SHIFT, vy >> BLOCK_SHIFT, vz >> BLOCK_SHIFT
+                if bx != last_bx or by != last_by or bz != last_bz:
+                    slot = recent_slot(bx, by, bz, ra, rb)
+                    if slot < 0:
+                        slot = _get_or_alloc(bx, by, bz, table_keys, table_slots, block_keys,
+                                             touched, state)
+                        ra, rb = (bx, by, bz, slot), ra
+                    last_bx, last_by, last_bz = bx, by, bz
+                update_voxel(voxels, slot, vx, vy, vz, d, truncation_mm, inv_trunc, act,
+                             active_weight_cap, max_weight)
+                t, vx, vy, vz, tmx, tmy, tmz, d = dda_step(vx, vy, vz, stx, sty, stz, tdx, tdy,
+                                                           tdz, tmx, tmy, tmz, d, ddx, ddy, ddz)
+            if not act:
+                continue
+            # beyond the band: allocated blocks only; a free run ends at a column edge
+            end = span + carve_vox
             n_run, run_cx, run_cy = 0, 1 << 40, 0
             while t <= end:
+                if (vx >> cs) != run_cx or (vy >> cs) != run_cy:
+                    n_run, run_cx, run_cy = 0, vx >> cs, vy >> cs
                 bx, by, bz = vx >> BLOCK_SHIFT, vy >> BLOCK_SHIFT, vz >> BLOCK_SHIFT
-                if t <= span:
-                    if bx != last_bx or by != last_by or bz != last_bz:
-                        slot = recent_slot(bx, by, bz, ra, rb)
-                        if slot < 0:
-                            slot = _get_or_alloc(bx, by, bz, table_keys, table_slots,
-                                                 block_keys, touched, state)
+                if bx != last_bx or by != last_by or bz != last_bz:
+                    slot = recent_slot(bx, by, bz, ra, rb)
+                    if slot < 0:
+                        slot = hash_find(table_keys, table_slots, pack_key(bx, by, bz))
+                        if slot >= 0:
                             ra, rb = (bx, by, bz, slot), ra
-                        last_bx, last_by, last_bz = bx, by, bz
-                    update_voxel(voxels, slot, vx, vy, vz, d, truncation_mm, inv_trunc, act,
-                                 active_weight_cap, max_weight)
-                else:  # beyond the band: allocated blocks only; a run ends at a column edge
-                    if (vx >> cs) != run_cx or (vy >> cs) != run_cy:
-                        n_run, run_cx, run_cy = 0, vx >> cs, vy >> cs
-                    if bx != last_bx or by != last_by or bz != last_bz:
-                        slot = recent_slot(bx, by, bz, ra, rb)
-                        if slot < 0:
-                            slot = hash_find(table_keys, table_slots, pack_key(bx, by, bz))
-                            if slot >= 0:
-                                ra, rb = (bx, by, bz, slot), ra
-                        last_bx, last_by, last_bz = bx, by, bz
-                    n_run = carve_visit(voxels, slot, vx, vy, vz, truncation_mm, run, n_run,
-                                        touched, capacity)
+                    last_bx, last_by, last_bz = bx, by, bz
+                n_run = carve_visit(voxels, slot, vx, vy, vz, truncation_mm, run, n_run,
+                                    touched, capacity)
                 t, vx, vy, vz, tmx, tmy, tmz, d = dda_step(vx, vy, vz, stx, sty, stz, tdx, tdy,
                                                            tdz, tmx, tmy, tmz, d, ddx, ddy, ddz)
     return offsets[offsets.shape[0] - 1]

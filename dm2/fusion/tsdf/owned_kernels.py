@@ -136,26 +136,8 @@ def _owned(tid, col_shift, start, register, origins_O, points_O, active, xz_S, o
                 dda_start(ox, oy, oz, dx, dy, dz, r, truncation_mm, voxel_mm, inv_vox)
             last_bx, last_by, last_bz, slot = 1 << 40, 0, 0, -1
             t = 0.0
-            end = span + carve_vox if act else span
-            n_run, run_cx, run_cy = 0, 1 << 40, 0
-            while t <= end:
-                if t > span:  # beyond the band: runs end at column edges, as in the serial walk
-                    if mine or ((vx >> cs) + (vy >> cs)) & 1 == tid:
-                        if (vx >> cs) != run_cx or (vy >> cs) != run_cy:
-                            n_run, run_cx, run_cy = 0, vx >> cs, vy >> cs
-                        bx, by, bz = vx >> BLOCK_SHIFT, vy >> BLOCK_SHIFT, vz >> BLOCK_SHIFT
-                        if bx != last_bx or by != last_by or bz != last_bz:
-                            slot = recent_slot(bx, by, bz, ra, rb)
-                            if slot < 0:
-                                slot = _found_slot(pack_key(bx, by, bz), table_keys,
-                                                   table_slots, base, st_table_keys,
-                                                   st_table_slots)
-                                if slot >= 0:
-                                    ra, rb = (bx, by, bz, slot), ra
-                            last_bx, last_by, last_bz = bx, by, bz
-                        n_run = carve_visit(voxels, slot, vx, vy, vz, truncation_mm, run,
-                                            n_run, touched, base)
-                elif mine or ((vx >> cs) + (vy >> cs)) & 1 == tid:
+            while t <= span:
+                if mine or ((vx >> cs) + (vy >> cs)) & 1 == tid:
                     bx, by, bz = vx >> BLOCK_SHIFT, vy >> BLOCK_SHIFT, vz >> BLOCK_SHIFT
                     if bx != last_bx or by != last_by or bz != last_bz:
                         slot = recent_slot(bx, by, bz, ra, rb)
@@ -171,6 +153,28 @@ def _owned(tid, col_shift, start, register, origins_O, points_O, active, xz_S, o
                         last_bx, last_by, last_bz = bx, by, bz
                     update_voxel(voxels, slot, vx, vy, vz, d, truncation_mm, inv_trunc, act,
                                  active_weight_cap, max_weight)
+                t, vx, vy, vz, tmx, tmy, tmz, d = dda_step(vx, vy, vz, stx, sty, stz, tdx, tdy,
+                                                           tdz, tmx, tmy, tmz, d, ddx, ddy, ddz)
+            if not act:
+                continue
+            # beyond the band: runs end at column edges, as in the serial walk
+            end = span + carve_vox
+            n_run, run_cx, run_cy = 0, 1 << 40, 0
+            while t <= end:
+                if mine or ((vx >> cs) + (vy >> cs)) & 1 == tid:
+                    if (vx >> cs) != run_cx or (vy >> cs) != run_cy:
+                        n_run, run_cx, run_cy = 0, vx >> cs, vy >> cs
+                    bx, by, bz = vx >> BLOCK_SHIFT, vy >> BLOCK_SHIFT, vz >> BLOCK_SHIFT
+                    if bx != last_bx or by != last_by or bz != last_bz:
+                        slot = recent_slot(bx, by, bz, ra, rb)
+                        if slot < 0:
+                            slot = _found_slot(pack_key(bx, by, bz), table_keys, table_slots,
+                                               base, st_table_keys, st_table_slots)
+                            if slot >= 0:
+                                ra, rb = (bx, by, bz, slot), ra
+                        last_bx, last_by, last_bz = bx, by, bz
+                    n_run = carve_visit(voxels, slot, vx, vy, vz, truncation_mm, run, n_run,
+                                        touched, base)
                 t, vx, vy, vz, tmx, tmy, tmz, d = dda_step(vx, vy, vz, stx, sty, stz, tdx, tdy,
                                                            tdz, tmx, tmy, tmz, d, ddx, ddy, ddz)
     return offsets[offsets.shape[0] - 1]
