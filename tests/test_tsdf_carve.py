@@ -1,5 +1,6 @@
 """A surface buried by new material is carved away by active rays (deposition), kept by
-inactive ones; the two-thread update carves the same voxels as one thread."""
+inactive ones; the two-thread update carves the same voxels as one thread; a surface outside
+the active region follows a rise within the inactive weight window."""
 
 from __future__ import annotations
 
@@ -53,3 +54,24 @@ def test_active_rays_carve_the_buried_surface_inactive_rays_keep_it():
 def test_two_threads_carve_the_same_voxels_as_one():
     one, two = _build(True, 1), _build(True, 2)
     _assert_same_field(one, two)
+
+
+def _grid_rays(z_mm: float):
+    x, y = np.meshgrid(np.arange(10, 30, 0.5) + 0.13, np.arange(10, 30, 0.5) + 0.29)
+    pts = np.column_stack([x.ravel(), y.ravel(), np.full(x.size, z_mm)])
+    return pts + 95.0 * DIRECTION, pts
+
+
+def _inactive_top_after_rise(inactive_weight_cap) -> float:
+    tsdf = SparseTSDF(0.5, 1.5, 8.0, threads=1, inactive_weight_cap=inactive_weight_cap)
+    for z in (0.0, 0.5):  # a surface outside the active region rises by one voxel
+        o, p = _grid_rays(z)
+        for _ in range(150):
+            tsdf.integrate(o, p, np.zeros(len(p), bool))
+    return _crossings_mm(tsdf, 20.1, 20.2)[-1]
+
+
+def test_inactive_surface_follows_a_rise_within_the_weight_window():
+    assert abs(_inactive_top_after_rise(None) - 0.5) < 0.05  # default window: 50 observations
+    # weights let to grow to 1e4 average the whole history: the surface stays far behind
+    assert _inactive_top_after_rise(1.0e4) < 0.35
