@@ -23,7 +23,14 @@ when the inbox is empty; interim reports are written by a child process). Prints
 over runs, after one full warm-up run so numba's cached kernels are loaded before anything is
 timed.
 
+With ``--view`` the live 3D view (:class:`dm2.view.live.LiveView`) follows every run with a
+client connected and subscribed throughout, so the figures include what serving the view costs:
+``--view-client chromium`` (default) a headless Chromium (Debian's ``chromium``; on this machine
+it also renders the scene in software, on the same cores), ``--view-client socket`` a plain
+websocket client in another process that receives every scene message and draws nothing.
+
 Run: .venv/bin/python benchmarks/live.py [--runs 3] [--seconds 10] [--speeds 10[,3,1]]
+    [--view [--view-client chromium|socket]]
 """
 
 from __future__ import annotations
@@ -67,9 +74,13 @@ def wire_stream(msgs):
     return out
 
 
-def one_run(cell, wire, speed: float, folder: Path) -> dict:
+def one_run(cell, wire, speed: float, folder: Path, view=None) -> dict:
     """Stream ``wire`` at ``speed`` into a live runner; latencies [ms] and load figures."""
     runner = LiveRunner(cell, folder, record=True)
+    if view is not None:
+        states = runner.analysis.session.states
+        view.pose_source = lambda: states.last_T_B_F
+        runner.analysis.layer_listeners.append(view.on_layer)
     addr = runner.open_sources()
     span = {}
 
@@ -107,6 +118,9 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--seconds", type=float, default=10.0, help="process seconds streamed")
     ap.add_argument("--speeds", default="10", help="comma-separated multiples of the rig rate")
+    ap.add_argument("--view", action="store_true", help="serve the live 3D view with a "
+                    "client connected to it")
+    ap.add_argument("--view-client", choices=("chromium", "socket"), default="chromium")
     args = ap.parse_args()
     speeds = [float(v) for v in args.speeds.split(",")]
     load = " ".join(f"{v:.2f}" for v in os.getloadavg())
@@ -126,13 +140,18 @@ def main() -> None:
         cells = {speed: load_cell_file(write_cell_files(
             sim, tmp / f"cell{speed:g}", "127.0.0.1:0", "127.0.0.1:0", speed=speed))
             for speed in speeds}
-        one_run(cells[speeds[0]], wire, speeds[0], tmp / "warmup")
+        view = browser = None
+        if args.view:
+            view, browser = open_view(cells[speeds[0]], tmp / "chromium", args.view_client)
+        one_run(cells[speeds[0]], wire, speeds[0], tmp / "warmup", view)
         for speed in speeds:
-            runs = [one_run(cells[speed], wire, speed, tmp / f"run{speed:g}_{k}")
+            runs = [one_run(cells[speed], wire, speed, tmp / f"run{speed:g}_{k}", view)
                     for k in range(args.runs)]
             p50 = median([np.percentile(r["lat_ms"], 50) for r in runs])
             p99 = median([np.percentile(r["lat_ms"], 99) for r in runs])
-            print(f"live latency, socket -> fused, pad stream at {speed:g}x, load average "
+            seen = f" with the 3D view open ({args.view_client} client)" if view else ""
+            print(f"live latency{seen}, socket -> fused, "
+                  f"pad stream at {speed:g}x, load average "
                   f"{os.getloadavg()[0]:.2f} "
                   f"({n_prof / args.seconds * speed:.0f} profiles/s, "
                   f"{median([len(r['lat_ms']) for r in runs]):.0f} fused per run): "
@@ -151,6 +170,56 @@ def main() -> None:
                   f"{[len(r['lat_ms']) for r in runs]}, fused at the end of the stream (no "
                   f"robot state after them) {[r['at_end'] for r in runs]}, dropped "
                   f"{[r['drops'] for r in runs]}", flush=True)
+        if view is not None:
+            print(f"  3D view: {view.updates} layer updates sent to a {args.view_client} client",
+                  flush=True)
+            browser.terminate()
+            browser.wait(10)
+            view.close()
+            view.stop_server()
+
+
+SOCKET_CLIENT = """import sys
+from websockets.sync.client import connect
+ws = connect(sys.argv[1], max_size=None, subprotocols=[sys.argv[2]])
+print("connected", flush=True)
+while True:
+    ws.recv()
+"""
+
+
+def open_view(cell, profile: Path, client: str):
+    """A LiveView on a free port and a client process connected to it."""
+    import subprocess
+
+    import viser
+
+    from dm2.core.calibration_io import read_calibration_toml
+    from dm2.view.live import LiveView
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    view = LiveView(read_calibration_toml(cell.calibration), port=port)
+    if client == "socket":
+        proc = subprocess.Popen([sys.executable, "-c", SOCKET_CLIENT,
+                                 view.url.replace("http", "ws"), f"viser-v{viser.__version__}"],
+                                stdout=subprocess.PIPE, text=True)
+        if proc.stdout.readline().strip() != "connected":
+            raise RuntimeError("the websocket client never connected to the 3D view")
+        return view, proc
+    browser = subprocess.Popen(
+        ["chromium", "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic",
+         "--no-first-run", "--disable-background-networking", "--disable-component-update",
+         "--disable-sync", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
+         f"--user-data-dir={profile}", "--remote-debugging-port=0", view.url],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 60
+    while not view.server.get_clients():
+        if time.monotonic() > deadline:
+            raise RuntimeError("the headless browser never connected to the 3D view")
+        time.sleep(0.2)
+    return view, browser
 
 
 def tail_split(run: dict) -> tuple[float, float, float]:

@@ -1,20 +1,31 @@
 #!/usr/bin/env bash
 # Set up everything dm2 needs on a fresh machine: system library, virtual environment, package.
-# Usage: bash scripts/bootstrap.sh        (idempotent; re-running is cheap)
+# Idempotent; re-running is cheap.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-# Open3D links against libusb-1.0 (Debian package libusb-1.0-0).
-if ! ldconfig -p 2>/dev/null | grep -q "libusb-1.0.so.0"; then
+# Usage: bash scripts/bootstrap.sh [--tests]
+#   --tests also installs what only the test suite needs: Debian's chromium (the report and
+#   3D-view tests render pages in headless Chromium).
+
+apt_install() {  # apt_install PACKAGE WHY
     if [ "$(id -u)" = "0" ] && command -v apt-get >/dev/null 2>&1; then
-        echo "installing Debian package libusb-1.0-0 (needed by Open3D)" >&2
+        echo "installing Debian package $1 ($2)" >&2
         export DEBIAN_FRONTEND=noninteractive
-        apt-get update -qq >/dev/null && apt-get install -y -qq libusb-1.0-0 >/dev/null
+        apt-get update -qq >/dev/null && apt-get install -y -qq "$1" >/dev/null
     else
-        echo "error: Open3D needs the system library libusb-1.0." >&2
-        echo "       install it first:  sudo apt-get install libusb-1.0-0" >&2
+        echo "error: $2: the Debian package $1 is missing." >&2
+        echo "       install it first:  sudo apt-get install $1" >&2
         exit 1
     fi
+}
+
+# Open3D links against libusb-1.0 (Debian package libusb-1.0-0).
+if ! ldconfig -p 2>/dev/null | grep -q "libusb-1.0.so.0"; then
+    apt_install libusb-1.0-0 "needed by Open3D"
+fi
+if [ "${1:-}" = "--tests" ] && ! command -v chromium >/dev/null 2>&1; then
+    apt_install chromium "the browser tests render the report and the 3D view"
 fi
 
 PY=${PYTHON:-python3}

@@ -1,109 +1,176 @@
-"""Scoring a run's report against fault truth: detection, sign, onset, IoU, false positives,
-F1; suite overrides; sweep expansion and the smallest reliably detected size."""
+"""Strict scoring against truth maps (every track counts; explained, fragment, neutral, false;
+real-time false alarms), monitors that flag everything or nothing; suite overrides; sweep
+expansion and the smallest reliably detected size."""
 
 import math
 
+import numpy as np
 import pytest
 
 from dm2.bench import scoring
-from dm2.bench.scoring import gaussian_radius_mm, iou_xy, score_run, summarize
+from dm2.bench.scoring import score_run, summarize
 from dm2.bench.suites import apply_overrides, parse_override, resolve_suite
 from dm2.bench.sweep import summarize_sweep, sweep_cases
+from dm2.bench.truth_maps import TruthMap, load_truth_maps
+
+CELL = 0.25
+N = 160  # 40 x 40 mm map, cell (0, 0) centred at (0.125, 0.125)
+XC = (np.arange(N) + 0.5) * CELL
+GX, GY = np.meshgrid(XC, XC)
+PART = (np.abs(GX - 20.0) <= 10.0) & (np.abs(GY - 20.0) <= 10.0)  # a 20 x 20 mm part
+LAYERS = range(4)
 
 
-def _region(layer, tid, kind, box, area=20.0, dev=1.0):
-    return {"layer": layer, "kind": kind, "area_mm2": area, "max_deviation_mm": dev,
-            "bbox_min_O_mm": [box[0], box[1], 0.0], "bbox_max_O_mm": [box[2], box[3], 1.0],
-            "track_id": tid}
+def blob(cx, cy, peak, fwhm=4.0):
+    s = fwhm / (2 * math.sqrt(2 * math.log(2)))
+    return peak * np.exp(-((GX - cx) ** 2 + (GY - cy) ** 2) / (2 * s * s))
 
 
-def _report(regions_by_layer, tracks, n_layers=4):
-    layers = [{"layer": k, "stamp_s": 5.0 * (k + 1),
-               "regions": regions_by_layer.get(k, [])} for k in range(n_layers)]
-    return {"layers": layers, "tracks": tracks,
-            "expectations": [{"expect": "x", "passed": True}]}
+def maps(dev_by_layer):
+    return {k: TruthMap(k, np.asarray(d, float), CELL, 0.5 * CELL, 0.5 * CELL)
+            for k, d in dev_by_layer.items()}
 
 
-def _track(tid, kind, first, last):
-    return {"id": tid, "kind": kind, "first_layer": first, "last_layer": last, "history": []}
+def report(tracks, stamps_s=10.0, alarms=()):
+    """``tracks``: {id: (kind, {layer: mask})}; a report with one region per track and layer."""
+    layers = []
+    for k in LAYERS:
+        regs = []
+        for tid, (kind, by_layer) in tracks.items():
+            m = by_layer.get(k)
+            if m is None or not m.any():
+                continue
+            regs.append({"track_id": tid, "kind": kind, "area_mm2": m.sum() * CELL ** 2,
+                         "max_deviation_mm": 1.0 if "over" in kind else -1.0,
+                         "bbox_min_O_mm": [GX[m].min(), GY[m].min(), 0.0],
+                         "bbox_max_O_mm": [GX[m].max(), GY[m].max(), 1.0]})
+        layers.append({"layer": k, "stamp_s": stamps_s * (k + 1), "regions": regs})
+    return {"layers": layers, "expectations": [],
+            "tracks": [{"id": t, "kind": kind} for t, (kind, _) in tracks.items()],
+            "realtime": {"alarms": list(alarms)}}
 
 
-BUMP_TRUTH = {"faults": [{"id": 0, "kind": "bump", "sign": 1, "layers": [1, 2, 3],
-                          "region_O": {"bbox": [56, 56, 64, 64], "centers": [[60.0, 60.0]]},
-                          "deviation_by_layer_mm": {"0": 0.0, "1": 1.2, "2": 1.1, "3": 1.0}}]}
-BUMP_CFG = [{"kind": "bump", "center_O_mm": [60.0, 60.0], "height_mm": 1.2, "width_mm": 4.0}]
+def footprints(tracks):
+    return {tid: {k: (np.column_stack([GX[m], GY[m]]), np.full(m.sum(), CELL ** 2))
+                  for k, m in by_layer.items() if m.any()}
+            for tid, (_, by_layer) in tracks.items()}
 
 
-def test_gaussian_radius_and_iou():
-    sigma = 4.0 / (2 * math.sqrt(2 * math.log(2)))
-    # a Gaussian falls to half its peak at half the FWHM
-    assert gaussian_radius_mm(1.0, sigma, 0.5) == pytest.approx(2.0)
-    assert gaussian_radius_mm(0.3, sigma, 0.5) == 0.0
-    assert iou_xy([0, 0, 2, 2], [1, 0, 3, 2]) == pytest.approx(1 / 3)
-    assert iou_xy([0, 0, 1, 1], [2, 2, 3, 3]) == 0.0
+def truth(kind, sign, centers=None):
+    region = {"bbox": [10, 10, 30, 30], **({"centers": centers} if centers else {})}
+    return {"faults": [{"id": 0, "kind": kind, "sign": sign, "region_O": region}]}
 
 
-def test_bump_detected_one_layer_late_with_iou_and_height_error():
-    r = 1.7 * 1.0  # region box about the truth disc at 0.4 mm
-    regs = {k: [_region(k, 7, "overbuild", [60 - r, 60 - r, 60 + r, 60 + r], dev=1.1)]
-            for k in (2, 3)}
-    report = _report(regs, [_track(7, "overbuild", 2, 3)])
-    s = score_run(report, BUMP_TRUTH, fault_configs=BUMP_CFG, delta_mm=0.4,
-                  reconstruction={0: {"rms_mm": 0.1}, 1: {"rms_mm": 0.2}},
-                  process_s=20.0, monitor_s=2.0)
+def run(tracks, dev_by_layer, fault_truth, alarms=(), process_s=40.0):
+    return score_run(report(tracks, alarms=alarms), fault_truth, truth_maps=maps(dev_by_layer),
+                     footprints=footprints(tracks), process_s=process_s)
+
+
+BUMP_DEV = {k: (blob(25.0, 14.0, 1.2) if k >= 1 else np.zeros((N, N))) for k in LAYERS}
+
+
+def test_track_on_the_bump_explains_it_second_is_fragment_others_false_or_neutral():
+    on_bump = blob(25.0, 14.0, 1.2) >= 0.6
+    small = (np.abs(GX - 25.0) <= 0.6) & (np.abs(GY - 14.0) <= 0.6)
+    shallow = (np.abs(GX - 12.0) <= 2.0) & (np.abs(GY - 12.0) <= 2.0)
+    dev = {k: v + np.where(shallow, 0.35, 0.0) * (k >= 1) for k, v in BUMP_DEV.items()}
+    far = (np.abs(GX - 12.0) <= 1.5) & (np.abs(GY - 25.0) <= 1.5)
+    tracks = {1: ("local_overbuild", {2: on_bump, 3: on_bump}),
+              2: ("overbuild", {3: small}),
+              3: ("underbuild", {2: on_bump}),  # right place, wrong sign
+              4: ("local_overbuild", {2: shallow}),  # on 0.35 mm of true deviation
+              5: ("local_overbuild", {1: far})}
+    alarms = [{"stamp_s": 15.0, "kind": "overbuild", "centroid_xy_O_mm": [25.0, 14.5]},
+              {"stamp_s": 15.0, "kind": "overbuild", "centroid_xy_O_mm": [12.0, 25.0]},
+              {"stamp_s": 35.0, "kind": "underbuild", "centroid_xy_O_mm": [25.0, 14.0]}]
+    s = run(tracks, dev, truth("bump", 1, [[25.0, 14.0]]), alarms)
     (f,) = s["faults"]
-    assert f["qualifies"] and f["detected"] and f["sign_ok"]
-    assert f["onset_layer"] == 1 and f["first_layer_detected"] == 2
-    assert f["onset_delay_layers"] == 1 and f["onset_delay_s"] == pytest.approx(5.0)
-    # truth box: radius where a 1.2 mm, 4 mm FWHM blob exceeds 0.4 mm
-    rt = gaussian_radius_mm(1.2, 4.0 / 2.3548, 0.4)
-    assert f["iou"] == pytest.approx((2 * r) ** 2 / (2 * rt) ** 2, rel=1e-3)
-    assert f["height_error_mm"] == pytest.approx(1.1 - 1.0)
-    assert s["false_positive_tracks"] == [] and s["expect_passed"]
-    assert s["realtime_factor"] == pytest.approx(10.0)
-    assert s["reconstruction_rms_mm"] == pytest.approx(math.sqrt((0.01 + 0.04) / 2))
+    assert f["qualifies"] and f["onset_layer"] == 1 and f["peak_height_mm"] == pytest.approx(
+        1.2, abs=0.01)
+    assert f["detected"] and f["track_ids"] == [1, 2] and f["fragments"] == 1
+    assert f["first_layer_detected"] == 2 and f["onset_delay_layers"] == 1
+    assert s["true_tracks"] == [1] and s["fragments"] == [2]
+    assert s["neutral_tracks"] == [4] and sorted(s["false_tracks"]) == [3, 5]
+    assert s["false_area_mm2"] == pytest.approx((on_bump.sum() + far.sum()) * CELL ** 2)
+    assert s["realtime_alarms"] == 3 and s["realtime_false_alarms"] == 2
+    assert s["realtime_false_alarms_per_hour"] == pytest.approx(2 / (40.0 / 3600.0))
+    summ = summarize({"bump": s})
+    assert summ["precision"] == pytest.approx(1 / 3) and summ["recall"] == 1.0
+    assert summ["f1"] == pytest.approx(0.5) and summ["gate_passed"]
 
 
-def test_wrong_sign_is_a_miss_and_far_global_track_a_false_positive():
-    regs = {2: [_region(2, 1, "underbuild", [58, 58, 62, 62]),
-                _region(2, 2, "overbuild", [10, 10, 14, 14]),
-                _region(2, 3, "local_overbuild", [20, 20, 22, 22])]}
-    report = _report(regs, [_track(1, "underbuild", 2, 2), _track(2, "overbuild", 2, 2),
-                            _track(3, "local_overbuild", 2, 2)])
-    s = score_run(report, BUMP_TRUTH, fault_configs=BUMP_CFG)
-    (f,) = s["faults"]
-    assert not f["detected"] and not f["sign_ok"]
-    assert sorted(s["false_positive_tracks"]) == [1, 2]  # global kinds explaining no fault
-    assert s["unmatched_local_tracks"] == [3]  # local warnings are not false positives
-    summ = summarize({"a": s}, {"f1_min": 0.95, "max_false_positive_tracks": 0})
-    assert summ["true_positives"] == 0 and summ["false_negatives"] == 1
-    assert summ["f1"] == 0.0 and not summ["passed"]
+def test_track_before_onset_or_mostly_outside_explains_nothing():
+    half_out = (np.abs(GX - 25.0) <= 6.0) & (np.abs(GY - 14.0) <= 6.0)  # 12 x 12 mm box
+    tracks = {1: ("overbuild", {0: blob(25.0, 14.0, 1.0) >= 0.6}),  # layer 0: no fault yet
+              2: ("overbuild", {2: half_out})}
+    s = run(tracks, BUMP_DEV, truth("bump", 1, [[25.0, 14.0]]))
+    assert not s["faults"][0]["detected"] and s["false_tracks"] == [1, 2]
 
 
-def test_small_fault_is_outside_the_f1_population():
-    truth = {"faults": [{**BUMP_TRUTH["faults"][0],
-                         "deviation_by_layer_mm": {"1": 0.3, "2": 0.3}}]}
-    s = score_run(_report({}, []), truth, fault_configs=BUMP_CFG)
-    assert s["faults"][0]["peak_height_mm"] < scoring.DEFECT_MIN_HEIGHT_MM
-    assert not s["faults"][0]["qualifies"]
-    summ = summarize({"a": s, "control": score_run(_report({}, []), None)},
-                     {"f1_min": 0.95, "max_onset_delay_layers": 1})
-    assert summ["qualifying_defects"] == 0 and summ["f1"] == 1.0 and summ["passed"]
+def test_a_fault_below_half_a_millimetre_is_no_defect_and_tracks_on_it_are_neutral():
+    dev = {k: blob(25.0, 14.0, 0.4) for k in LAYERS}
+    tracks = {1: ("local_overbuild", {2: blob(25.0, 14.0, 0.4) >= 0.25})}
+    s = run(tracks, dev, truth("bump", 1, [[25.0, 14.0]]))
+    assert not s["faults"][0]["qualifies"] and s["neutral_tracks"] == [1]
+    assert summarize({"a": s})["f1"] == 1.0  # nothing to find, nothing false
 
 
-def test_global_underbuild_scored_over_the_part_outline():
-    truth = {"faults": [{"id": 0, "kind": "feed_drift", "sign": -1, "layers": [1, 2, 3],
-                         "region_O": {"bbox": [50, 55, 70, 65]},
-                         "deviation_by_layer_mm": {"1": -0.2, "2": -0.6, "3": -1.0}}]}
-    regs = {k: [_region(k, 4, "underbuild", [52, 55, 70, 65], area=150.0, dev=-0.7)]
-            for k in (2, 3)}
-    s = score_run(_report(regs, [_track(4, "underbuild", 2, 3)]), truth)
-    (f,) = s["faults"]
-    assert f["qualifies"] and f["detected"] and f["onset_layer"] == 2
-    assert f["onset_delay_layers"] == 0
-    assert f["iou"] == pytest.approx(0.9)
-    assert f["truth_area_mm2"] == pytest.approx(200.0)
-    assert f["height_error_mm"] == pytest.approx(0.7 - 1.0)
+def _suite(monitor):
+    """Four faulty runs and a control, each scored with the tracks ``monitor(dev)`` reports."""
+    zero = np.zeros((N, N))
+    cases = {
+        "bump": (BUMP_DEV, truth("bump", 1, [[25.0, 14.0]])),
+        "dent": ({k: (-blob(13.0, 27.0, 1.0) if k >= 2 else zero) for k in LAYERS},
+                 truth("dent", -1, [[13.0, 27.0]])),
+        "corner": ({k: blob(29.0, 29.0, 0.3 * k, 6.0) for k in LAYERS},
+                   truth("corner_dwell", 1, [[29.0, 29.0]])),
+        "feed_step": ({k: np.where(PART, 0.3 * k, 0.0) for k in LAYERS},
+                      truth("feed_step", 1)),
+        "control": ({k: zero for k in LAYERS}, None)}
+    return {name: run(monitor(dev), dev, t) for name, (dev, t) in cases.items()}
+
+
+def test_a_monitor_flagging_the_whole_part_every_layer_scores_f1_below_half():
+    runs = _suite(lambda dev: {1: ("overbuild", {k: PART for k in LAYERS})})
+    s = summarize(runs)
+    assert s["qualifying_faults"] == 4
+    assert runs["feed_step"]["faults"][0]["detected"]  # the whole part did overbuild there
+    assert not runs["bump"]["faults"][0]["detected"]  # a bump is not the whole part
+    assert s["f1"] < 0.5
+    assert s["false_tracks_per_control"] == {"control": 1} and not s["gate_passed"]
+
+
+def test_a_monitor_reporting_nothing_has_recall_zero():
+    s = summarize(_suite(lambda dev: {}))
+    assert s["qualifying_faults"] == 4 and s["recall"] == 0.0 and s["f1"] == 0.0
+    assert s["false_tracks"] == 0 and s["gate_passed"]
+
+
+def test_suite_targets_and_gate():
+    runs = _suite(lambda dev: {})
+    s = summarize(runs, {"f1_min": 0.95, "max_false_tracks": 0, "max_false_alarms_per_hour": 0})
+    assert s["target_checks"] == {"f1": False, "false_tracks": True, "false_alarms": True}
+    assert not s["passed"]
+
+
+def test_truth_maps_round_trip(tmp_path):
+    from twin.world.truth import write_deviation_maps
+
+    faulty = {0: np.zeros((80, 80)), 1: np.zeros((80, 80))}
+    nominal = {0: np.zeros((80, 80)), 1: np.zeros((80, 80))}
+    nominal[1][30:40, 30:50] = 0.8
+    faulty[1][30:40, 30:50] = 0.8
+    faulty[1][34:36, 40:42] += 0.6  # a 0.5 x 0.5 mm bump at x 10.0-10.5, y 8.5-9.0
+    write_deviation_maps(tmp_path, faulty, nominal, 0.25, margin_mm=1.0)
+    m = load_truth_maps(tmp_path)
+    assert sorted(m) == [0, 1]
+    assert m[1].deviation_mm.shape == (10 + 8, 20 + 8)  # built window plus 1 mm margin
+    assert m[1].area_mm2(m[1].mask(1, 0.5)) == pytest.approx(0.25)
+    rows, cols, inside = m[1].cells_of([[10.2, 8.7], [0.1, 0.1]])
+    assert m[1].deviation_mm[rows[0], cols[0]] == pytest.approx(0.6) and list(inside) == [
+        True, False]
+    assert not m[0].mask(1, 0.2).any()
+    assert scoring.DILATION_MM == 1.0
 
 
 def test_overrides_and_suites(tmp_path):
@@ -122,21 +189,47 @@ def test_overrides_and_suites(tmp_path):
         resolve_suite("regression", tmp_path)
 
 
-def test_shipped_regression_suite_covers_every_fault_kind():
+def test_shipped_regression_suite_is_realistic():
     from dm2.bench.suites import load_suite_scenario
-    from dm2.core.config import FaultConfig
+    from dm2.core.config import FaultConfig, MonitorConfig, ToolpathConfig, read_toml
     from scenarios import scenario_dir
 
     spec, files = resolve_suite("regression", scenario_dir() / "suites")
-    kinds = set()
+    assert len(files) >= 12
+    kinds, parts, seeds_by_fault = set(), set(), {}
     controls = 0
     for f in files:
+        assert "monitor" not in read_toml(f), f"{f.name}: no per-scenario [monitor] section"
         sc = load_suite_scenario(f)
+        assert sc.monitor == MonitorConfig() and sc.toolpath == ToolpathConfig()  # defaults
+        assert sc.toolpath.strategy == "double" and sc.toolpath.contour_angle_deg > 0
         kinds |= {x.kind for x in sc.faults}
-        controls += not sc.faults and sc.expect.no_tracks
+        parts.add(sc.part.generator or sc.part.stl.rsplit("/", 1)[-1])
+        if not sc.faults:
+            controls += 1
+            assert sc.expect.no_tracks and sc.expect.no_local_tracks
+        for x in sc.faults:
+            if x.center_O_mm is not None:  # blobs off the part's centre (60, 60)
+                assert math.dist(x.center_O_mm, (60.0, 60.0)) > 5.0, f.name
+        key = tuple((x.kind, x.center_O_mm) for x in sc.faults)
+        seeds_by_fault.setdefault((sc.part.model_dump_json(), key), set()).add(sc.seed)
     all_kinds = set(FaultConfig.model_fields["kind"].annotation.__args__)
-    assert kinds == all_kinds and controls == 1
-    assert spec.targets["f1_min"] >= 0.95
+    assert kinds == all_kinds and controls >= 3
+    assert {"seven_sided", "box", "twisted_tower", "plate_with_hole.stl",
+            "bracket_thin_wall.stl"} <= parts
+    assert max(len(v) for v in seeds_by_fault.values()) >= 2  # some scenarios on two seeds
+    assert spec.targets["f1_min"] >= 0.95 and spec.targets["max_false_tracks"] == 0
+
+
+def test_paper_suite_says_what_must_and_must_not_appear():
+    from dm2.bench.suites import load_suite_scenario
+    from scenarios import scenario_dir
+
+    _, files = resolve_suite("paper", scenario_dir() / "suites")
+    assert len(files) == 4
+    for f in files:
+        sc = load_suite_scenario(f)
+        assert sc.expect.tracks and sc.expect.absent, f.name
 
 
 def test_sweep_cases_and_smallest_reliable_size():

@@ -176,3 +176,35 @@ def test_perturbed_calibration_moves_only_listed_sensors():
     with pytest.raises(ValueError, match="S4"):
         perturbed_calibration(cal, CalibrationPerturbation.model_construct(
             translation_mm=(0, 0, 0), rotation_deg=(0, 0, 0), sensors=("S4",)))
+
+
+@pytest.mark.parametrize("layers, message", [
+    ((40, 50), r"faults\[0\]\.layers: \[40, 50\] starts beyond the part's last layer 4"),
+    ((-2, 1), r"faults\[0\]\.layers: \[-2, 1\] starts below layer 0"),
+])
+def test_fault_windows_outside_the_part_are_refused(layers, message):
+    from types import SimpleNamespace
+
+    five_layers = SimpleNamespace(layer=np.repeat(np.arange(5), 10))
+    bump = FaultConfig(kind="bump", layers=layers, center_O_mm=(20.0, 20.0), height_mm=0.5,
+                       width_mm=6.0)
+    with pytest.raises(ValueError, match=message):
+        FaultSchedule([bump], toolpath=five_layers)
+    FaultSchedule([bump.model_copy(update={"layers": (2, 9)})], toolpath=five_layers)
+
+
+def test_scenario_with_a_fault_beyond_the_part_exits_2_naming_the_window(tmp_path):
+    from typer.testing import CliRunner
+
+    from dm2.cli.main import app
+
+    path = tmp_path / "far.toml"
+    path.write_text('schema = 1\nname = "far"\n[part]\ngenerator = "pad"\n'
+                    '[part.params]\nwidth_mm = 20.0\ndepth_mm = 10.0\nheight_mm = 2.4\n'
+                    '[[faults]]\nkind = "bump"\nlayers = [40, 50]\n'
+                    'center_O_mm = [60.0, 60.0]\nheight_mm = 0.5\nwidth_mm = 6.0\n',
+                    encoding="utf-8")
+    res = CliRunner().invoke(app, ["run", str(path), "--out", str(tmp_path / "run")])
+    assert res.exit_code == 2
+    assert "faults[0].layers: [40, 50] starts beyond" in res.output
+    assert not (tmp_path / "run").exists()

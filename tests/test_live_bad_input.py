@@ -42,7 +42,7 @@ def run(cell, msgs, tmp_path, arrivals=None, record=False):
 def baseline(twin, tmp_path_factory):
     cell, msgs = twin
     r = run(cell, msgs, tmp_path_factory.mktemp("base"))
-    return r.analysis.dropped, r.analysis.monitor.profiles_fused
+    return r.analysis.dropped, r.analysis.monitor.profiles_fused, len(r.analysis.tracks)
 
 
 def fused_profiles(msgs, t0=1.5, t1=DURATION_S - 0.5, min_valid=100):
@@ -184,3 +184,90 @@ def test_the_run_freezes_the_heap_out_of_the_collector_and_thaws_it(twin, tmp_pa
     assert min(seen) > before + 10_000  # frozen for the whole loop
     assert gc.get_freeze_count() == before
     assert runner.messages_in == 50
+
+
+def _robot_indices(msgs, t0=1.5, t1=DURATION_S - 0.5):
+    return [i for i, m in enumerate(msgs) if isinstance(m, RobotState) and t0 < m.stamp_s < t1]
+
+
+def test_one_datagram_or_frame_stamped_1000_s_ahead_costs_that_message(twin, baseline, tmp_path):
+    cell, msgs = twin
+    out = list(msgs)
+    i_state = _robot_indices(out)[100]
+    i_prof = fused_profiles(out)[5]
+    out[i_state] = dataclasses.replace(out[i_state], stamp_s=out[i_state].stamp_s + 1000.0)
+    out[i_prof] = dataclasses.replace(out[i_prof], stamp_s=out[i_prof].stamp_s + 1000.0)
+    r = run(cell, out, tmp_path, [m.stamp_s for m in msgs])  # arriving on time
+    assert extra(r.analysis.dropped, baseline[0]) == {"implausible_stamp": 2}
+    assert r.analysis.monitor.profiles_fused == baseline[1] - 1
+    assert r.gates.steps == []
+
+
+def test_a_first_stamp_far_off_does_not_seed_the_band(twin, baseline, tmp_path):
+    cell, msgs = twin
+    out = list(msgs)
+    first = next(i for i, m in enumerate(out) if isinstance(m, RobotState))
+    out[first] = dataclasses.replace(out[first], stamp_s=out[first].stamp_s + 1000.0)
+    r = run(cell, out, tmp_path, [m.stamp_s for m in msgs])
+    # the first state only: the stream's first profile, which only it bracketed, cannot be
+    # posed without it (pose_gap); everything after is untouched
+    assert extra(r.analysis.dropped, baseline[0]) == {"implausible_stamp": 1, "pose_gap": 1}
+    assert r.analysis.monitor.profiles_fused == baseline[1] - 1
+
+
+def test_absurd_but_finite_poses_are_dropped_and_counted(twin, baseline, tmp_path):
+    cell, msgs = twin
+    out = list(msgs)
+    idx = _robot_indices(out)
+    far = out[idx[50]].T_B_F.copy()
+    far[:3, 3] = (1e12, 0.0, 0.0)  # 1e12 mm out
+    out[idx[50]] = dataclasses.replace(out[idx[50]], T_B_F=far)
+    wild = out[idx[300]].joints_rad.copy()
+    wild[2] = np.radians(1e300)  # joints at 1e300 degrees
+    out[idx[300]] = dataclasses.replace(out[idx[300]], joints_rad=wild)
+    jump = out[idx[500]].T_B_F.copy()
+    jump[:3, 3] += (400.0, 0.0, 0.0)  # inside the workspace, but 400 mm in 4 ms: 100 m/s
+    out[idx[500]] = dataclasses.replace(out[idx[500]], T_B_F=jump)
+    r = run(cell, out, tmp_path)
+    assert extra(r.analysis.dropped, baseline[0]) == {"implausible_pose": 3}
+    assert r.analysis.monitor.profiles_fused == baseline[1]
+    assert len(r.analysis.tracks) == baseline[2]
+
+
+@pytest.mark.parametrize("step", [-5.0, 5.0])
+def test_a_lasting_clock_step_is_resynced_within_a_second(twin, baseline, tmp_path, step):
+    """The controller's clock steps 5 s back (or ahead) at 2.5 s while host time runs on:
+    re-synced after one second of process time, at most that second lost, no track created."""
+    cell, msgs = twin
+    t_step = 2.5
+    out, arrivals = [], []
+    for m in msgs:
+        arrivals.append(m.stamp_s)
+        if not isinstance(m, Profile) and m.stamp_s >= t_step:
+            m = dataclasses.replace(m, stamp_s=m.stamp_s + step)
+        out.append(m)
+    r = run(cell, out, tmp_path, arrivals)
+    (s,) = r.gates.steps
+    assert s["source"] == "robot" and s["step_s"] == pytest.approx(step, abs=0.01)
+    assert r.analysis.dropped.get("implausible_stamp", 0) == 0  # the held second came back
+    lost = baseline[1] - r.analysis.monitor.profiles_fused
+    per_s = baseline[1] / DURATION_S
+    assert 0 <= lost <= 1.2 * per_s  # at most about the second before the re-sync
+    assert len(r.analysis.tracks) == baseline[2]
+
+
+def test_a_datagram_stamped_1e12_s_ahead_leaves_the_recording_whole(twin, baseline, tmp_path):
+    """A stamp that does not fit a ROS Time is one implausible message: the recording holds
+    every other state and the run goes on."""
+    from dm2.io.recording import read_recording
+
+    cell, msgs = twin
+    out = list(msgs)
+    i = _robot_indices(out)[200]
+    out[i] = dataclasses.replace(out[i], stamp_s=out[i].stamp_s + 1e12)
+    r = run(cell, out, tmp_path, [m.stamp_s for m in msgs], record=True)
+    assert extra(r.analysis.dropped, baseline[0]) == {"implausible_stamp": 1}
+    assert r.analysis.monitor.profiles_fused == baseline[1]
+    recorded = [m for m in read_recording(r.recording_path).messages()
+                if isinstance(m, RobotState)]
+    assert len(recorded) == sum(isinstance(m, RobotState) for m in msgs) - 1

@@ -127,3 +127,22 @@ def test_clock_ignores_a_stalled_pose_socket_but_follows_a_lasting_offset():
             assert stamps == [pytest.approx(arrival, abs=1e-6)]
     assert clock.engaged == {"S1"}
     assert clock.correction_s["S1"] == pytest.approx(2.0)
+
+
+def test_recorder_survives_a_stamp_beyond_ros_time_and_one_it_cannot_encode(tmp_path):
+    class Picky(LiveRecorder):  # the writer fails on one message after the queue took it
+        def write(self, msg):
+            if isinstance(msg, RobotState) and msg.seq == 7:
+                raise ValueError("stamp does not fit ROS Time")
+            super().write(msg)
+
+    rec = RecorderThread(Picky(tmp_path / "h.mcap", chunk_s=0.2), max_wait_s=0.01)
+    with pytest.raises(MessageError, match="does not fit a ROS Time"):
+        rec.write(RobotState(1e12, 99, np.zeros(6), np.eye(4)))
+    for k in range(20):
+        rec.write(_state(k))
+    rec.close()
+    states = [m for m in read_recording(tmp_path / "h.mcap").messages()
+              if isinstance(m, RobotState)]
+    assert [s.seq for s in states] == [k for k in range(20) if k != 7]
+    assert rec.dropped == {"unrecordable_message": 1} and rec.written == 19

@@ -2,6 +2,7 @@
 
 import csv
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -76,22 +77,50 @@ def test_report_folder_contents(tmp_path, monitored):
     assert len(ply.faces) == len(res.deviation.faces)
     stl = trimesh.load(out / rep["files"]["reference"][0])
     assert stl.bounds[1][2] == pytest.approx(0.8 * 6, abs=1e-6)
-    for name in rep["files"]["deviation_maps"] + rep["files"]["track_plots"]:
+    assert all(name.endswith(".svg") for name in rep["files"]["track_plots"])
+    for name in rep["files"]["deviation_maps"]:
         assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert len(rep["files"]["deviation_maps"]) == 6
+    assert rep["files"]["figures"] == ["plots/overview.png", "plots/timeline.png"]
+    # height = the largest deviation from the reference; the box's z extent has its own name
+    assert track["peak_deviation_mm"] == pytest.approx(1.6, abs=0.05)
+    assert all(h["height_mm"] == pytest.approx(abs(h["max_deviation_mm"]))
+               for h in track["history"])
+    assert all(h["box_extent_z_mm"] >= h["height_mm"] - 1e-9 for h in track["history"])
+    assert float(rows[0]["height_mm"]) == pytest.approx(abs(float(rows[0]["max_deviation_mm"])),
+                                                         abs=1e-4)
     html = (out / "index.html").read_text()
+    assert "Overbuild at (50.0, 70.0) mm, from layer 2 to 5" in html
+    assert "mm², +1.5" in html and "growing 0.20 mm/layer (track 1)" in html
     for name in rep["files"]["track_plots"] + rep["files"]["meshes"] + ["report.json"]:
         assert f'"{name}"' in html
     assert [p.name for p in out.parent.iterdir()] == ["report"]  # no temp folders left
 
 
-def test_rewrite_replaces_and_failure_leaves_nothing(tmp_path, monitored):
+def test_rewrite_replaces_its_own_files_keeps_a_users_and_failure_leaves_nothing(tmp_path,
+                                                                                   monitored):
     out = tmp_path / "rep"
-    write_report(out, monitored.results, monitored.tracker.tracks)
-    (out / "stale.txt").write_text("old")
-    write_report(out, monitored.results[:2], [], map_layers=[1])
-    assert not (out / "stale.txt").exists()
+    first = write_report(out, monitored.results, monitored.tracker.tracks)
+    write_report(out, monitored.results[:2], [], map_layers=[1])  # an earlier dm2 report
     assert json.loads((out / "report.json").read_text())["tracks"] == []
+    for name in set(first["files"]["meshes"]) - {f"meshes/layer_{r.layer:03d}.ply"
+                                                 for r in monitored.results[:2]}:
+        assert not (out / name).exists()  # the earlier report's files are gone
+    (out / "thesis.tex").write_text("mine")
+    with pytest.raises(ValueError, match="thesis.tex.*--force"):
+        write_report(out, monitored.results[:2], [], map_layers=[1])
+    write_report(out, monitored.results[:1], [], map_layers=[monitored.results[0].layer],
+                 force=True)
+    assert (out / "thesis.tex").read_text() == "mine"
+    assert json.loads((out / "report.json").read_text())["meta"] is not None
+    assert len(list((out / "meshes").glob("layer_*.ply"))) == 1
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "report.json").write_text("a user's file")
+    with pytest.raises(ValueError, match="did not write"):
+        write_report(mine, monitored.results, [], force=True)
+    assert (mine / "report.json").read_text() == "a user's file"
+    shutil.rmtree(mine)
     with pytest.raises(ValueError, match="map layer 9"):
         write_report(tmp_path / "bad", monitored.results, [], map_layers=[9])
     assert sorted(p.name for p in tmp_path.iterdir()) == ["rep"]

@@ -55,15 +55,23 @@ def test_gui_without_display_is_a_clear_error(tmp_path, monkeypatch):
 def test_run_writes_recording_and_fault_truth(tmp_path):
     sc = tmp_path / "pad.toml"
     sc.write_text(PAD_BUMP)
+    from dm2.report.outdir import write_manifest
+
     out, truth = tmp_path / "run.mcap", tmp_path / "truth"
-    truth.mkdir()  # an earlier, longer run's truth: its layers must not survive
+    truth.mkdir()  # an earlier, longer run's truth (its manifest): its layers must not survive
     for k in range(5):
         (truth / f"layer_{k:03d}.ply").write_text("stale")
-    (truth / "notes.txt").write_text("mine")
-    res = runner.invoke(app, ["simulate", str(sc), "--out", str(out), "--truth", str(truth)])
+    write_manifest(truth, [f"layer_{k:03d}.ply" for k in range(5)], command="dm2 simulate")
+    (truth / "notes.txt").write_text("mine")  # a user's file: refused, kept with --force
+    args = ["simulate", str(sc), "--out", str(out), "--truth", str(truth)]
+    res = runner.invoke(app, args)
+    assert res.exit_code == 2 and "notes.txt" in res.output
+    res = runner.invoke(app, [*args, "--force"])
     assert res.exit_code == 0, res.output
     assert sorted(p.name for p in truth.iterdir()) == [
-        "faults.json", "layer_000.ply", "layer_001.ply", "notes.txt"]
+        ".dm2-manifest.json", "deviation_000.npz", "deviation_001.npz", "faults.json",
+        "layer_000.ply", "layer_001.ply", "notes.txt"]
+    assert (truth / "notes.txt").read_text() == "mine"
     rec = read_recording(out)
     msgs = list(rec.messages())
     assert [m.layer for m in msgs if isinstance(m, LayerMark)] == [0, 1]

@@ -132,3 +132,73 @@ def test_full_queue_counts_queue_full():
     for p in parser_out:
         inbox.put(p, "profiles", 0.0)
     assert inbox.accepted == 2 and inbox.dropped == {"queue_full": 3}
+
+
+def test_eight_idle_connections_do_not_block_the_bridge(monkeypatch):
+    """Eight local connections that never send a frame hold every slot; the real bridge that
+    connects next replaces the one idle the longest and all its profiles arrive."""
+    import dm2.live.tcp_profiles as tp
+
+    monkeypatch.setattr(tp, "EVICT_IDLE_S", 0.2)
+    inbox = Inbox(1000)
+    with ProfileServer(inbox, "127.0.0.1", 0, max_connections=8, idle_timeout_s=0) as server:
+        host, port = server.address
+        idle = [socket.create_connection((host, port)) for _ in range(8)]
+        _wait(lambda: server.connections == 8)
+        time.sleep(0.3)
+        bridge = ProfileClient(host, port)
+        for k in range(5):
+            bridge.send(profile(k))
+        _wait(lambda: inbox.accepted >= 5)
+        assert inbox.accepted == 5
+        assert inbox.dropped == {"idle_connection": 1}
+        bridge.close()
+        for c in idle:
+            c.close()
+    got = sorted(inbox.get(0)[0].counter for _ in range(inbox.qsize()))
+    assert got == [0, 1, 2, 3, 4]
+
+
+def test_busy_connections_keep_their_slot_and_idle_ones_time_out():
+    inbox = Inbox(1000)
+    with ProfileServer(inbox, "127.0.0.1", 0, max_connections=1, idle_timeout_s=0.3) as server:
+        host, port = server.address
+        busy = ProfileClient(host, port)
+        busy.send(profile(0))
+        _wait(lambda: inbox.accepted == 1)
+        late = socket.create_connection((host, port))  # the busy one keeps the only slot
+        _wait(lambda: "connection_limit" in inbox.dropped)
+        late.close()
+        _wait(lambda: server.disconnects >= 1, timeout=3.0)  # 0.3 s without a frame
+        assert inbox.dropped == {"connection_limit": 1, "idle_connection": 1}
+        busy.close()
+
+
+def test_frame_drops_are_reported_while_the_connection_is_open():
+    inbox = Inbox(1000)
+    with ProfileServer(inbox, "127.0.0.1", 0) as server:
+        host, port = server.address
+        client = ProfileClient(host, port)
+        bad = bytearray(encode_frame(profile(1)))
+        bad[-1] ^= 0xFF  # CRC mismatch
+        client.send_bytes(bytes(bad))
+        client.send(profile(2))
+        _wait(lambda: inbox.accepted == 1 and inbox.dropped)
+        assert server.disconnects == 0
+        assert sum(inbox.dropped.values()) == 1 and inbox.accepted == 1
+        client.close()
+
+
+def test_a_bridge_closed_for_idling_reconnects_without_losing_its_next_frame():
+    inbox = Inbox(1000)
+    with ProfileServer(inbox, "127.0.0.1", 0, idle_timeout_s=0.3) as server:
+        client = ProfileClient(*server.address)
+        client.connect()
+        _wait(lambda: server.disconnects >= 1, timeout=3.0)  # closed: no frame for 0.3 s
+        time.sleep(1.1)
+        for k in range(3):
+            client.send(profile(k))
+        _wait(lambda: inbox.accepted >= 3)
+        client.close()
+    assert inbox.accepted == 3 and inbox.dropped == {"idle_connection": 1}
+    assert server.connections == 2

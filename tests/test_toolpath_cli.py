@@ -93,3 +93,17 @@ def test_build_part_errors_name_the_field():
     from dm2.core.config import ConfigError
     with pytest.raises(ConfigError, match="part.params.wall_mm"):
         build_part(PartConfig(generator="seven_sided", params={"wall_mm": 40.0}), (120, 120, 6))
+
+
+def test_files_dm2_wrote_are_replaced_a_users_only_with_force(tmp_path):
+    out, mod, png = tmp_path / "tp.csv", tmp_path / "tp.mod", tmp_path / "tp.png"
+    args = ["pad", "--out", str(out), "--rapid", str(mod), "--plot", str(png)]
+    assert _run(args).exit_code == 0
+    assert _run(args).exit_code == 0  # its own files: replaced
+    mine = tmp_path / "notes.csv"
+    mine.write_text("a user's table\n")
+    res = _run(["pad", "--out", str(mine)])
+    assert res.exit_code == 2 and "not written by dm2" in res.output and "--force" in res.output
+    assert mine.read_text() == "a user's table\n"
+    assert _run(["pad", "--out", str(mine), "--force"]).exit_code == 0
+    assert read_csv(mine).n_layers == 5

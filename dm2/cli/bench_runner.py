@@ -44,6 +44,8 @@ class ScenarioRun:
     fault_truth : the twin's faults.json content (``{"faults": [...]}``)
     reconstruction : per layer ``{"rms_mm", "p95_mm", "n_vertices"}``: unsigned distance [mm]
         from the observed reconstructed vertices to the twin's true surface of that layer
+    footprints : track id -> {layer: (xy_O (k, 2) [mm], area (k,) [mm^2])}, the vertices of
+        each track's regions (what the strict scoring tests against the truth maps)
     process_s : float [s], simulated process time
     wall_s : float [s], wall time of the whole run (twin included)
     monitor_s : float [s], wall time spent in the pipeline (fusion, reference, analysis)
@@ -54,6 +56,7 @@ class ScenarioRun:
     report: dict
     fault_truth: dict
     reconstruction: dict[int, dict] = field(default_factory=dict)
+    footprints: dict = field(default_factory=dict)
     process_s: float = 0.0
     wall_s: float = 0.0
     monitor_s: float = 0.0
@@ -87,13 +90,18 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
                  record: bool = False, full_report: bool = True,
                  progress: Progress | None = None,
                  on_stream_end: Callable[[], None] | None = None,
-                 calibration=None) -> ScenarioRun:
+                 calibration=None, force: bool = False, on_layer: Callable | None = None,
+                 report_stage: Callable[[str, int, int], None] | None = None,
+                 on_session: Callable | None = None,
+                 include: dict | None = None) -> ScenarioRun:
     """Simulate ``sc`` on the twin, monitor it and write the run folder ``run_dir``.
 
     Parameters
     ----------
     sc : the scenario (apply ``duration_s`` before calling)
-    run_dir : the run folder; replaced if it exists, written only once the run has finished
+    run_dir : the run folder, written only once the run has finished; an earlier dm2 run there is
+        replaced, a folder holding other files is refused (ValueError) unless ``force``, which
+        replaces only dm2's files (:mod:`dm2.report.outdir`)
     scenario_file : where the scenario came from (recorded in report.json)
     record : also keep the raw stream as ``run.mcap``
     full_report : the whole report folder (meshes, maps, plots, HTML); otherwise report.json
@@ -102,6 +110,10 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
     on_stream_end : called once the stream is consumed, before the report is written
     calibration : dm2.core.messages.Calibration the pipeline uses instead of the one the scenario
         hands it (e.g. a solved hand-eye calibration against a perturbed ``calibration_error``)
+    on_layer : called with each analysed layer's LayerResult (the session's ``on_layer``)
+    report_stage : called with (stage, done, total) while the report is written
+    on_session : called with the MonitoringSession once it exists (e.g. to attach a view)
+    include : name -> path of further files moved into the run folder (e.g. its log file)
 
     Raises
     ------
@@ -115,10 +127,13 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
     from twin.stream.simulate import Simulation
 
     t_start = time.perf_counter()
-    run_dir = check_output_dir(run_dir)
+    run_dir = check_output_dir(run_dir, force=force)
     sim = Simulation(sc)
     session = MonitoringSession(calibration or sim.calibration, sc.monitor, sc.process,
-                                plate_size_mm=sc.cell.plate_size_mm, toolpath=sim.toolpath)
+                                plate_size_mm=sc.cell.plate_size_mm, toolpath=sim.toolpath,
+                                on_layer=on_layer)
+    if on_session is not None:
+        on_session(session)
     run_dir.parent.mkdir(parents=True, exist_ok=True)
     scratch = Path(tempfile.mkdtemp(prefix=".dm2-run-", dir=run_dir.parent))
     try:
@@ -127,6 +142,7 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
             on_stream_end()
         truth = _read_json(scratch / "truth" / "faults.json") or {"faults": []}
         recon = reconstruction_errors(session.results, scratch / "truth")
+        footprints = track_footprints(session.results)
         timing = session.timing.to_dict()
         monitor_s = timing["fusion_s"] + timing["reference_s"] + timing["analysis_s"]
         timing.update(simulated_process_s=sim.end_s, monitor_s=monitor_s,
@@ -136,27 +152,47 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
         config_toml = dump_toml(sc.to_toml_dict())
         sections = {"realtime": session.realtime_summary(),
                     "reconstruction": {str(k): v for k, v in recon.items()}}
+        include = {**{name: scratch / name for name in ("truth", "run.mcap")
+                      if (scratch / name).exists()}, **(include or {})}
         if full_report:
             report = write_report(run_dir, session.results, session.tracks,
                                   config_toml=config_toml, dropped=session.dropped,
                                   timing=timing, fault_truth=truth, expect=sc.expect, meta=meta,
-                                  sections=sections)
+                                  sections=sections, force=force, include=include,
+                                  command="dm2 run", inputs=[scenario_file],
+                                  toolpath=sim.toolpath, stage=report_stage)
         else:
             report = build_report(session.results, session.tracks, dropped=session.dropped,
                                   timing=timing, fault_truth=truth, expect=sc.expect, meta=meta,
                                   sections=sections)
-            _write_lite_report(run_dir, report, session.tracks, config_toml, write_tracks_csv)
-        for name in ("truth", "run.mcap"):
-            if (scratch / name).exists():
-                target = run_dir / name
-                if target.exists():
-                    shutil.rmtree(target) if target.is_dir() else target.unlink()
-                shutil.move(str(scratch / name), str(target))
+            _write_lite_report(run_dir, report, session.tracks, config_toml, write_tracks_csv,
+                               include)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     return ScenarioRun(scenario=sc, run_dir=run_dir, report=report, fault_truth=truth,
-                       reconstruction=recon, process_s=float(sim.end_s),
+                       reconstruction=recon, footprints=footprints,
+                       process_s=float(sim.end_s),
                        wall_s=time.perf_counter() - t_start, monitor_s=float(monitor_s))
+
+
+def track_footprints(results) -> dict:
+    """Each track's vertices per layer: {track id: {layer: (xy_O (k, 2), area (k,))}}."""
+    out: dict = {}
+    for r in results:
+        if not r.regions:
+            continue
+        areas = r.deviation.vertex_areas()
+        xy = r.deviation.vertices_O[:, :2]
+        for reg, tid in zip(r.regions, r.track_ids, strict=True):
+            if tid is None:
+                continue
+            ids = np.asarray(reg.vertex_ids)
+            layers = out.setdefault(int(tid), {})
+            prev = layers.get(int(r.layer))
+            new = (xy[ids], areas[ids])
+            layers[int(r.layer)] = new if prev is None else (
+                np.vstack([prev[0], new[0]]), np.concatenate([prev[1], new[1]]))
+    return out
 
 
 def reconstruction_errors(results, truth_dir: Path) -> dict[int, dict]:
@@ -195,15 +231,18 @@ def reconstruction_errors(results, truth_dir: Path) -> dict[int, dict]:
 
 
 def _write_lite_report(run_dir: Path, report: dict, tracks, config_toml: str,
-                       write_tracks_csv) -> None:
+                       write_tracks_csv, include: dict) -> None:
+    from dm2.report.outdir import files_below, install_folder, write_manifest
+
     tmp = Path(tempfile.mkdtemp(prefix=f".{run_dir.name}.", dir=run_dir.parent))
     try:
         (tmp / "config.toml").write_text(config_toml, encoding="utf-8")
         (tmp / "report.json").write_text(json.dumps(report, indent=1), encoding="utf-8")
         write_tracks_csv(tmp / "tracks.csv", tracks)
-        if run_dir.exists():
-            shutil.rmtree(run_dir)
-        tmp.rename(run_dir)
+        for name, path in include.items():
+            shutil.move(str(path), str(tmp / name))
+        write_manifest(tmp, files_below(tmp), command="dm2 bench")
+        install_folder(tmp, run_dir)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -216,13 +255,11 @@ def _read_json(path: Path):
 def score_scenario_run(run: ScenarioRun) -> dict:
     """:func:`dm2.bench.scoring.score_run` of a finished run, with its scenario's settings."""
     from dm2.bench.scoring import score_run
-    from dm2.core.plume import plume_sigma_mm
+    from dm2.bench.truth_maps import load_truth_maps
 
-    sc = run.scenario
     return score_run(run.report, run.fault_truth,
-                     fault_configs=[f.model_dump(mode="json") for f in sc.faults],
-                     plume_sigma_mm=plume_sigma_mm(sc.process),
-                     delta_mm=sc.monitor.delta_global_mm, reconstruction=run.reconstruction,
+                     truth_maps=load_truth_maps(run.run_dir / "truth"),
+                     footprints=run.footprints, reconstruction=run.reconstruction,
                      process_s=run.process_s, monitor_s=run.monitor_s, wall_s=run.wall_s)
 
 
@@ -244,7 +281,7 @@ def sweep_case(scenario_dict: dict, source: str) -> dict:
     keep = ("detected", "detected_global", "sign_ok", "qualifies", "peak_height_mm", "onset_layer",
             "first_layer_detected", "onset_delay_layers", "iou", "height_error_mm")
     return _rounded({**{k: fault.get(k) for k in keep},
-                     "false_positive_tracks": len(score["false_positive_tracks"]),
+                     "false_positive_tracks": len(score["false_tracks"]),
                      "layers": score["layers"],
                      "reconstruction_rms_mm": score["reconstruction_rms_mm"]})
 

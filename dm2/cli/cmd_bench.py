@@ -14,6 +14,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from dm2.cli.common import app, bad_input_exits, console, err_console, fail
+from dm2.report.outdir import claim_outputs, prepare_output_dir
 
 EXIT_FAILED = 1
 
@@ -27,9 +28,10 @@ def _fmt(v, spec: str = "{:.2f}") -> str:
 
 
 def bench_table(runs: dict[str, dict]) -> Table:
-    table = Table(title="Bench: detection against the twin's fault truth")
-    cols = ("scenario", "fault", "h mm", "detected", "sign", "onset L", "delay L", "delay s",
-            "IoU", "area err mm²", "height err mm", "FP", "RMS mm", "RTF", "expect")
+    table = Table(title="Bench: strict score against the twin's truth maps")
+    cols = ("scenario", "fault", "h mm", "detected", "onset L", "delay L", "IoU",
+            "height err mm", "tracks T/frag/neu/F", "false mm²", "RT alarms F/all", "RMS mm",
+            "RTF", "expect")
     for c in cols:
         table.add_column(c, justify="left" if c in ("scenario", "fault") else "right")
     for name, r in runs.items():
@@ -37,23 +39,40 @@ def bench_table(runs: dict[str, dict]) -> Table:
             table.add_row(name, "[red]error[/]", *[""] * (len(cols) - 3), "[red]NO[/]")
             continue
         faults = r["faults"] or [None]
+        n_false = len(r["false_tracks"])
+        counts = (f"{len(r['true_tracks'])}/{len(r['fragments'])}/{len(r['neutral_tracks'])}/"
+                  + (f"[red]{n_false}[/]" if n_false else "0"))
         for i, f in enumerate(faults):
-            common = [_fmt(len(r["false_positive_tracks"]), "{}"),
+            common = [counts, _fmt(r["false_area_mm2"], "{:.0f}"),
+                      f"{r['realtime_false_alarms']}/{r['realtime_alarms']}",
                       _fmt(r["reconstruction_rms_mm"], "{:.3f}"),
                       _fmt(r["realtime_factor"], "{:.1f}"),
                       "[green]met[/]" if r["expect_passed"] else "[red]missed[/]"]
             if i:
-                common = [""] * 4
+                common = [""] * len(common)
             if f is None:
-                table.add_row(name, "(none)", *[""] * 9, *common)
+                table.add_row(name, "(control)", *[""] * 6, *common)
                 continue
             table.add_row(name if i == 0 else "", f["kind"] + ("" if f["qualifies"] else " *"),
-                          _fmt(f["peak_height_mm"]), _fmt(f["detected"]), _fmt(f["sign_ok"]),
+                          _fmt(f["peak_height_mm"]), _fmt(f["detected"]),
                           _fmt(f["onset_layer"], "{}"), _fmt(f["onset_delay_layers"], "{:+d}"),
-                          _fmt(f["onset_delay_s"], "{:+.1f}"), _fmt(f["iou"]),
-                          _fmt(f["area_error_mm2"], "{:+.1f}"),
-                          _fmt(f["height_error_mm"], "{:+.2f}"), *common)
+                          _fmt(f["iou"]), _fmt(f["height_error_mm"], "{:+.2f}"), *common)
     return table
+
+
+def score_line(summary: dict) -> str:
+    """The strict score in one line (F1, its parts, false tracks and alarms)."""
+    per_h = summary["realtime_false_alarms_per_hour"]
+    controls = summary["false_tracks_per_control"]
+    return (f"F1 {summary['f1']:.3f} (precision {summary['precision']:.3f} over "
+            f"{summary['true_tracks'] + summary['false_tracks']} tracks, recall "
+            f"{summary['recall']:.3f} over {summary['qualifying_faults']} faults); "
+            f"false tracks {summary['false_tracks']} ({summary['false_area_mm2']:.0f} mm²), "
+            f"fragments {summary['fragments']}, neutral {summary['neutral_tracks']}; "
+            f"false tracks per control {controls or '-'}; real-time false alarms "
+            f"{summary['realtime_false_alarms']}/{summary['realtime_alarms']} "
+            f"({_fmt(per_h, '{:.0f}')} per process hour); worst onset delay "
+            f"{summary['max_onset_delay_layers']} layer(s)")
 
 
 @app.command()
@@ -65,13 +84,21 @@ def bench(
     overrides: list[str] = typer.Option([], "--set", help="SECTION.KEY=VALUE applied to every "
                                         "scenario, e.g. --set toolpath.max_layers=12."),
     only: list[str] = typer.Option([], "--only", help="Run only these scenario files (stems)."),
+    force: bool = typer.Option(False, "--force", help="Write into a folder holding an earlier "
+                               "dm2 output and other files: replace only dm2's files."),
     reports: bool = typer.Option(None, "--reports/--no-reports",
                                  help="Full report folders per scenario (default: the suite's)."),
+    gate: bool = typer.Option(True, "--gate/--no-gate",
+                              help="Exit 1 when a target, an [expect] section or a fault-free "
+                              "control (any track at all) fails; --no-gate prints the score "
+                              "and fails only when a scenario cannot run."),
 ) -> None:
-    """Run a suite of scenarios with injected faults and score each against the fault truth.
+    """Run a suite of scenarios with injected faults and score each strictly against the
+    twin's truth maps (every track counts; see dm2.bench.scoring).
 
-    Prints a table, writes bench.json; exits 1 when a scenario misses its [expect] section or
-    the suite misses its targets (F1, onset delay, false-positive tracks).
+    Prints a table and the strict score, writes bench.json; exits 1 when a fault-free control
+    has any track, a scenario misses its [expect] section or the suite misses its targets
+    (F1, onset delay, false tracks, false alarms per hour), unless --no-gate.
 
     Example: `dm2 bench --suite regression`
     """
@@ -88,7 +115,7 @@ def bench(
         scenarios = [(f, load_suite_scenario(f, overrides)) for f in files]
         out_dir = (out or Path("runs") / f"bench-{datetime.now():%Y%m%d-%H%M%S}-{spec.name}")
         out_dir = out_dir.absolute()
-        out_dir.mkdir(parents=True, exist_ok=True)
+        kept = prepare_output_dir(out_dir, force=force)
     full = spec.full_report if reports is None else reports
     console.print(f"[bold]dm2 bench[/] suite [cyan]{spec.name}[/]: {len(scenarios)} scenarios "
                   f"-> {out_dir}")
@@ -115,25 +142,32 @@ def bench(
         summary["passed"] = False
         summary["errors"] = sorted(set(runs) - set(ok_runs))
     summary["wall_s"] = time.perf_counter() - t0
-    doc = {"schema": "dm2.bench/1", "suite": spec.name, "description": spec.description,
+    doc = {"schema": "dm2.bench/2", "suite": spec.name, "description": spec.description,
            "overrides": list(overrides), "runs": runs, "summary": summary}
     if spec.paper:
         doc["paper"] = _paper_outputs(out_dir, done_runs)
     (out_dir / "bench.json").write_text(json.dumps(doc, indent=1, default=_json_default),
                                         encoding="utf-8")
+    claim_outputs(out_dir, kept, "dm2 bench")
     console.width = max(console.width, 170)
     console.print(bench_table(runs))
     checks = " ".join(f"{k}: {'[green]ok[/]' if v else '[red]missed[/]'}"
                       for k, v in summary["target_checks"].items())
-    console.print(f"F1 {summary['f1']:.3f} over {summary['qualifying_defects']} defects "
-                  f"({summary['definition']}); TP {summary['true_positives']}, FN "
-                  f"{summary['false_negatives']}, FP tracks {summary['false_positive_tracks']}; "
-                  f"worst onset delay {summary['max_onset_delay_layers']} layer(s). {checks}")
+    console.print(escape(score_line(summary)) + f". {checks}")
     console.print(f"bench.json: [bold]{out_dir / 'bench.json'}[/] ({summary['wall_s']:.0f} s)")
+    failed = ([n for n, r in runs.items() if not r.get("expect_passed")]
+              + [k for k, v in summary["target_checks"].items() if not v]
+              + [f"control {n}: {k} track(s)"
+                 for n, k in summary["false_tracks_per_control"].items() if k])
+    if summary.get("errors"):
+        console.print("[red]bench failed[/]: scenarios that did not run: "
+                      + ", ".join(summary["errors"]))
+        raise typer.Exit(EXIT_FAILED)
     if not summary["passed"]:
-        console.print("[red]bench failed[/]: "
-                      + ", ".join([n for n, r in runs.items() if not r.get("expect_passed")]
-                                  + [k for k, v in summary["target_checks"].items() if not v]))
+        if not gate:
+            console.print("[yellow]not gated (--no-gate)[/], missed: " + escape(", ".join(failed)))
+            return
+        console.print("[red]bench failed[/]: " + escape(", ".join(failed)))
         raise typer.Exit(EXIT_FAILED)
 
 
@@ -185,13 +219,15 @@ def sweep(
                                   "cluster) instead of a local cluster."),
     out: Path = typer.Option(None, "--out", "-o",
                              help="Output folder (default runs/sweep-TIME)."),
+    force: bool = typer.Option(False, "--force", help="Write into a folder holding an earlier "
+                               "dm2 output and other files: replace only dm2's files."),
 ) -> None:
     """Monte Carlo over seeds and fault sizes on Dask: detection probability against size.
 
     Writes sweep.json (every case and the probability per size, with the smallest size
     detected in at least 90 % of the seeds from there up) and sweep.png.
 
-    Example: `dm2 sweep scenarios/suites/regression/bump.toml --sizes 0.2,0.4,0.8 --seeds 4`
+    Example: `dm2 sweep scenarios/suites/smoke/bump.toml --sizes 0.2,0.4,0.8 --seeds 4`
     """
     from dm2.bench.suites import apply_overrides
     from dm2.bench.sweep import plot_sweep, run_sweep, summarize_sweep, sweep_cases
@@ -207,7 +243,7 @@ def sweep(
         cases = sweep_cases(base, size_list, list(range(seed0, seed0 + seeds)), param, fault)
         parse_scenario(cases[0]["scenario"], f"{path} (faults[{fault}].{param})")
         out_dir = (out or Path("runs") / f"sweep-{datetime.now():%Y%m%d-%H%M%S}").absolute()
-        out_dir.mkdir(parents=True, exist_ok=True)
+        kept = prepare_output_dir(out_dir, force=force)
     from dm2.cli.bench_runner import sweep_case
 
     where = scheduler or f"a local cluster of {workers} worker processes"
@@ -223,6 +259,7 @@ def sweep(
     (out_dir / "sweep.json").write_text(json.dumps(doc, indent=1, sort_keys=True),
                                         encoding="utf-8")
     plot_sweep(out_dir / "sweep.png", summary, param, f"{Path(path).stem}: detection vs {param}")
+    claim_outputs(out_dir, kept, "dm2 sweep")
     table = Table(title=f"Detection probability against {param}")
     for c in ("size", "n", "detected", "probability", "P global track", "mean peak mm",
               "FP tracks"):

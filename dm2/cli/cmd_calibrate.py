@@ -115,7 +115,10 @@ def calibrate(
                                         help="Co-estimate the artifact pose on the flange."),
     prior: Path = typer.Option(None, "--prior", help="Coarse calibration TOML for a "
                                "recording without one."),
-    out: Path = typer.Option(Path("calibration"), "--out", "-o", help="Output folder."),
+    out: Path = typer.Option(Path("calibration"), "--out", "-o", help="Output folder (new, "
+                             "or an earlier dm2 output; see `dm2 run --help`)."),
+    force: bool = typer.Option(False, "--force", help="Write into a folder holding an earlier "
+                               "dm2 output and other files: replace only dm2's files."),
 ) -> None:
     """Calibrate the three profilers (T_B_S) from profiles of a sphere artifact.
 
@@ -132,7 +135,10 @@ def calibrate(
         from dm2.cli.common import fail
 
         fail("give a RECORDING.mcap of a calibration run (with --artifact), or --rehearse")
+    from dm2.report.outdir import check_output_dir, clear_outputs, write_manifest
+
     with bad_input_exits():
+        check_output_dir(out, force=force, inputs=[source, prior])
         art = load_artifact(_artifact_path(artifact))
         options = SolverOptions(estimate_mount=estimate_mount,
                                 robot_sigma_mm=robot_noise_mm / ISO9283_RP_PER_SIGMA)
@@ -156,9 +162,12 @@ def calibrate(
     if rehearse:
         summary.update({"poses": poses, "noise_mm": noise_mm, "robot_noise_mm": robot_noise_mm,
                         "seed": seed})
+    if out.is_dir():
+        clear_outputs(out, inputs=[source, prior])
     cal_path = _write_outputs(out, result, prior_cal, art, summary)
     json_path = out / ("rehearsal.json" if rehearse else "calibration.json")
     json_path.write_text(json.dumps(summary, indent=2))
+    write_manifest(out, [cal_path.name, json_path.name], command="dm2 calibrate")
     console.print(f"wrote {cal_path} and {json_path}")
 
 

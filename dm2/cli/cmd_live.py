@@ -6,22 +6,25 @@ from pathlib import Path
 
 import typer
 
-from dm2.cli.common import app, bad_input_exits, console, fail
+from dm2.cli.common import app, bad_input_exits, console, fail, log_file
 
 
-def run_live_monitor(cell_path: Path, out: Path, max_duration_s: float | None = None) -> None:
+def run_live_monitor(cell_path: Path, out: Path, max_duration_s: float | None = None,
+                     force: bool = False, view_port: int | None = None) -> None:
     """``dm2 monitor --live CELL.toml --out DIR``: monitor the cell until it goes quiet or
-    Ctrl-C / SIGTERM; ``DIR/live.mcap`` records the stream, ``DIR/report`` the results."""
+    Ctrl-C / SIGTERM; ``DIR/live.mcap`` records the stream, ``DIR/report`` the results. Ends
+    with one line per drop reason, and exit 1 when nothing was fused or more than
+    ``monitor.gates.max_lost_share`` of the input was lost."""
     import signal
     import threading
 
+    from dm2.cli.outcome import drop_lines, run_verdict
     from dm2.live.config import load_cell_file
     from dm2.live.runner import LiveRunner
-    from dm2.report import check_output_dir
+    from dm2.report.outdir import add_to_manifest, check_output_dir
 
     with bad_input_exits():
         cell = load_cell_file(cell_path)
-        check_output_dir(out)
         if (out / "live.mcap").exists():
             raise ValueError(f"--out {out}: already holds a live recording (live.mcap); "
                              "choose a new folder")
@@ -29,26 +32,56 @@ def run_live_monitor(cell_path: Path, out: Path, max_duration_s: float | None = 
             raise ValueError(f"--out {out}: holds a live recording cut short (live.mcap.part); "
                              f"restore it with `dm2 recover {out / 'live.mcap.part'}` or choose "
                              "a new folder")
+        check_output_dir(out, force=force, inputs=[cell_path])
+        out.mkdir(parents=True, exist_ok=True)
+        add_to_manifest(out, ["live.mcap", "monitor.log", "report/"],
+                        command="dm2 monitor --live")
         runner = LiveRunner(cell, out, cell_toml=cell_path.read_text(encoding="utf-8"))
     try:
         addresses = runner.open_sources()
     except OSError as exc:
         runner.close()
         fail(f"{cell_path}: cannot open the live sources: {exc}")
+    view = None
+    if view_port is not None:
+        from dm2.cli.cmd_view import start_live_view
+
+        states = runner.analysis.session.states
+        view = start_live_view(runner.calibration, lambda: states.last_T_B_F, view_port)
+        runner.analysis.layer_listeners.append(view.on_layer)
     stop = threading.Event()
     previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
     console.print(f"listening: EGM udp {addresses['egm'][0]}:{addresses['egm'][1]}, profiles "
                   f"tcp {addresses['profiles'][0]}:{addresses['profiles'][1]}; Ctrl-C ends")
     try:
-        runner.run(stop=stop, max_duration_s=max_duration_s)
+        out.mkdir(parents=True, exist_ok=True)
+        with log_file(out / "monitor.log"):  # every record, the real-time alarms included
+            runner.run(stop=stop, max_duration_s=max_duration_s)
     except KeyboardInterrupt:
         runner.finish()
     finally:
         signal.signal(signal.SIGTERM, previous)
+        if view is not None:
+            view.close()
+            view.stop_server()
     a = runner.analysis
-    console.print(f"{runner.messages_in} messages, {len(a.results)} layers, "
-                  f"{len(a.tracks)} tracks; dropped {a.dropped or 'nothing'}")
+    dropped = a.dropped
+    console.print(f"{runner.messages_in} messages, {a.monitor.profiles_fused} profiles fused, "
+                  f"{len(a.results)} layers, {len(a.tracks)} tracks"
+                  + ("" if dropped else "; nothing dropped"))
+    for line in drop_lines(dropped):
+        console.print(line, highlight=False)
+    for step in runner.gates.steps:
+        console.print(f"the clock of {step['source']} stepped {step['step_s']:+.3f} s at "
+                      f"{step['at_s']:.3f} s and was re-synced", highlight=False)
     console.print(f"recording: {runner.recording_path}  report: {runner.report_dir}")
+    transport = sum(v for k, v in runner.inbox.dropped.items())
+    code, verdict = run_verdict(profiles_fused=a.monitor.profiles_fused, dropped=dropped,
+                                messages_in=runner.messages_in + transport,
+                                max_lost_share=cell.monitor.gates.max_lost_share)
+    if verdict:
+        console.print(f"{cell_path.name}: {verdict}", highlight=False, markup=False)
+        raise typer.Exit(code)
 
 
 @app.command("serve-twin")
@@ -75,7 +108,7 @@ def serve_twin(
     Example: `dm2 serve-twin pad --write-cell cell/ --speed 5` with
     `dm2 monitor --live cell/cell.toml --out runs/live` in another shell.
     """
-    from dm2.core.config import load_scenario
+    from dm2.core.config import ConfigError, load_scenario
     from dm2.live.config import parse_host_port
     from scenarios import resolve_scenario
 
@@ -94,6 +127,8 @@ def serve_twin(
         sim = Simulation(sc)
     except ReachError as exc:
         fail(f"{sc.name}: the robot cannot follow the toolpath: {exc}")
+    except ConfigError as exc:
+        fail(str(exc))
     if write_cell is not None:
         path = write_cell_files(sim, write_cell, egm=egm, profiles=profiles, speed=speed)
         console.print(f"cell file: {path}")

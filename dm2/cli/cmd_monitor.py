@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import typer
 
-from dm2.cli.common import app, bad_input_exits, console, fail, note_cold_kernel_cache
+from dm2.cli.common import app, bad_input_exits, console, fail, log_file, note_cold_kernel_cache
 
 log = logging.getLogger(__name__)
 
@@ -115,15 +115,25 @@ def monitor(
                               "profile sources) instead of a recording; see dm2.live.config."),
     analyse: bool = typer.Option(True, "--analyse/--no-analyse", help="Also compare each layer "
                                  "with the near-net reference and write OUT/report/."),
+    view: bool = typer.Option(False, "--view", help="Show the part growing in the browser "
+                              "(3D, coloured by signed deviation) on 127.0.0.1:--view-port."),
+    view_port: int = typer.Option(8080, "--view-port", min=1, max=65535),
+    force: bool = typer.Option(False, "--force", help="Write into a folder holding an earlier "
+                               "dm2 run and other files: replace only dm2's files."),
+    allow_truncated: bool = typer.Option(False, "--allow-truncated", help="Exit 0 (not 3) "
+                                         "when the recording is truncated or damaged."),
 ) -> None:
     """Monitor a recording: sync, register, fuse (TSDF), mesh per layer, deviation, tracks.
 
     Writes `layer_NNNN.ply` (frame O, mm, per-vertex `scalar_weight`) for every finished layer,
     `monitor.toml` (the configuration used), `monitor.json` (counts, drops, layers) and, unless
     `--no-analyse`, the report folder `report/` (report.json, tracks.csv, deviation meshes and
-    maps, index.html) comparing each layer with the near-net reference. These replace the
-    outputs of an earlier replay in the folder. With `--live`, the folder must not hold a live
-    recording yet (`live.mcap`, or a `live.mcap.part` left by a crash: `dm2 recover` it).
+    maps, index.html) comparing each layer with the near-net reference. OUT must be new or
+    empty, or hold an earlier dm2 run (its manifest `.dm2-manifest.json`): those files are
+    replaced; other files there need `--force` and are kept. A truncated or damaged recording
+    is monitored up to where it can be read, said so in `monitor.json` and `report.json`
+    (`input`) and exits 3 unless `--allow-truncated`. With `--live`, the folder must not hold a
+    live recording yet (`live.mcap`, or a `live.mcap.part` left by a crash: `dm2 recover` it).
 
     Example: `dm2 monitor run.mcap --out runs/replay`;
     a cell's rosbag2 bag: `dm2 monitor bag_folder --map cell_map.toml --out runs/cell`
@@ -134,15 +144,18 @@ def monitor(
 
         if run is not None:
             fail("give either a recording or --live CELL.toml, not both")
-        run_live_monitor(live, out)
+        run_live_monitor(live, out, force=force, view_port=view_port if view else None)
         return
     if run is None:
         fail("give a recording to replay, or --live CELL.toml")
     from rich.table import Table
 
+    from dm2.cli.outcome import damaged_input_sentence, drop_lines, exit_code, run_verdict
     from dm2.core.toml_write import dump_toml
+    from dm2.fusion.gates import InputGates
     from dm2.pipeline.session import MonitoringSession
-    from dm2.report import check_output_dir, write_report
+    from dm2.report import write_report
+    from dm2.report.outdir import add_to_manifest, check_output_dir, clear_outputs
 
     t_start = time.perf_counter()
     with bad_input_exits():
@@ -150,13 +163,11 @@ def monitor(
                                                                       toolpath, map_path)
         if voxel_mm is not None:
             monitor_cfg = monitor_cfg.model_copy(update={"voxel_mm": voxel_mm})
-        if out.exists() and not out.is_dir():
-            fail(f"--out {out}: exists and is not a folder")
-        if analyse:
-            check_output_dir(out / "report")
+        check_output_dir(out, force=force, inputs=[run, calibration, toolpath, map_path])
     try:
         out.mkdir(parents=True, exist_ok=True)
-        _clear_earlier_outputs(out)
+        clear_outputs(out, inputs=[run])  # the earlier run's files: no stale layer survives
+        add_to_manifest(out, ["monitor.toml"], command="dm2 monitor")
     except OSError as exc:
         fail(f"--out {out}: cannot prepare the folder: {exc.strerror}")
     (out / "monitor.toml").write_text(dump_toml({
@@ -169,6 +180,7 @@ def monitor(
         ls = session.monitor.layer_done[-1]
         path = out / f"layer_{ls.layer:04d}.ply"
         ls.surface.write_ply(path)
+        add_to_manifest(out, [path.name])
         written.append({"layer": ls.layer, "file": path.name, "stamp_s": ls.stamp_s,
                         "vertices": ls.surface.n_vertices, "faces": ls.surface.n_faces,
                         "area_mm2": round(ls.surface.area_mm2(), 3),
@@ -176,23 +188,39 @@ def monitor(
         console.print(f"layer {ls.layer}: {ls.surface.n_vertices} vertices, "
                       f"{len(result.regions)} region(s) -> {path}")
 
+    live_view = None
+
+    def on_layer(result) -> None:
+        save(result)
+        if live_view is not None:
+            live_view.on_layer(result)
+
     session = MonitoringSession(cal, monitor_cfg, process, plate_size_mm=plate_mm, toolpath=tp,
-                                on_layer=save)
+                                on_layer=on_layer, gates=InputGates(monitor_cfg.gates))
+    if view:
+        from dm2.cli.cmd_view import start_live_view
+
+        live_view = start_live_view(cal, lambda: session.states.last_T_B_F, view_port)
     mon = session.monitor
     n_msgs = 0
-    with console.status("fusing profiles"):
+    with console.status("fusing profiles"), log_file(out / "monitor.log"):
         for msg in rec.messages():
             session.feed(msg)
             n_msgs += 1
         session.finish()
+    input_info = (rec.input_summary() if hasattr(rec, "input_summary")  # other readers:
+                  else {"file": str(run), "complete": True})  # complete unless they say so
+    dropped = {**session.dropped, **{f"recording_{k}": int(v) for k, v in rec.skipped.items()}}
     summary = {"schema": 1, "recording": str(run),
                **({"map": str(map_path)} if map_path is not None else {}), "messages": n_msgs,
                "profiles_fused": mon.profiles_fused, "points_fused": mon.points_fused,
-               "tsdf_blocks": mon.tsdf.n_blocks, "dropped": mon.dropped,
+               "tsdf_blocks": mon.tsdf.n_blocks, "dropped": session.dropped,
                "recording_skipped": {k: int(v) for k, v in rec.skipped.items()},
                "recording_problems": list(getattr(rec, "problems", [])),
+               "clock_steps": session.gates.steps, "input": input_info,
                "layer_source": mon.layers.source, "layers": written}
     (out / "monitor.json").write_text(json.dumps(summary, indent=2), encoding="utf-8")
+    add_to_manifest(out, ["monitor.json", "monitor.log"])
     if hasattr(rec, "close"):  # a rosbag2 recording holds its files open while read
         rec.close()
     if analyse and session.results:
@@ -202,12 +230,14 @@ def monitor(
                                                                               exclude_none=True),
                                             "process": process.model_dump(mode="json",
                                                                           exclude_none=True)}),
-                     dropped={**session.dropped,
-                              **{f"recording_{k}": int(v) for k, v in rec.skipped.items()}},
+                     dropped=dropped,
                      timing={**session.timing.to_dict(),
                              "wall_s": time.perf_counter() - t_start},
                      meta={"recording": str(run), "layers": len(session.results)},
-                     sections={"realtime": session.realtime_summary()})
+                     sections={"realtime": session.realtime_summary(), "input": input_info},
+                     inputs=[run], command="dm2 monitor", force=force,
+                     toolpath=tp)
+        add_to_manifest(out, ["report/"])
     table = Table(title=f"monitor: {run.name}")
     table.add_column("what")
     table.add_column("count", justify="right")
@@ -215,39 +245,33 @@ def monitor(
     table.add_row("points fused", str(mon.points_fused))
     table.add_row("layers", f"{len(written)} (from {mon.layers.source})")
     table.add_row("defect tracks", str(len(session.tracks)))
-    for reason, count in mon.dropped.items():
-        table.add_row(f"dropped: {reason}", str(count))
     console.print(table)
     from rich.markup import escape
 
     for problem in getattr(rec, "problems", []):
         console.print(f"[bold yellow]warning:[/] {escape(problem)}", highlight=False)
+    for line in drop_lines(dropped):
+        console.print(line, highlight=False)
     if analyse and session.results:
         console.print(f"report: [bold]{out / 'report' / 'index.html'}[/]")
-    if mon.points_fused == 0:
-        fail(f"{run}: no profile could be fused (dropped: {mon.dropped}, recording: "
-             f"{dict(rec.skipped)}){''.join('; ' + p for p in getattr(rec, 'problems', []))}",
-             code=1)
+    code, verdict = run_verdict(profiles_fused=mon.profiles_fused, dropped=dropped,
+                                messages_in=n_msgs, max_lost_share=monitor_cfg.gates.max_lost_share)
+    damaged = damaged_input_sentence(input_info)
+    if damaged:
+        console.print(damaged, highlight=False, markup=False)
+    if verdict:
+        problems = "".join("; " + p for p in getattr(rec, "problems", []))
+        console.print(f"{run.name}: {verdict}{problems}", highlight=False, markup=False)
+    code = exit_code(code, 3 if damaged and not allow_truncated else 0)
+    if live_view is not None:
+        from dm2.view.live import serve_forever
 
+        live_view.close()
+        console.print(f"3D view: [bold]{live_view.url}[/] (Ctrl-C ends)")
+        try:
+            serve_forever()
+        finally:
+            live_view.stop_server()
 
-def _clear_earlier_outputs(out: Path) -> None:
-    """Remove what an earlier replay wrote into ``out`` (layer meshes, monitor.json, its
-    report folder), so no stale layer is taken for one of this run; other files stay."""
-    import re
-    import shutil
-
-    stale = [p for p in out.iterdir() if re.fullmatch(r"layer_\d{4}\.ply", p.name)]
-    if (out / "monitor.json").is_file():
-        stale.append(out / "monitor.json")
-    report = out / "report"
-    if (report / "report.json").is_file():
-        stale.append(report)
-    if not stale:
-        return
-    log.info("%s: replacing the outputs of an earlier run (%d layer meshes%s)", out,
-             sum(p.suffix == ".ply" for p in stale), ", report" if report in stale else "")
-    for p in stale:
-        if p.is_dir():
-            shutil.rmtree(p)
-        else:
-            p.unlink()
+    if code:
+        raise typer.Exit(code)

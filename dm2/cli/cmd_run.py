@@ -8,10 +8,17 @@ from pathlib import Path
 
 import numpy as np
 import typer
-from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-from rich.table import Table
+from rich.progress import (
+    BarColumn,
+    Progress,
+    SpinnerColumn,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
 
-from dm2.cli.common import app, bad_input_exits, console, fail, note_cold_kernel_cache
+from dm2.cli.common import app, bad_input_exits, console, fail, log_file, note_cold_kernel_cache
+from dm2.cli.outcome import EXIT_MISSED, drop_lines
 
 
 def default_run_dir(root: Path, name: str) -> Path:
@@ -31,17 +38,56 @@ def link_latest(run_dir: Path) -> None:
         pass
 
 
-def tracks_table(report: dict) -> Table:
-    table = Table(title="Defect tracks", show_lines=False)
-    for col in ("id", "kind", "layers", "final area mm²", "final height mm", "trend"):
-        table.add_column(col, justify="right" if col != "kind" else "left")
-    for t in report.get("tracks", []):
-        last = str(t["last_layer"])
-        area = t.get("area_mm2", {}).get(last, float("nan"))
-        height = t.get("height_mm", {}).get(last, float("nan"))
-        table.add_row(str(t["id"]), t["kind"], f"{t['first_layer']}–{t['last_layer']}",
-                      f"{area:.1f}", f"{height:.2f}", str(t.get("trend", "")))
-    return table
+class NewTracks:
+    """Console lines for the new defect tracks of each analysed layer (local ones counted)."""
+
+    MAX_LINES = 12  # further new tracks are only counted (all are in the report)
+
+    def __init__(self, print_line):
+        self.print_line = print_line
+        self.seen: set[int] = set()
+        self.printed = 0
+        self.local = 0
+        self.held_back = 0
+
+    def __call__(self, result) -> None:
+        for region, tid in zip(result.regions, result.track_ids, strict=True):
+            if tid in self.seen:
+                continue
+            self.seen.add(tid)
+            if region.kind.startswith("local_"):
+                self.local += 1
+            elif self.printed >= self.MAX_LINES:
+                self.held_back += 1
+            else:
+                self.printed += 1
+                x, y = region.centroid_O[:2]
+                self.print_line(f"layer {result.layer}: new track #{tid} {region.kind} at "
+                                f"({x:.1f}, {y:.1f}) mm, {region.area_mm2:.0f} mm², "
+                                f"{region.max_deviation_mm:+.2f} mm")
+
+
+def print_summary(report: dict, new: NewTracks | None = None) -> None:
+    """The verdict (as index.html opens with it) and one line of counts."""
+    from dm2.report.summary import verdict
+
+    v = verdict(report)
+    console.print(f"[bold]{v['headline']}[/]")
+    for line in v["sentences"]:
+        console.print(f"  {line}")
+    if v["more"]:
+        console.print(f"  … and {v['more']} more defect tracks (see the report)")
+    alarms = len((report.get("realtime") or {}).get("alarms", []))
+    held = f", {new.held_back} further new tracks not printed" if new and new.held_back else ""
+    console.print(f"{len(report.get('tracks', []))} tracks ({v['uncertain']} local), "
+                  f"{alarms} real-time alarms{held}: all in the report and run.log")
+
+
+def progress_bar() -> Progress:
+    """Process seconds done of the total, time remaining, then the report stage by name."""
+    return Progress(SpinnerColumn(), TextColumn("[progress.description]{task.description}"),
+                    BarColumn(), TextColumn("{task.fields[done]}"), TimeRemainingColumn(),
+                    TimeElapsedColumn(), console=console, transient=True)
 
 
 @app.command()
@@ -57,8 +103,17 @@ def run(
     calibration: Path = typer.Option(None, "--calibration", help="Calibration TOML the "
                                      "pipeline uses instead of the scenario's (e.g. one solved "
                                      "by `dm2 calibrate`)."),
+    force: bool = typer.Option(False, "--force", help="Write into a folder holding an earlier "
+                               "dm2 run and other files: replace only dm2's files."),
+    view: bool = typer.Option(False, "--view", help="Show the part growing in the browser "
+                              "(3D, coloured by signed deviation) on 127.0.0.1:--view-port."),
+    view_port: int = typer.Option(8080, "--view-port", min=1, max=65535),
 ) -> None:
     """Simulate SCENARIO on the twin, monitor it with the 3D-DM2 pipeline and write a report.
+
+    The run folder must be new or empty, or hold an earlier dm2 run (its manifest
+    `.dm2-manifest.json`), whose files are then replaced; other files there need `--force` and
+    are kept. Exits 1 when an expectation of the scenario's `[expect]` section is missed.
 
     Example: `dm2 run` or `dm2 run pad --out runs/pad`
     """
@@ -75,7 +130,7 @@ def run(
             sc = sc.model_copy(update={"duration_s": duration_s})
         cal = read_calibration_toml(calibration) if calibration is not None else None
         run_dir = (out or default_run_dir(runs_root, sc.name)).absolute()
-        check_output_dir(run_dir)
+        check_output_dir(run_dir, force=force, inputs=[path, calibration])
     run_dir.parent.mkdir(parents=True, exist_ok=True)
     console.print(f"[bold]dm2 run[/] scenario [cyan]{sc.name}[/] ({path})")
     note_cold_kernel_cache()
@@ -83,22 +138,49 @@ def run(
     from dm2.cli.bench_runner import run_scenario
     from twin.cell.kinematics import ReachError
 
-    with Progress(TextColumn("[progress.description]{task.description}"), BarColumn(),
-                  TextColumn("{task.completed:.0f}/{task.total:.0f} s process"),
-                  TimeElapsedColumn(), console=console, transient=True) as bar:
-        task = bar.add_task("simulating + monitoring", total=1.0)
+    log_path = run_dir.parent / f".{run_dir.name}.run.log"
+    view_handle = None
+    with progress_bar() as bar, log_file(log_path):
+        task = bar.add_task("simulating + monitoring", total=1.0, done="")
+        new_tracks = NewTracks(bar.console.print)
+
+        def on_progress(t, total):
+            bar.update(task, completed=t, total=total, done=f"{t:.0f}/{total:.0f} s process")
+
+        def on_stage(name, k, n):
+            bar.update(task, description=f"writing the report: {name}", completed=k,
+                       total=max(n, 1), done=f"{k}/{n}")
+
+        def on_layer(result):
+            new_tracks(result)
+            if view_handle is not None:
+                view_handle.on_layer(result)
+
+        def on_session(session):
+            nonlocal view_handle
+            if view:
+                from dm2.cli.cmd_view import start_live_view
+
+                view_handle = start_live_view(session.monitor.calibration,
+                                              lambda: session.states.last_T_B_F, view_port)
+
         try:
             done = run_scenario(sc, run_dir, scenario_file=path, record=record,
-                                progress=lambda t, total: bar.update(task, completed=t,
-                                                                     total=total),
-                                on_stream_end=lambda: bar.update(task,
-                                                                 description="writing the report"),
-                                calibration=cal)
+                                progress=on_progress,
+                                on_stream_end=lambda: bar.update(
+                                    task, description="comparing with the twin's truth"),
+                                calibration=cal, on_layer=on_layer, report_stage=on_stage,
+                                on_session=on_session, force=force,
+                                include={"run.log": log_path})
         except (ReachError, ConfigError) as exc:
+            log_path.unlink(missing_ok=True)
             fail(f"{path}: {exc}")
+        except ValueError as exc:  # the run folder changed meanwhile (OutputRefused)
+            log_path.unlink(missing_ok=True)
+            fail(str(exc))
     report = done.report
     link_latest(run_dir)
-    console.print(tracks_table(report))
+    print_summary(report, new_tracks)
     for e in report.get("expectations", []):
         mark = "[green]met[/]" if e.get("passed") else "[red]missed[/]"
         console.print(f"expectation {e.get('expect')}: {mark}")
@@ -109,4 +191,18 @@ def run(
     wall = time.perf_counter() - t_start
     console.print(f"report: [bold]{run_dir / 'index.html'}[/]  ({wall:.1f} s wall, "
                   f"{done.process_s:.1f} s of process time)")
+    for line in drop_lines(report.get("dropped", {})):
+        console.print(line, highlight=False)
+    missed = [e for e in report.get("expectations", []) if not e.get("passed")]
+    if view_handle is not None:
+        view_handle.close()
+        console.print(f"3D view: [bold]{view_handle.url}[/] (Ctrl-C ends)")
+        from dm2.view.live import serve_forever
+
+        try:
+            serve_forever()
+        finally:
+            view_handle.stop_server()
+    if missed:
+        raise typer.Exit(EXIT_MISSED)
 

@@ -19,6 +19,9 @@ def simulate(
                                      help="Stop after this many process seconds."),
     gui: bool = typer.Option(False, "--gui", help="Show the cell in pybullet's GUI while "
                              "simulating (needs a display)."),
+    force: bool = typer.Option(False, "--force", help="Replace an --out file dm2 did not "
+                               "write, and write --truth into a folder holding an earlier dm2 "
+                               "output and other files (only dm2's files are replaced)."),
 ) -> None:
     """Simulate a build (robot, spray, three profilers) and record it as MCAP.
 
@@ -28,6 +31,7 @@ def simulate(
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
     from dm2.core.config import load_scenario
+    from dm2.report.outdir import check_output_file, claim_outputs, prepare_output_dir
     from scenarios import resolve_scenario
 
     with bad_input_exits():
@@ -37,6 +41,8 @@ def simulate(
             sc = sc.model_copy(update={"duration_s": duration_s})
         if not out.parent.exists():
             raise FileNotFoundError(f"--out {out}: folder {out.parent} does not exist")
+        check_output_file(out, force=force, inputs=[path])
+        kept = None if truth is None else prepare_output_dir(truth, force=force)
     if gui:
         _require_display()
     from twin.cell.kinematics import ReachError
@@ -61,6 +67,8 @@ def simulate(
                                 on_message=viewer.on_message if viewer is not None else None)
     if viewer is not None:
         viewer.cell.close()
+    if truth is not None:
+        claim_outputs(truth, kept, "dm2 simulate --truth")
     c = result.counts
     console.print(f"wrote {out}: {result.process_s:.1f} s of process, {result.n_layers} layers, "
                   f"{c.get('Profile', 0)} profiles, {c.get('RobotState', 0)} robot states"

@@ -46,9 +46,12 @@ def toolpath(
     out: Path = typer.Option(..., "--out", help="Canonical toolpath CSV to write."),
     rapid: Path | None = typer.Option(None, "--rapid", help="Also write an ABB RAPID module."),
     plot: Path | None = typer.Option(None, "--plot", help="Also write a PNG (top view)."),
+    force: bool = typer.Option(False, "--force", help="Replace output files dm2 did not "
+                               "write (files dm2 wrote are replaced anyway)."),
 ) -> None:
     """Plan the continuous (C3D-style) toolpath of a part: infill, edges, overhangs, skips."""
     from dm2.core.messages import TOOLPATH_KINDS
+    from dm2.report.outdir import check_output_file
     from dm2.toolpath import generate_toolpath
     from dm2.toolpath.formats import write_csv, write_rapid
     from dm2.toolpath.plot import plot_toolpath
@@ -63,6 +66,7 @@ def toolpath(
         for path, _ in targets:
             if not path.parent.exists() and str(path.parent):
                 raise FileNotFoundError(f"{path}: output folder {path.parent} does not exist")
+            check_output_file(path, force=force, inputs=[Path(part_or_scenario)])
         mesh, cfg, label = _load_part(part_or_scenario)
         tp = generate_toolpath(mesh, cfg)
         try:

@@ -32,17 +32,51 @@ app = typer.Typer(
 )
 console = Console(stderr=False)
 err_console = Console(stderr=True)
+CONSOLE_QUIET = ("dm2.alarms",)  # loggers kept off the console (they go to the run's log file)
 
 EXIT_BAD_INPUT = 2
 
 
+class _ConsoleFilter(logging.Filter):
+    """Off the console: the loggers of CONSOLE_QUIET, and (unless verbose) INFO records of the
+    pipeline's per-layer chatter; all of them still reach the run's log file."""
+
+    def __init__(self, verbose: bool):
+        super().__init__()
+        self.verbose = verbose
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.name.startswith(CONSOLE_QUIET):
+            return False
+        return self.verbose or record.levelno >= logging.WARNING
+
+
 def setup_logging(verbose: bool) -> None:
+    """Log records go through the progress bar's console (``console``: a live bar stays on its
+    own line); the console shows warnings (everything with ``-v``)."""
+    handler = RichHandler(console=console, show_path=False)
+    handler.addFilter(_ConsoleFilter(verbose))
     logging.basicConfig(
         level=logging.DEBUG if verbose else logging.INFO,
         format="%(message)s",
-        handlers=[RichHandler(console=err_console, show_path=False)],
+        handlers=[handler],
         force=True,
     )
+
+
+@contextmanager
+def log_file(path):
+    """Write every INFO record (real-time alarms included) to ``path`` while the block runs."""
+    handler = logging.FileHandler(path, mode="w", encoding="utf-8")
+    handler.setLevel(logging.INFO)
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    root = logging.getLogger()
+    root.addHandler(handler)
+    try:
+        yield path
+    finally:
+        root.removeHandler(handler)
+        handler.close()
 
 
 def note_cold_kernel_cache() -> None:

@@ -11,6 +11,7 @@ COMMAND_MODULES = [
     "cmd_run",
     "cmd_live",
     "cmd_bench",
+    "cmd_view",
 ]
 
 for _name in COMMAND_MODULES:

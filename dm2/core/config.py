@@ -13,6 +13,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from dm2.core.config_errors import model_named
+
 SCHEMA_VERSION = 1
 
 
@@ -71,6 +73,56 @@ class ProcessConfig(_Model):
     critical_angle_deg: float = Field(75.0, gt=0, le=90)  # zeta(theta) falls to 0 here
     plume_half_angle_deg: float = Field(5.0, ge=0, lt=45)  # jet divergence past the exit
     packets_per_s: float = Field(20000.0, gt=0)  # particle packets drawn per second at full feed
+
+
+class TwinProcessConfig(_Model):
+    """``[twin_process]``: the twin's own physics (the monitor keeps the nominal ``[process]``).
+
+    Every ``[process]`` key may be given here; it overrides the nominal value for the twin
+    only. The keys below are physics the monitor's near-net model does not have. Their
+    defaults make every shipped run carry a modest, plausible model error; set
+    ``plume_sigma_factor = 1``, ``efficiency_factor = 1``, ``efficiency_curve = "cos2"``,
+    ``plume_exponent = 2``, ``porosity = 0`` and ``standoff_efficiency_per_mm = 0`` for a twin
+    that deposits exactly with the nominal model (see ``twin.world.twin_physics``).
+    """
+
+    feed_g_min: float | None = Field(None, gt=0)
+    standoff_mm: float | None = Field(None, gt=0)
+    nozzle_exit_mm: float | None = Field(None, gt=0)
+    powder_density_g_cm3: float | None = Field(None, gt=0)
+    deposition_efficiency: float | None = Field(None, gt=0, le=1)
+    plume_sigma_mm: float | None = Field(None, gt=0)
+    critical_angle_deg: float | None = Field(None, gt=0, le=90)
+    plume_half_angle_deg: float | None = Field(None, ge=0, lt=45)
+    packets_per_s: float | None = Field(None, gt=0)
+    # sigma multiplier on the (overridden) plume sigma: +8 %, what a divergence half-angle of
+    # 6 instead of 5 deg gives at 30 mm standoff (+9 %); the half-angle is rarely known better
+    plume_sigma_factor: float = Field(1.08, gt=0)
+    # normal-impact efficiency multiplier: -7 %, a powder-lot / gas-temperature difference of
+    # the size cold-spray deposition efficiencies scatter by between nominally equal runs
+    efficiency_factor: float = Field(0.93, gt=0)
+    # efficiency against impact angle: "cos2" (the nominal cos^2(pi/2 (theta/theta_c)^2)),
+    # "cos" (cos theta up to theta_c), "linear" (1 - theta/theta_c) or "plateau" (flat to
+    # plateau_angle_deg, then linear to 0 at theta_c). Default "plateau": the shape measured
+    # against spray angle in cold-spray impact-angle studies (e.g. Binder et al. 2011,
+    # J. Therm. Spray Technol., CP-Ti): nearly constant to about 30 deg off normal, then falling
+    efficiency_curve: Literal["cos2", "cos", "linear", "plateau"] = "plateau"
+    plateau_angle_deg: float = Field(30.0, ge=0, lt=90)
+    # radial plume density exp(-(r/a)^p / 2) at equal rms width; 2 = Gaussian. Default 2.4: a
+    # slightly flat-topped jet, as single cold-spray tracks are flatter on top than a Gaussian
+    plume_exponent: float = Field(2.4, ge=1, le=8)
+    # volume fraction of pores in the deposit (it stands taller than its mass at full density):
+    # 2 %, within the 0.5-5 % reported for nitrogen-sprayed CP-Ti (e.g. Marrocco et al. 2006)
+    porosity: float = Field(0.02, ge=0, lt=0.5)
+    # relative efficiency change per mm that the nozzle-to-surface distance exceeds the
+    # standoff: -0.3 %/mm, the slow fall of efficiency with spray distance as particles slow
+    # past the jet's core (the trend of standoff studies, e.g. Li et al. 2008, Mater. Des.)
+    standoff_efficiency_per_mm: float = Field(-0.003, ge=-0.05, le=0.05)
+
+    def overrides(self) -> dict[str, float]:
+        """The ``[process]`` keys this section overrides, with their twin values."""
+        return {k: v for k, v in self.model_dump().items()
+                if k in ProcessConfig.model_fields and v is not None}
 
 
 class CellConfig(_Model):
@@ -163,6 +215,38 @@ class CalibrationPerturbation(_Model):
     sensors: tuple[str, ...] = ("S1", "S2", "S3")
 
 
+class InputGateConfig(_Model):
+    """Plausibility gates on live and replayed input (:mod:`dm2.fusion.gates`); defaults fit an
+    IRB 4600-40/2.55 (datasheet joint limits and speeds, reach 2.55 m) with margin."""
+
+    stamp_band_s: float = Field(2.0, gt=0)  # a stamp this far from the source's clock: dropped
+    stamp_rate_max: float = Field(2.0, gt=0)  # stamp seconds per host second at most (live)
+    stamp_confirm_s: float = Field(1.0, gt=0)  # a clock step lasting this long is re-synced
+    stamp_seed: int = Field(3, ge=1, le=64)  # first messages whose median seeds the band
+    workspace_B_mm: tuple[tuple[float, float, float], tuple[float, float, float]] = (
+        (-3000.0, -3000.0, -1500.0), (3000.0, 3000.0, 3500.0))
+    joint_limits_deg: tuple[tuple[float, float], ...] = (
+        (-180.0, 180.0), (-90.0, 150.0), (-180.0, 75.0), (-400.0, 400.0), (-125.0, 125.0),
+        (-400.0, 400.0))
+    max_tcp_speed_mm_s: float = Field(7000.0, gt=0)
+    max_joint_speed_deg_s: tuple[float, ...] = (175.0, 175.0, 175.0, 250.0, 250.0, 360.0)
+    speed_margin: float = Field(1.5, ge=1.0)  # factor on the speed limits
+    max_lost_share: float = Field(0.25, ge=0, le=1)  # a run losing more input fails (exit 1)
+
+    @model_validator(mode="after")
+    def _boxes(self):
+        lo, hi = self.workspace_B_mm
+        if any(a >= b for a, b in zip(lo, hi, strict=True)):
+            raise ValueError(f"workspace_B_mm: lower corner {list(lo)} not below upper {list(hi)}")
+        if any(a >= b for a, b in self.joint_limits_deg):
+            raise ValueError(f"joint_limits_deg: a lower limit is not below its upper limit "
+                             f"({[list(j) for j in self.joint_limits_deg]})")
+        if len(self.max_joint_speed_deg_s) != len(self.joint_limits_deg):
+            raise ValueError(f"max_joint_speed_deg_s: {len(self.max_joint_speed_deg_s)} values "
+                             f"for {len(self.joint_limits_deg)} joints")
+        return self
+
+
 class MonitorConfig(_Model):
     voxel_mm: float = Field(0.5, gt=0, le=2.0)
     truncation_voxels: float = Field(3.0, gt=0)
@@ -181,6 +265,7 @@ class MonitorConfig(_Model):
     # (progress slower than dwell_speed_mm_s: dwells, reorientation stops) deposits nothing
     reference_clock: Literal["executed", "programmed"] = "programmed"
     dwell_speed_mm_s: float = Field(1.0, gt=0)
+    gates: InputGateConfig = InputGateConfig()
 
 
 class ExpectTrack(_Model):
@@ -192,6 +277,7 @@ class ExpectTrack(_Model):
 
 class ExpectConfig(_Model):
     tracks: tuple[ExpectTrack, ...] = ()
+    absent: tuple[ExpectTrack, ...] = ()  # tracks that must NOT appear (kind, near, from_layer)
     no_tracks: bool = False  # no global over/underbuild track (local ones are early warnings)
     no_local_tracks: bool = False  # no local over/underbuild track either
 
@@ -207,6 +293,7 @@ class Scenario(_Model):
     part: PartConfig
     toolpath: ToolpathConfig = ToolpathConfig()
     process: ProcessConfig = ProcessConfig()
+    twin_process: TwinProcessConfig = TwinProcessConfig()
     cell: CellConfig = CellConfig()
     sensors: SensorConfig = SensorConfig()
     noise: NoiseConfig = NoiseConfig()
@@ -222,6 +309,15 @@ class Scenario(_Model):
     def _schema(cls, v: int) -> int:
         return check_schema_version(v)
 
+    @model_validator(mode="after")
+    def _twin_plateau(self):
+        tp = self.twin_process
+        tc = tp.critical_angle_deg or self.process.critical_angle_deg
+        if tp.efficiency_curve == "plateau" and tp.plateau_angle_deg >= tc:
+            raise ValueError(f"twin_process.plateau_angle_deg {tp.plateau_angle_deg} must be "
+                             f"below the twin's critical_angle_deg {tc}")
+        return self
+
     def to_toml_dict(self) -> dict[str, Any]:
         """The resolved configuration as a TOML-ready dict (None values dropped)."""
         return _drop_none(self.model_dump(by_alias=True, mode="json"))
@@ -235,15 +331,13 @@ def _drop_none(obj):
     return obj
 
 
-def format_validation_error(source: str, exc: ValidationError) -> str:
-    lines = [f"{source}: invalid configuration"]
-    for err in exc.errors():
-        loc = ".".join(str(p) for p in err["loc"]) or "(top level)"
-        msg = err["msg"]
-        if err["type"] == "extra_forbidden":
-            msg = "unknown key"
-        lines.append(f"  field '{loc}': {msg}")
-    return "\n".join(lines)
+def format_validation_error(source: str, exc: ValidationError, model=None) -> str:
+    """One line per error naming the field and showing the bad value; an unknown key gets the
+    nearest known key of its table as a suggestion (``model``: the validated model class,
+    default the one that raised; :mod:`dm2.core.config_errors`)."""
+    from dm2.core.config_errors import describe_errors
+
+    return describe_errors(source, exc, model or model_named(_Model, exc.title))
 
 
 def parse_scenario(data: dict[str, Any], source: str = "<scenario>") -> Scenario:

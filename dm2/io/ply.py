@@ -30,7 +30,15 @@ def write_mesh_ply(path: str | Path, vertex_fields: dict[str, np.ndarray], faces
                    PlyElement.describe(face, "face", len_types={"vertex_indices": "u1"})],
                   text=False, byte_order="<", comments=list(comments))
     tmp = path.with_name(path.name + ".part")
-    ply.write(str(tmp))
+    # plyfile writes list properties one face at a time in Python (seconds for a tower layer);
+    # every face here is a triangle, so its bytes (count, then three indices) are packed at once
+    packed = np.empty(len(faces), dtype=[("n", "u1"), ("v", "<i4", (3,))])
+    packed["n"] = 3
+    packed["v"] = faces
+    with open(tmp, "wb") as fh:
+        fh.write(ply.header.encode("ascii") + b"\n")
+        fh.write(vertex.astype(vertex.dtype.newbyteorder("<"), copy=False).tobytes())
+        fh.write(packed.tobytes())
     tmp.replace(path)
 
 

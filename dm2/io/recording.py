@@ -73,6 +73,9 @@ class Recording:
     attachments : dict name -> bytes
     scenario_toml : str or None, the scenario the recording was made from
     skipped : Counter of reasons -> messages that could not be turned into pipeline messages
+    complete : False when the file has no readable summary (cut short, or damaged)
+    damage : None, or after a full pass of :meth:`messages` that stopped at a record it could
+        not read: ``{"error", "good_bytes"}`` (see :meth:`input_summary`)
     """
 
     def __init__(self, path: Path):
@@ -81,6 +84,8 @@ class Recording:
         self.attachments: dict[str, bytes] = {}
         self.complete = True
         self._has_counters: bool | None = None
+        self.damage: dict | None = None
+        self.last_stamp_ns: int | None = None  # newest log time read by a full pass
         with open(path, "rb") as f:
             if f.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
                 raise ValueError(f"{path}: not an MCAP file (bad magic bytes)")
@@ -90,7 +95,7 @@ class Recording:
                 self.summary = reader.get_summary()
                 atts = list(reader.iter_attachments())
             except Exception as exc:  # noqa: BLE001 - any damage to the summary: read linearly
-                log.warning("%s: no summary (%s); reading it linearly", path, exc)
+                log.debug("%s: no summary (%s); reading it linearly", path, exc)
                 self.complete, self.summary = False, None
                 atts = self._linear_attachments(f)
         self.attachments = {a.name: bytes(a.data) for a in atts}
@@ -137,16 +142,41 @@ class Recording:
         return attached_toolpath(self.attachments)
 
     def _iter_raw(self, topics=None):
+        full = topics is None  # a full pass records how far the file could be read
+        good = 0
         with open(self.path, "rb") as f:
-            if self.complete:
-                yield from make_reader(f).iter_messages(topics=topics, log_time_order=True)
-                return
             try:
-                yield from NonSeekingReader(f).iter_messages(topics=topics,
-                                                             log_time_order=False)
-            except (McapError, EOFError, ValueError, struct.error) as exc:
-                log.warning("%s: stopped at a truncated record (%s)", self.path,
-                            str(exc) or type(exc).__name__)
+                if self.complete:
+                    it = make_reader(f).iter_messages(topics=topics, log_time_order=True)
+                else:
+                    it = NonSeekingReader(f).iter_messages(topics=topics,
+                                                           log_time_order=False)
+                for item in it:
+                    if full:
+                        t = item[2].log_time
+                        if self.last_stamp_ns is None or t > self.last_stamp_ns:
+                            self.last_stamp_ns = t
+                        good = f.tell()
+                    yield item
+            except (McapError, EOFError, ValueError, struct.error, OSError) as exc:
+                log.debug("%s: stopped at a record it cannot read (%s)", self.path,
+                          str(exc) or type(exc).__name__)
+                if full:
+                    self.damage = {"error": type(exc).__name__, "good_bytes": int(good)}
+
+    def input_summary(self) -> dict:
+        """What the full pass of :meth:`messages` read: ``complete`` (False when it stopped at
+        a record it could not read), ``truncated`` (no summary: cut short), ``last_stamp_s``
+        (newest message read), ``bytes_skipped`` (bytes after the last chunk read)."""
+        size = self.path.stat().st_size
+        damaged = self.damage is not None
+        skipped = max(0, size - self.damage["good_bytes"]) if damaged else 0
+        return {"file": str(self.path), "complete": not damaged,
+                "truncated": damaged and not self.complete, "indexed": self.complete,
+                "last_stamp_s": (None if self.last_stamp_ns is None
+                                 else ns_to_stamp(self.last_stamp_ns)),
+                "bytes": size, "bytes_skipped": skipped,
+                "error": self.damage["error"] if damaged else None}
 
     @property
     def has_counters(self) -> bool:

@@ -78,6 +78,7 @@ class LayerAnalysis:
         self.max_sensor_gap_s = float(max_sensor_gap_s)
         self.extra_dropped: Counter = Counter()
         self.drop_sources: list = []  # callables returning dicts of transport drops
+        self.layer_listeners: list = []  # callables f(LayerResult), e.g. a live 3D view
         self.events: Counter = Counter()
         self.report_s = 0.0
         self._last_profile_s: dict[str, float] = {}
@@ -121,6 +122,8 @@ class LayerAnalysis:
             self._last_profile_s[p.sensor_id] = p.stamp_s
 
     def _on_layer(self, result) -> None:
+        for listener in self.layer_listeners:
+            listener(result)
         if self.out_dir is None:
             return
         snap = self._take_snapshot()

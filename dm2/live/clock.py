@@ -39,6 +39,10 @@ from dm2.core.messages import Profile
 log = logging.getLogger(__name__)
 
 CONFIRM_S = 1.0  # [s, host clock] an excursion of the skew estimate must last to be corrected
+# [s, host clock] a profile arriving longer than this after the newest pose gets no skew sample:
+# the pose clock is not read across a gap in the poses (held back by the plausibility gates
+# while a clock step is confirmed, or lost), where the newest pose stamp lags the sensor's
+READING_HORIZON_S = 0.25
 
 
 class ClockAligner:
@@ -83,7 +87,7 @@ class ClockAligner:
 
     def _pose_clock_at(self, arrival_s: float) -> float | None:
         arr, st = self._arr, self._stamp
-        if len(arr) < 2 or arrival_s > arr[-1] + 1.0 or arrival_s < arr[0]:
+        if len(arr) < 2 or arrival_s > arr[-1] + READING_HORIZON_S or arrival_s < arr[0]:
             return None
         i = bisect.bisect_right(arr, arrival_s)
         if i >= len(arr):  # after the newest pose: the newest stamp is the best reading

@@ -16,22 +16,28 @@ Example::
 
     [live]
     egm = "127.0.0.1:6510"                # UDP address the EGM stream is sent to
+    egm_schema = "rw7"                    # RobotWare 7 EGM layout ("rw6": RobotWare 6)
+    egm_layer_dnum = 0                    # layer index in RAPIDfromRobot.dnum[k] (RW7 only)
     controllers = ["127.0.0.1"]           # only datagrams from these addresses are used
     profiles = "127.0.0.1:6511"           # TCP address profile bridges connect to
     bridges = ["127.0.0.1"]
+    bridge_idle_s = 10.0                  # a bridge connection without a frame this long: closed
     allow_remote = false                  # binding a non-loopback address needs true
 
     [[live.scancontrol]]                  # optional: sensors driven through the vendor's
     sensor_id = "S1"                      # wrapper (dm2.live.scancontrol), besides bridges
     serial = "218020093"                  # the SDK selects sensors by serial number
 
-Every model rejects unknown keys; errors are :class:`~dm2.core.config.ConfigError` naming the file
-and the field.
+Host names in ``controllers`` and ``bridges`` are resolved when the file is loaded (``localhost``
+is 127.0.0.1 and ::1), so a datagram is matched against addresses; a name that does not resolve
+is an error naming the key. Every model rejects unknown keys; errors are
+:class:`~dm2.core.config.ConfigError` naming the file and the field (and the nearest known key).
 """
 
 from __future__ import annotations
 
 import ipaddress
+import socket
 from pathlib import Path
 from typing import Literal
 
@@ -72,6 +78,28 @@ def is_loopback(host: str) -> bool:
         return False
 
 
+def resolve_hosts(hosts, field: str) -> tuple[str, ...]:
+    """IP addresses of ``hosts`` (addresses or names; ``localhost`` = 127.0.0.1 and ::1);
+    ValueError naming ``field`` and the host for one that does not resolve."""
+    out: list[str] = []
+    for host in hosts:
+        host = str(host).strip()
+        try:
+            addrs = [str(ipaddress.ip_address(host))]
+        except ValueError:
+            if host.lower() == "localhost":
+                addrs = ["127.0.0.1", "::1"]
+            else:
+                try:
+                    infos = socket.getaddrinfo(host, None, proto=socket.IPPROTO_UDP)
+                except (socket.gaierror, UnicodeError, OSError):
+                    raise ValueError(f"{field}: host {host!r} does not resolve to an "
+                                     "address") from None
+                addrs = [info[4][0] for info in infos]
+        out.extend(a for a in addrs if a not in out)
+    return tuple(out)
+
+
 class ScanControlSensor(_Model):
     """One scanCONTROL profiler driven directly through the vendor's Python wrapper."""
 
@@ -94,9 +122,12 @@ class ScanControlSensor(_Model):
 
 class LiveConfig(_Model):
     egm: str = "127.0.0.1:6510"
+    egm_schema: Literal["rw7", "rw6"] = "rw7"  # ABB RobotWare 7 (default) or 6 EGM layout
+    egm_layer_dnum: int = Field(0, ge=0, le=255)  # RAPIDfromRobot.dnum index of the layer
     controllers: tuple[str, ...] = ("127.0.0.1",)
     profiles: str = "127.0.0.1:6511"
     bridges: tuple[str, ...] = ("127.0.0.1",)
+    bridge_idle_s: float = Field(10.0, ge=0)  # close a bridge connection idle this long (0: never)
     allow_remote: bool = False
     scancontrol: tuple[ScanControlSensor, ...] = ()
     max_datagram_bytes: int = Field(2048, ge=64, le=65507)
@@ -113,6 +144,11 @@ class LiveConfig(_Model):
     def _address(cls, v: str) -> str:
         parse_host_port(v)
         return v
+
+    @field_validator("controllers", "bridges")
+    @classmethod
+    def _resolved(cls, v, info):
+        return resolve_hosts(v, info.field_name)
 
     @model_validator(mode="after")
     def _loopback_only(self):

@@ -1,14 +1,18 @@
 """ABB EGM pose source: EgmRobot protobuf datagrams over UDP -> RobotState (and LayerMark).
 
-The robot controller streams ``EgmRobot`` messages (:mod:`dm2.live.egm_pb2`, compiled from the
-``egm.proto`` beside this file) to the monitoring PC. Units on the wire are ABB's: joints in
-degrees, position in mm, orientation as a unit quaternion ``u0..u3`` (``u0`` = w), header
-``tm`` in ms (uint32, wraps after 49.7 days), ``feedBack.time`` as ``sec`` + ``usec``.
+The robot controller streams ``EgmRobot`` messages to the monitoring PC: RobotWare 7's layout
+by default (:mod:`dm2.live.egm_pb2`, compiled from ``egm.proto`` beside this file), RobotWare 6's
+with ``schema="rw6"`` (:mod:`dm2.live.egm_rw6_pb2`, from ``egm_rw6.proto``). Units on the wire
+are ABB's: joints in degrees, position in mm, orientation as a unit quaternion ``u0..u3``
+(``u0`` = w), header ``tm`` in ms (uint32, wraps after 49.7 days), ``feedBack.time`` as
+``sec`` + ``usec``.
 
 The stamp of a state is ``feedBack.time`` when the controller sends it, else the unwrapped
-header ``tm``. A RAPID program may report the current layer index in
-``RAPIDfromRobot.digVal[0]``; a change of that value becomes a :class:`~dm2.core.messages.LayerMark`
-stamped like the state that carries it (emitted just before it).
+header ``tm``. Under RobotWare 7 a RAPID program may report the current layer index in
+``RAPIDfromRobot.dnum[k]`` (the ``DataToSensor`` array of ``EGMActPose``; ``k`` is the cell
+file's ``egm_layer_dnum``, RAPID index ``{k + 1}``); a change of that value becomes a
+:class:`~dm2.core.messages.LayerMark` stamped like the state that carries it (emitted just
+before it). RobotWare 6 has no ``RAPIDfromRobot``: layers then come from the toolpath.
 
 The listener takes every datagram queued after the one it waited for in a single call
 (:mod:`dm2.live.udp_batch`), so a busy monitoring process does not fall behind the controller.
@@ -30,7 +34,7 @@ from google.protobuf.message import DecodeError
 
 from dm2.core.frames import to_quat_abb
 from dm2.core.messages import LayerMark, RobotState
-from dm2.live import egm_pb2
+from dm2.live import egm_pb2, egm_rw6_pb2
 from dm2.live.inbox import Inbox
 from dm2.live.udp_batch import DatagramBatch
 
@@ -40,6 +44,7 @@ TM_MODULO = 1 << 32  # header.tm is a uint32 count of milliseconds
 DEFAULT_EGM_PORT = 6510
 MAX_DATAGRAM_BYTES = 2048
 QUATERNION_NORM_TOL = 1e-3
+SCHEMAS = {"rw7": egm_pb2, "rw6": egm_rw6_pb2}  # RobotWare 7 (default) and 6 layouts
 
 
 class EgmDecodeError(ValueError):
@@ -71,8 +76,10 @@ class TmUnwrapper:
 
 
 def encode_egm_robot(seqno: int, tm_ms: int, joints_rad, T_B_F, stamp_s: float | None = None,
-                     layer: int | None = None) -> bytes:
-    """Serialise one EgmRobot feedback message as an ABB controller sends it.
+                     layer: int | None = None, layer_dnum: int = 0,
+                     schema: str = "rw7") -> bytes:
+    """Serialise one EgmRobot feedback message as an ABB controller sends it (RobotWare 7
+    layout by default).
 
     Parameters
     ----------
@@ -81,12 +88,15 @@ def encode_egm_robot(seqno: int, tm_ms: int, joints_rad, T_B_F, stamp_s: float |
     joints_rad : (6,) float64 [rad], sent in degrees
     T_B_F : (4, 4) float64, flange pose [mm]
     stamp_s : float [s] or None, sent as ``feedBack.time`` (sec, usec) when given
-    layer : int or None, sent as ``RAPIDfromRobot.digVal[0]``
+    layer : int or None, sent as ``RAPIDfromRobot.dnum[layer_dnum]`` (RobotWare 7 only; the
+        dnum values before it are 0)
+    schema : ``"rw7"`` or ``"rw6"``
     """
-    msg = egm_pb2.EgmRobot()
+    pb = _schema(schema)
+    msg = pb.EgmRobot()
     msg.header.seqno = int(seqno) % TM_MODULO
     msg.header.tm = int(tm_ms) % TM_MODULO
-    msg.header.mtype = egm_pb2.EgmHeader.MSGTYPE_DATA
+    msg.header.mtype = pb.EgmHeader.MSGTYPE_DATA
     fb = msg.feedBack
     fb.joints.joints.extend(np.degrees(np.asarray(joints_rad, dtype=np.float64)).tolist())
     pos, q = to_quat_abb(np.asarray(T_B_F, dtype=np.float64))
@@ -96,14 +106,21 @@ def encode_egm_robot(seqno: int, tm_ms: int, joints_rad, T_B_F, stamp_s: float |
     if stamp_s is not None:
         usec_total = round(float(stamp_s) * 1e6)
         fb.time.sec, fb.time.usec = divmod(usec_total, 1_000_000)
-    if layer is not None:
-        msg.RAPIDfromRobot.digVal.append(float(layer))
+    if layer is not None and schema == "rw7":
+        msg.RAPIDfromRobot.dnum.extend([0.0] * int(layer_dnum) + [float(layer)])
     return msg.SerializeToString()
 
 
-def parse_egm_robot(data: bytes) -> egm_pb2.EgmRobot:
+def _schema(schema: str):
+    try:
+        return SCHEMAS[schema]
+    except KeyError:
+        raise ValueError(f"EGM schema {schema!r}: expected one of {sorted(SCHEMAS)}") from None
+
+
+def parse_egm_robot(data: bytes, schema: str = "rw7"):
     """Parse bytes into an EgmRobot; raises EgmDecodeError naming the problem."""
-    msg = egm_pb2.EgmRobot()
+    msg = _schema(schema).EgmRobot()
     try:
         msg.ParseFromString(bytes(data))
     except (DecodeError, RuntimeError, ValueError) as exc:
@@ -131,15 +148,24 @@ def quat_pose_matrix(px: float, py: float, pz: float, w: float, x: float, y: flo
 
 
 class EgmDecoder:
-    """Turn EgmRobot datagrams into pipeline messages (stateful: tm unwrap, layer changes)."""
+    """Turn EgmRobot datagrams into pipeline messages (stateful: tm unwrap, layer changes).
 
-    def __init__(self):
+    Parameters
+    ----------
+    schema : ``"rw7"`` (default) or ``"rw6"``, the controller's EGM layout
+    layer_dnum : index ``k`` of the layer index in ``RAPIDfromRobot.dnum`` (RobotWare 7)
+    """
+
+    def __init__(self, schema: str = "rw7", layer_dnum: int = 0):
+        _schema(schema)
+        self.schema = schema
+        self.layer_dnum = int(layer_dnum)
         self._unwrap = TmUnwrapper()
         self._layer: int | None = None
 
     def decode(self, data: bytes) -> list:
         """``[LayerMark?, RobotState]`` of one datagram; raises EgmDecodeError if unusable."""
-        msg = parse_egm_robot(data)
+        msg = parse_egm_robot(data, self.schema)
         fb = msg.feedBack
         if fb.HasField("time"):
             stamp_s = fb.time.sec + fb.time.usec * 1e-6
@@ -162,10 +188,10 @@ class EgmDecoder:
         T_B_F = quat_pose_matrix(px, py, pz, w / norm, x / norm, y / norm, z / norm)
         state = RobotState.trusted(stamp_s, msg.header.seqno, joints, T_B_F)
         out: list = []
-        digits = msg.RAPIDfromRobot.digVal
-        if len(digits) and math.isfinite(digits[0]) and digits[0] >= 0:
-            layer = int(round(digits[0]))
-            if layer != self._layer:
+        if self.schema == "rw7" and len(msg.RAPIDfromRobot.dnum) > self.layer_dnum:
+            value = msg.RAPIDfromRobot.dnum[self.layer_dnum]
+            layer = int(round(value)) if math.isfinite(value) and 0 <= value < 1e6 else None
+            if layer is not None and layer != self._layer:
                 out.append(LayerMark(stamp_s, layer))
                 self._layer = layer
         out.append(state)
@@ -181,16 +207,18 @@ class EgmSource:
     host, port : address to bind (loopback by default)
     controllers : sender IP addresses accepted; datagrams from others count ``foreign_sender``
     max_datagram_bytes : larger datagrams count ``oversized_datagram``
+    schema, layer_dnum : see :class:`EgmDecoder`
     """
 
     name = "egm"
 
     def __init__(self, inbox: Inbox, host: str = "127.0.0.1", port: int = DEFAULT_EGM_PORT,
-                 controllers=("127.0.0.1",), max_datagram_bytes: int = MAX_DATAGRAM_BYTES):
+                 controllers=("127.0.0.1",), max_datagram_bytes: int = MAX_DATAGRAM_BYTES,
+                 schema: str = "rw7", layer_dnum: int = 0):
         self.inbox = inbox
         self.controllers = frozenset(controllers)
         self.max_bytes = int(max_datagram_bytes)
-        self.decoder = EgmDecoder()
+        self.decoder = EgmDecoder(schema, layer_dnum)
         self.received = 0
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)

@@ -11,6 +11,7 @@ but the one in progress on disk (at most about ``chunk_s`` of messages lost). Th
 from __future__ import annotations
 
 import logging
+import struct
 import threading
 import time
 from collections import deque
@@ -21,6 +22,7 @@ from dm2.io.recording_writer import RecordingWriter
 
 log = logging.getLogger(__name__)
 
+MAX_STAMP_NS = (1 << 31) * 1_000_000_000  # ROS Time holds int32 seconds
 YIELD_EVERY_S = 0.0005  # [s] the recorder thread offers the interpreter lock this often
 
 
@@ -78,7 +80,9 @@ class RecorderThread:
     bits) at once, so the caller still learns of it, and queues the message; the thread wakes
     at least every ``max_wait_s`` and writes everything queued, so a SIGKILL loses at most the
     recorder's ``chunk_s`` plus ``max_wait_s`` of messages. A full queue drops the message and
-    counts it in :attr:`dropped` (``recording_queue_full``) rather than blocking the loop.
+    counts it in :attr:`dropped` (``recording_queue_full``) rather than blocking the loop; a
+    message the writer still cannot encode is skipped and counted (``unrecordable_message``)
+    and recording goes on: only a failing file stops it.
 
     Parameters
     ----------
@@ -108,7 +112,9 @@ class RecorderThread:
 
     def write(self, msg) -> None:
         """Queue one pipeline message; MessageError at once when it cannot be recorded."""
-        stamp_to_ns(msg.stamp_s)
+        ns = stamp_to_ns(msg.stamp_s)
+        if ns >= MAX_STAMP_NS:
+            raise MessageError(f"stamp_s: {msg.stamp_s!r} s does not fit a ROS Time stamp")
         if isinstance(msg, RobotState) and not 0 <= msg.seq < 1 << 32:
             raise MessageError(f"RobotState.seq: {msg.seq} does not fit 32 bits unsigned")
         if len(self._queue) >= self.maxsize:
@@ -131,8 +137,11 @@ class RecorderThread:
                     try:
                         rec.write(msg)
                         self.written += 1
-                    except MessageError as exc:  # checked in write(); kept for safety
-                        log.warning("recording: %s", exc)
+                    except (MessageError, ValueError, OverflowError, struct.error) as exc:
+                        # one message that cannot be encoded costs that message only
+                        self.dropped["unrecordable_message"] = \
+                            self.dropped.get("unrecordable_message", 0) + 1
+                        log.warning("recording: skipped a message: %s", exc)
                     if time.perf_counter() >= slice_end:
                         time.sleep(0)  # hand the interpreter lock to a waiting thread
                         slice_end = time.perf_counter() + YIELD_EVERY_S

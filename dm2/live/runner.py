@@ -3,7 +3,8 @@
 :class:`LiveRunner` owns the sockets (EGM over UDP, profile bridges over TCP, optional
 scanCONTROL sensors), one bounded :class:`~dm2.live.inbox.Inbox` they all feed, the
 :class:`~dm2.live.clock.ClockAligner`, the crash-safe :class:`~dm2.live.recorder.LiveRecorder`
-(``<out>/live.mcap``, the stream as the pipeline receives it, stamps on the robot's clock,
+(``<out>/live.mcap``, the stream as the pipeline receives it, after the plausibility gates of
+:mod:`dm2.fusion.gates`, stamps on the robot's clock,
 written by a :class:`~dm2.live.recorder.RecorderThread` off the hot path) and
 a :class:`~dm2.live.analysis.LayerAnalysis` that rewrites ``<out>/report`` (report.json and the
 rest, replaced atomically) after every layer. ``report.json``'s ``dropped`` merges the
@@ -41,6 +42,7 @@ from collections import OrderedDict, deque
 from pathlib import Path
 
 from dm2.core.messages import LayerMark, MessageError, Profile, RobotState
+from dm2.fusion.gates import InputGates
 from dm2.live.analysis import LayerAnalysis
 from dm2.live.clock import ClockAligner
 from dm2.live.config import CellFile, parse_host_port
@@ -82,13 +84,15 @@ class LiveRunner:
             attachments["cell.toml"] = cell_toml.encode()
         live = cell.live
         self.inbox = Inbox(live.queue_size)
+        self.gates = InputGates(cell.monitor.gates)
         self.aligner = ClockAligner(live.clock_tolerance_s)
         self.analysis = LayerAnalysis(self.calibration, cell.monitor, cell.process,
                                       cell.plate_size_mm, toolpath=self.toolpath,
                                       out_dir=self.report_dir, config_toml=cell_toml,
                                       max_sensor_gap_s=live.max_sensor_gap_s,
                                       meta={"mode": "live", "cell": cell.name}, live=True)
-        self.analysis.drop_sources += [lambda: self.inbox.dropped, lambda: self.aligner.dropped]
+        self.analysis.drop_sources += [lambda: self.inbox.dropped, lambda: self.gates.dropped,
+                                       lambda: self.aligner.dropped]
         self.recorder = None
         if record:
             from dm2.live.recorder import LiveRecorder, RecorderThread
@@ -136,11 +140,13 @@ class LiveRunner:
         try:
             host, port = parse_host_port(live.egm, "live.egm")
             egm = EgmSource(self.inbox, host, port, controllers=live.controllers,
-                            max_datagram_bytes=live.max_datagram_bytes).start()
+                            max_datagram_bytes=live.max_datagram_bytes,
+                            schema=live.egm_schema, layer_dnum=live.egm_layer_dnum).start()
             self.sources.append(egm)
             host, port = parse_host_port(live.profiles, "live.profiles")
             prof = ProfileServer(self.inbox, host, port, bridges=live.bridges,
-                                 max_frame_bytes=live.max_frame_bytes).start()
+                                 max_frame_bytes=live.max_frame_bytes,
+                                 idle_timeout_s=live.bridge_idle_s).start()
             self.sources.append(prof)
             addresses = {"egm": egm.address, "profiles": prof.address}
             if live.scancontrol:
@@ -163,8 +169,12 @@ class LiveRunner:
 
     # --------------------------------------------------------------------------- the loop
     def process(self, msg, source: str, arrival_s: float) -> None:
-        """Handle one inbox item: align clocks, record, analyse."""
+        """Handle one inbox item: plausibility gates, align clocks, record, analyse."""
         self.messages_in += 1
+        for m, arrival in self.gates.admit(msg, arrival_s):
+            self._aligned(m, arrival)
+
+    def _aligned(self, msg, arrival_s: float) -> None:
         if isinstance(msg, RobotState):
             self.aligner.pose(msg.stamp_s, arrival_s)
             self._deliver(msg)
@@ -276,6 +286,8 @@ class LiveRunner:
         for s in self.sources:
             s.close()
         self.drain()
+        for m, arrival in self.gates.flush():
+            self._aligned(m, arrival)
         for p in self.aligner.flush():
             self._deliver(p)
         fused = self.analysis.monitor.profiles_fused

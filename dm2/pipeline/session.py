@@ -56,6 +56,7 @@ from dm2.reference.feed import ReferenceFeed
 from dm2.reference.model import NearNetReference
 
 log = logging.getLogger(__name__)
+alarm_log = logging.getLogger("dm2.alarms")  # real-time alarms: the log file, not the console
 
 FRAME_SET = 3  # profiles per real-time comparison (the three cascaded profilers)
 STATE_BACKLOG = 2500  # states buffered at most while no profile is fused (10 s at 250 Hz)
@@ -112,14 +113,17 @@ class MonitoringSession:
         worker thread with ``analysis_thread``)
     analysis_thread : analyse finished layers on a worker thread (live runs); :meth:`finish`
         waits for it, so the results are the same
+    gates : optional :class:`~dm2.fusion.gates.InputGates` every message passes first
+        (replays; a live run gates before its clock aligner); its drops join :attr:`dropped`
     """
 
     def __init__(self, calibration: Calibration, monitor_cfg: MonitorConfig,
                  process: ProcessConfig, plate_size_mm=(120.0, 120.0),
                  toolpath: Toolpath | None = None,
                  on_layer: Callable[[LayerResult], None] | None = None,
-                 analysis_thread: bool = False):
+                 analysis_thread: bool = False, gates=None):
         self.cfg = monitor_cfg
+        self.gates = gates
         self.on_layer = on_layer
         self.reference = NearNetReference(process, monitor_cfg, calibration,
                                           size_mm=tuple(plate_size_mm[:2]))
@@ -152,6 +156,8 @@ class MonitoringSession:
     @property
     def dropped(self) -> dict[str, int]:
         out = dict(self.monitor.dropped)
+        if self.gates is not None:
+            out.update({k: int(v) for k, v in self.gates.dropped.items() if v})
         if self.reference.gaps_skipped:
             out["reference_pose_gap"] = int(self.reference.gaps_skipped)
         return out
@@ -162,6 +168,13 @@ class MonitoringSession:
         ``defer=True`` fuses only: the reference update and the real-time comparison wait for
         :meth:`catch_up` (layer ends still take the reference of the finished layer at once).
         """
+        if self.gates is not None:
+            for m, _ in self.gates.admit(msg):
+                self._feed(m, defer)
+            return
+        self._feed(msg, defer)
+
+    def _feed(self, msg, defer: bool) -> None:
         self.timing.messages += 1
         if isinstance(msg, RobotState):
             self.states.push(msg.stamp_s, msg.T_B_F)
@@ -227,6 +240,9 @@ class MonitoringSession:
     def finish(self) -> list[LayerResult]:
         """Flush everything, close the last layer and end the tracks."""
         if not self._finished:
+            if self.gates is not None:
+                for m, _ in self.gates.flush():
+                    self._feed(m, False)
             self._advance()
             t0 = time.perf_counter()
             self.monitor.finish()
@@ -273,7 +289,7 @@ class MonitoringSession:
         frame = self.realtime.update_from_tsdf(self.monitor.tsdf, spot_O, stamp,
                                                self.reference)
         for alarm in frame.alarms:
-            log.warning("real-time: %s of %.1f mm2 at (%.1f, %.1f) mm, %.2f s after its first "
+            alarm_log.info("real-time: %s of %.1f mm2 at (%.1f, %.1f) mm, %.2f s after its first "
                         "flag", alarm.kind, alarm.area_mm2, *alarm.centroid_xy_O,
                         alarm.stamp_s - alarm.first_flag_s)
         dt = time.perf_counter() - t0

@@ -2,7 +2,9 @@
 
 :func:`write_report` writes into a temporary folder beside the target and renames it into place
 at the end, so a reader never sees a half-written report; an unwritable target fails before any
-work is done.
+work is done. The folder's manifest (:mod:`dm2.report.outdir`) lists every file written: an
+existing folder is replaced only when it holds an earlier dm2 run, and then only dm2's own
+files are (a file a user put there stays, with ``force``; without it the folder is refused).
 """
 
 from __future__ import annotations
@@ -15,52 +17,57 @@ import tempfile
 import time
 from pathlib import Path
 
+from dm2.report.contents import Stage, write_contents
 from dm2.report.html import render_index
-from dm2.report.meshes import write_deviation_ply, write_reference_stl
-from dm2.report.plots import plot_deviation_map, plot_track
-from dm2.report.report_json import REPORT_SCHEMA, build_report, write_tracks_csv
+from dm2.report.outdir import (
+    OutputRefused,
+    check_output_dir,
+    files_below,
+    install_folder,
+    write_manifest,
+)
+from dm2.report.report_json import REPORT_SCHEMA, build_report, report_track
+from dm2.report.summary import by_severity
 
 log = logging.getLogger(__name__)
 
-__all__ = ["REPORT_SCHEMA", "check_output_dir", "write_report"]
-
-
-def check_output_dir(out_dir: str | Path) -> Path:
-    """Fail early (ValueError naming the folder) if ``out_dir`` cannot be written."""
-    out = Path(out_dir).absolute()
-    parent = out.parent
-    while not parent.exists() and parent != parent.parent:
-        parent = parent.parent
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"report folder {out}: exists and is not a folder")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise ValueError(f"report folder {out}: {parent} is not writable")
-    return out
+__all__ = ["REPORT_SCHEMA", "OutputRefused", "check_output_dir", "rerender_index",
+           "write_report"]
 
 
 def write_report(out_dir: str | Path, results, tracks, *, config_toml: str | None = None,
                  dropped: dict | None = None, timing: dict | None = None,
                  fault_truth=None, expect=None, map_layers=None, limit_mm: float = 1.0,
-                 meta: dict | None = None, sections: dict | None = None) -> dict:
+                 meta: dict | None = None, sections: dict | None = None,
+                 force: bool = False, inputs=(), command: str = "",
+                 include: dict | None = None, toolpath=None, stage: Stage | None = None) -> dict:
     """Write the whole run folder; returns the report dict.
 
     Parameters
     ----------
-    out_dir : target folder (replaced if it exists)
+    out_dir : target folder (an earlier dm2 run's files in it are replaced; see
+        :func:`dm2.report.outdir.check_output_dir` for ``force`` and ``inputs``)
     results : list of dm2.defects.layer_analysis.LayerResult
     tracks : list of dm2.defects.track.Track
     config_toml : the resolved configuration text (``dm2.core.toml_write.dump_toml``), written as-is
     dropped, timing : dicts copied into report.json
     fault_truth : dict/list of injected faults to compare the tracks with (or None)
     expect : dm2.core.config.ExpectConfig to check (or None)
-    map_layers : layers to render as PNG deviation maps (default: up to 6 spread evenly,
-        always including the last)
+    map_layers : layers to render as PNG deviation maps (default: see
+        dm2.report.contents.default_map_layers)
     limit_mm : colour range of the deviation maps and PLY colours [mm]
     meta : run description copied into report.json
     sections : further top-level report.json sections, e.g. ``realtime`` (alarms, latency)
         and ``reconstruction`` (distance to the true surface per layer)
+    force, inputs : see :func:`dm2.report.outdir.check_output_dir`
+    command : the dm2 command, recorded in the folder's manifest
+    include : name -> path of further files or folders (e.g. the recording) moved into the
+        folder with the report, listed in its manifest
+    toolpath : dm2.core.messages.Toolpath for the planned outline on the maps (else the
+        reference's half-height contour)
+    stage : called with (stage name, steps done, steps in stage) as the report is written
     """
-    out = check_output_dir(out_dir)
+    out = check_output_dir(out_dir, force=force, inputs=inputs)
     out.parent.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
@@ -68,21 +75,26 @@ def write_report(out_dir: str | Path, results, tracks, *, config_toml: str | Non
         umask = os.umask(0o022)
         os.umask(umask)
         tmp.chmod(0o777 & ~umask)  # mkdtemp makes it private; the report folder is not
-        files = _write_contents(tmp, results, tracks, config_toml, map_layers, limit_mm)
+        ranked = by_severity([report_track(t) for t in tracks])
+        stub = {"layers": [{"layer": r.layer, "stamp_s": r.deviation.stamp_s} for r in results],
+                "realtime": (sections or {}).get("realtime")}
+        files = write_contents(tmp, results, tracks, ranked, config_toml=config_toml,
+                               map_layers=map_layers, limit_mm=limit_mm,
+                               outline=_outline(results, toolpath), report_stub=stub,
+                               stage=stage)
+        if stage is not None:
+            stage("report.json and index.html", 0, 1)
         report = build_report(results, tracks, dropped=dropped,
                               timing={**(timing or {}),
                                       "report_write_s": time.perf_counter() - t0},
                               fault_truth=fault_truth, expect=expect, files=files, meta=meta,
                               sections=sections)
         (tmp / "report.json").write_text(json.dumps(report, indent=1), encoding="utf-8")
-        (tmp / "index.html").write_text(render_index(report), encoding="utf-8")
-        if out.exists():
-            old = out.with_name(f".{out.name}.old.{os.getpid()}")
-            out.rename(old)
-            tmp.rename(out)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            tmp.rename(out)
+        (tmp / "index.html").write_text(render_index(report, root=tmp), encoding="utf-8")
+        for name, path in (include or {}).items():
+            shutil.move(str(path), str(tmp / name))
+        write_manifest(tmp, files_below(tmp), command=command or "report")
+        install_folder(tmp, out, inputs)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -90,36 +102,29 @@ def write_report(out_dir: str | Path, results, tracks, *, config_toml: str | Non
     return report
 
 
-def _write_contents(tmp: Path, results, tracks, config_toml, map_layers, limit_mm) -> dict:
-    files: dict[str, list[str]] = {"meshes": [], "deviation_maps": [], "track_plots": [],
-                                   "reference": []}
-    if config_toml is not None:
-        (tmp / "config.toml").write_text(config_toml, encoding="utf-8")
-    write_tracks_csv(tmp / "tracks.csv", tracks)
-    for sub in ("meshes", "maps", "plots"):
-        (tmp / sub).mkdir()
-    for r in results:
-        name = f"meshes/layer_{r.layer:03d}.ply"
-        write_deviation_ply(tmp / name, r.deviation, limit_mm)
-        files["meshes"].append(name)
-    if results:
-        name = f"meshes/reference_layer_{results[-1].layer:03d}.stl"
-        write_reference_stl(tmp / name, results[-1].reference)
-        files["reference"].append(name)
-    by_layer = {r.layer: r for r in results}
-    if map_layers is None:
-        keys = sorted(by_layer)
-        idx = sorted({round(i * (len(keys) - 1) / 5) for i in range(6)}) if keys else []
-        map_layers = [keys[i] for i in idx]
-    for layer in map_layers:
-        r = by_layer.get(layer)
-        if r is None:
-            raise ValueError(f"write_report: no result for requested map layer {layer}")
-        name = f"maps/deviation_layer_{layer:03d}.png"
-        plot_deviation_map(tmp / name, r.deviation, r.regions, r.track_ids, limit_mm)
-        files["deviation_maps"].append(name)
-    for t in tracks:
-        name = f"plots/track_{t.id:03d}_{t.kind}.png"
-        plot_track(tmp / name, t)
-        files["track_plots"].append(name)
-    return files
+
+def _outline(results, toolpath):
+    from dm2.report.outline import planned_outline, reference_outline
+
+    if not results:
+        return []
+    if toolpath is not None:
+        outline = planned_outline(toolpath, results[-1].layer)
+        if outline:
+            return outline
+    return reference_outline(results[-1].reference)
+
+
+def rerender_index(run_dir: str | Path) -> Path:
+    """Write ``index.html`` of a report folder again from its report.json; the injected-fault
+    comparison is kept only while the folder still holds the twin's ``truth/``."""
+    run_dir = Path(run_dir)
+    try:
+        report = json.loads((run_dir / "report.json").read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ValueError(f"{run_dir}: no report.json (not a report folder)") from None
+    if not (run_dir / "truth").is_dir():
+        report.pop("fault_truth", None)
+    path = run_dir / "index.html"
+    path.write_text(render_index(report, root=run_dir), encoding="utf-8")
+    return path

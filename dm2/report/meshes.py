@@ -36,17 +36,28 @@ def write_deviation_ply(path: str | Path, dev: LayerDeviation, limit_mm: float =
 
     Vertex properties: ``x y z`` (float32, mm, frame O), ``red green blue`` (uchar),
     ``scalar_signed_distance`` (float32, mm), ``scalar_class`` (float32 class code),
-    ``scalar_weight`` (float32); CloudCompare shows the ``scalar_*`` ones as scalar fields.
+    ``scalar_weight`` (float32), ``ref_x ref_y ref_z`` (float32, mm, frame O: the closest
+    point of the near-net reference to the vertex, so the same faces over these points show the
+    reference surface); CloudCompare shows the ``scalar_*`` ones as scalar fields. The header
+    comments name each ``scalar_class`` code (:data:`dm2.defects.classify.CLASS_NAMES`).
     """
+    from dm2.defects.classify import CLASS_NAMES
+
     v = dev.vertices_O.astype(np.float32)
+    foot = np.asarray(dev.foot_O, dtype=np.float32)
     rgb = deviation_colours(dev.signed_distance_mm, dev.class_code, limit_mm)
     fields = {"x": v[:, 0], "y": v[:, 1], "z": v[:, 2],
               "red": rgb[:, 0], "green": rgb[:, 1], "blue": rgb[:, 2],
               "scalar_signed_distance": np.asarray(dev.signed_distance_mm, dtype=np.float32),
               "scalar_class": np.asarray(dev.class_code, dtype=np.float32),
-              "scalar_weight": np.minimum(dev.weight, np.finfo(np.float32).max).astype(np.float32)}
+              "scalar_weight": np.minimum(dev.weight, np.finfo(np.float32).max).astype(np.float32),
+              "ref_x": foot[:, 0], "ref_y": foot[:, 1], "ref_z": foot[:, 2]}
+    classes = ", ".join(f"{k} = {name}" for k, name in enumerate(CLASS_NAMES))
     write_mesh_ply(path, fields, dev.faces,
-                   comments=["dm2 deviation map, frame O, mm", f"layer {dev.layer}"])
+                   comments=["dm2 deviation map, frame O, mm", f"layer {dev.layer}",
+                             f"scalar_class: {classes}",
+                             "scalar_signed_distance: mm to the near-net reference, + above it",
+                             "ref_x ref_y ref_z: closest point on the near-net reference, mm"])
 
 
 def read_ply_vertex_fields(path: str | Path) -> dict[str, np.ndarray]:

@@ -10,7 +10,9 @@ import numpy as np
 
 from dm2.defects.track import Track
 
-REPORT_SCHEMA = "dm2.report/1"
+# 2: a track's and a region's ``height_mm`` is the largest |deviation| from the reference (was
+# the z extent of the region's box, now ``box_extent_z_mm``); ``trend`` is judged on that height
+REPORT_SCHEMA = "dm2.report/2"
 # which track kind an injected fault is expected to produce (sign of the fault's effect)
 _FAULT_KIND = {"bump": "overbuild", "dent": "underbuild", "corner_dwell": "overbuild",
                "clog": "underbuild", "feed_drop": "underbuild"}
@@ -121,6 +123,13 @@ def check_expectations(tracks: list[Track], expect) -> list[dict]:
         results.append({"expect": f"{e.kind} track" + (f" near {list(e.near_mm)}" if e.near_mm
                                                         else ""),
                         "passed": bool(hits), "track_ids": [t.id for t in hits]})
+    for e in getattr(expect, "absent", ()):
+        hits = [t for t in tracks if t.kind == e.kind
+                and (e.from_layer is None or t.last_layer >= e.from_layer)
+                and (e.near_mm is None or _track_near(t, e.near_mm, e.within_mm) <= e.within_mm)]
+        results.append({"expect": f"no {e.kind} track" + (f" near {list(e.near_mm)}" if e.near_mm
+                                                           else ""),
+                        "passed": not hits, "track_ids": [t.id for t in hits]})
     if expect.no_tracks:
         hits = [t.id for t in tracks if not t.kind.startswith("local_")]
         results.append({"expect": "no overbuild/underbuild tracks", "passed": not hits,
@@ -130,6 +139,45 @@ def check_expectations(tracks: list[Track], expect) -> list[dict]:
         results.append({"expect": "no local overbuild/underbuild tracks", "passed": not hits,
                         "track_ids": hits})
     return results
+
+
+def _heights(entry: dict) -> dict:
+    """A region or history entry with ``height_mm`` = its largest |deviation| from the
+    reference and the z extent of its box (region and reference beneath) as
+    ``box_extent_z_mm``."""
+    out = dict(entry)
+    out["box_extent_z_mm"] = entry["height_mm"]
+    out["height_mm"] = abs(entry["max_deviation_mm"])
+    return out
+
+
+def _with_height_rates(history: list[dict]) -> list[dict]:
+    """``height_rate_mm_per_layer`` of the height of :func:`_heights`; the box extent's rate
+    becomes ``box_extent_z_rate_mm_per_layer``."""
+    for prev, h in zip([None] + history[:-1], history, strict=True):
+        h["box_extent_z_rate_mm_per_layer"] = h.get("height_rate_mm_per_layer", 0.0)
+        h["height_rate_mm_per_layer"] = 0.0 if prev is None else (
+            (h["height_mm"] - prev["height_mm"]) / max(h["layer"] - prev["layer"], 1))
+    return history
+
+
+def report_track(track: Track) -> dict:
+    """report.json's view of a track: its dict with heights as in :func:`_heights` (history and
+    the per-layer ``height_mm`` map), ``box_extent_z_mm`` per layer, the trend judged on that
+    height, and ``peak_deviation_mm`` (signed), ``peak_area_mm2``, ``height_slope_mm_per_layer``,
+    ``severity_mm3`` (see dm2.report.summary)."""
+    from dm2.report import summary
+
+    d = track.to_dict()
+    d["history"] = _with_height_rates([_heights(h) for h in track.history])
+    d["height_mm"] = {str(h["layer"]): h["height_mm"] for h in d["history"]}
+    d["box_extent_z_mm"] = {str(h["layer"]): h["box_extent_z_mm"] for h in d["history"]}
+    d["trend"] = summary.trend(d)
+    d.update(peak_deviation_mm=summary.peak_deviation_mm(d),
+             peak_area_mm2=summary.peak_area_mm2(d),
+             height_slope_mm_per_layer=summary.height_slope_mm_per_layer(d),
+             severity_mm3=summary.severity(d))
+    return d
 
 
 def build_report(results, tracks: list[Track], *, dropped: dict | None = None,
@@ -146,10 +194,10 @@ def build_report(results, tracks: list[Track], *, dropped: dict | None = None,
     for r in results:
         layers.append({"layer": r.layer, "stamp_s": r.deviation.stamp_s,
                        "statistics": r.statistics(), "timing_s": r.timing_s,
-                       "regions": [{**reg.to_dict(), "track_id": tid}
+                       "regions": [{**_heights(reg.to_dict()), "track_id": tid}
                                    for reg, tid in zip(r.regions, r.track_ids, strict=True)]})
     doc = {"schema": REPORT_SCHEMA, "meta": meta or {}, "layers": layers,
-           "tracks": [t.to_dict() for t in tracks], "dropped": dict(dropped or {}),
+           "tracks": [report_track(t) for t in tracks], "dropped": dict(dropped or {}),
            "timing": dict(timing or {}), "files": files or {}}
     for key, value in (sections or {}).items():
         if key in doc:
@@ -164,19 +212,24 @@ def build_report(results, tracks: list[Track], *, dropped: dict | None = None,
 
 
 TRACK_CSV_FIELDS = ("track_id", "kind", "layer", "state", "area_mm2", "height_mm",
-                    "max_deviation_mm", "mean_deviation_mm", "centroid_x_mm", "centroid_y_mm",
-                    "area_rate_mm2_per_layer", "height_rate_mm_per_layer", "trend")
+                    "box_extent_z_mm", "max_deviation_mm", "mean_deviation_mm", "centroid_x_mm",
+                    "centroid_y_mm", "area_rate_mm2_per_layer", "height_rate_mm_per_layer", "trend")
 
 
 def write_tracks_csv(path: str | Path, tracks: list[Track]) -> None:
-    """One row per track and layer."""
+    """One row per track and layer; ``height_mm`` is the largest |deviation| from the
+    reference, ``box_extent_z_mm`` the z extent of the region's box."""
+    from dm2.report.summary import trend as report_trend
+
     with open(path, "w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
         w.writerow(TRACK_CSV_FIELDS)
         for t in tracks:
-            for h in t.history:
+            trend = report_trend({"history": t.history})
+            for h in _with_height_rates([_heights(h) for h in t.history]):
                 w.writerow([t.id, t.kind, h["layer"], h["state"], f"{h['area_mm2']:.4f}",
-                            f"{h['height_mm']:.4f}", f"{h['max_deviation_mm']:.4f}",
-                            f"{h['mean_deviation_mm']:.4f}", f"{h['centroid_O_mm'][0]:.3f}",
+                            f"{h['height_mm']:.4f}", f"{h['box_extent_z_mm']:.4f}",
+                            f"{h['max_deviation_mm']:.4f}", f"{h['mean_deviation_mm']:.4f}",
+                            f"{h['centroid_O_mm'][0]:.3f}",
                             f"{h['centroid_O_mm'][1]:.3f}", f"{h['area_rate_mm2_per_layer']:.4f}",
-                            f"{h['height_rate_mm_per_layer']:.4f}", t.trend])
+                            f"{h['height_rate_mm_per_layer']:.4f}", trend])

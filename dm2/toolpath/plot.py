@@ -51,5 +51,5 @@ def plot_toolpath(tp: Toolpath, path: str | Path, layers: list[int] | None = Non
     handles = [Line2D([], [], color=c, label=k) for k, c in KIND_COLOURS.items()]
     fig.legend(handles=handles, loc="upper center", ncol=4)
     fig.tight_layout(rect=(0, 0, 1, 0.94))
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, metadata={"Software": "dm2"})  # marks the file as dm2's
     plt.close(fig)

@@ -29,14 +29,14 @@ def per_sample_messages(sim, hf=None) -> Iterator[Profile | RobotState | LayerMa
     from twin.profiler.sensor import VirtualProfiler
     from twin.profiler.trigger import trigger_schedule
     from twin.stream.simulate import ROBOT_NOISE_SEED_OFFSET
-    from twin.world.deposition import SprayModel
+    from twin.world.deposition import twin_spray_model
     from twin.world.heightfield import HEIGHTFIELD_CELL_MM, HeightField
 
     sc, cell, motion, faults = sim.scenario, sim.cell, sim.motion, sim.faults
     plate = sc.cell.plate_size_mm
     if hf is None:
         hf = HeightField((plate[0], plate[1]), HEIGHTFIELD_CELL_MM, plate[2])
-    spray = SprayModel(sc.process, seed=sc.seed)
+    spray = twin_spray_model(sc)
     profs = [VirtualProfiler(s, cell.T_B_S[s], sc.sensors, sc.noise, seed=sc.seed)
              for s in SENSOR_IDS]
     occ = [nozzle_occluder(cell.T_B_N, sc.cell)]

@@ -1,8 +1,9 @@
 """The twin played as the cell over loopback sockets (hardware-in-the-loop rehearsal).
 
 :func:`serve_twin` runs a scenario's simulation and sends its stream the way the real cell
-does: robot states as ABB EGM ``EgmRobot`` datagrams over UDP (the layer index in
-``RAPIDfromRobot.digVal[0]``, as a RAPID program would report it), profiles as frames of the
+does: robot states as ABB EGM ``EgmRobot`` datagrams over UDP in the RobotWare 7 layout (the
+layer index in ``RAPIDfromRobot.dnum[0]``, as the RAPID program of the README reports it through
+``EGMActPose \\DataToSensor``), profiles as frames of the
 TCP profile protocol (:mod:`dm2.live.tcp_frames`) through a bridge connection that
 reconnects if dropped. Messages leave at their stamps, in real time (``speed=1``) or
 accelerated; ``speed <= 0`` sends as fast as the twin produces them.
@@ -26,6 +27,7 @@ from dm2.core.toml_write import dump_toml
 log = logging.getLogger(__name__)
 
 UNPACED_CLOCK_TOLERANCE_S = 30.0  # [s] clock band of a cell file for a twin served unpaced
+UNPACED_STAMP_RATE = 1e4  # stream s per host s across a pause of an unpaced twin
 
 
 @dataclass(frozen=True)
@@ -51,8 +53,9 @@ def write_cell_files(simulation, folder: str | Path, egm: str = "127.0.0.1:6510"
     time, so above real time both are written ``speed`` times as wide (the default band, the
     scenario's window): the same wall-clock margins as on the real cell. Unpaced (speed 0 or
     below) arrival times say nothing about the clocks: the band is then 30 s, so the twin's
-    stamps (one clock for poses and profiles) pass as they are. Entries of ``live`` are written
-    as given."""
+    stamps (one clock for poses and profiles) pass as they are. The stamp gate's
+    ``monitor.gates.stamp_rate_max`` (stream seconds per host second a stream may advance
+    across a pause) is scaled likewise. Entries of ``live`` are written as given."""
     from dm2.core.calibration_io import write_calibration_toml
     from dm2.live.config import LiveConfig
     from dm2.toolpath.formats import write_csv
@@ -66,8 +69,11 @@ def write_cell_files(simulation, folder: str | Path, egm: str = "127.0.0.1:6510"
         widen = max(speed, 1.0)  # never narrower than on the real cell
         timing["clock_tolerance_s"] = LiveConfig().clock_tolerance_s * widen
         monitor["reorder_window_s"] = sc.monitor.reorder_window_s * widen
+        rate = sc.monitor.gates.stamp_rate_max * widen
     else:
         timing["clock_tolerance_s"] = UNPACED_CLOCK_TOLERANCE_S
+        rate = UNPACED_STAMP_RATE
+    monitor["gates"] = {**monitor.get("gates", {}), "stamp_rate_max": rate}
     write_calibration_toml(simulation.calibration, folder / "calibration.toml")
     write_csv(simulation.toolpath, folder / "toolpath.csv")
     doc = {"schema": 1, "name": f"twin:{sc.name}", "calibration": "calibration.toml",

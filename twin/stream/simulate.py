@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2.core.config import Scenario
+from dm2.core.config import ConfigError, Scenario
 from dm2.core.frames import PoseInterpolator
 from dm2.core.messages import SENSOR_IDS, Calibration, LayerMark, Profile, RobotState
 from dm2.core.toml_write import dump_toml
@@ -85,7 +85,10 @@ class Simulation:
         self.part_mesh_O = build_part(scenario.part, plate)
         self.toolpath = generate_toolpath(self.part_mesh_O, scenario.toolpath)
         self.cell = CellModel.from_scenario(scenario)
-        self.faults = FaultSchedule(scenario.faults, self.toolpath, self.cell)
+        try:
+            self.faults = FaultSchedule(scenario.faults, self.toolpath, self.cell)
+        except ValueError as exc:  # a fault window the part cannot have: a scenario error
+            raise ConfigError(f"scenario '{scenario.name}': {exc}") from None
         self.motion = execute_toolpath(self.toolpath, self.cell,
                                        rate_hz=self.cell.robot_state_hz,
                                        accel_mm_s2=self.cell.accel_mm_s2,
@@ -123,14 +126,14 @@ class Simulation:
         from twin.profiler.sensor import VirtualProfiler
         from twin.profiler.trigger import trigger_schedule
         from twin.stream.truth_run import TruthWriter
-        from twin.world.deposition import SprayModel
+        from twin.world.deposition import twin_spray_model
         from twin.world.heightfield import HeightField
 
         sc, cell, motion, faults = self.scenario, self.cell, self.motion, self.faults
         plate = sc.cell.plate_size_mm
         hf = HeightField(size_mm=(plate[0], plate[1]), cell_mm=HEIGHTFIELD_CELL_MM,
                          thickness_mm=plate[2])
-        spray = SprayModel(sc.process, seed=sc.seed)
+        spray = twin_spray_model(sc)  # the twin's own physics ([twin_process])
         profilers = [VirtualProfiler(sid, cell.T_B_S[sid], sc.sensors, sc.noise, seed=sc.seed)
                      for sid in SENSOR_IDS]
         occluders = [nozzle_occluder(cell.T_B_N, sc.cell)]

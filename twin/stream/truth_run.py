@@ -3,7 +3,6 @@ effect, measured against a fault-free run of the same scenario and seed."""
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +13,7 @@ def nominal_layer_heights(sim, last_segment: int, layers: list[int]) -> dict:
     :class:`twin.stream.simulate.Simulation`; same seed, no corner dwell), which stops where the
     faulty run's toolpath move ``last_segment`` ends."""
     from twin.cell.motion import execute_toolpath
-    from twin.world.deposition import SprayModel
+    from twin.world.deposition import twin_spray_model
     from twin.world.heightfield import HEIGHTFIELD_CELL_MM, HeightField
 
     motion = sim.motion
@@ -24,7 +23,7 @@ def nominal_layer_heights(sim, last_segment: int, layers: list[int]) -> dict:
     plate = sim.scenario.cell.plate_size_mm
     hf = HeightField(size_mm=(plate[0], plate[1]), cell_mm=HEIGHTFIELD_CELL_MM,
                      thickness_mm=plate[2])
-    spray = SprayModel(sim.scenario.process, seed=sim.scenario.seed)
+    spray = twin_spray_model(sim.scenario)  # same [twin_process] and seed
     n = int(np.searchsorted(motion.segment, last_segment, side="right"))
     dt = 1.0 / sim.cell.robot_state_hz
     layer = np.asarray(motion.layer[:n])
@@ -41,17 +40,16 @@ def nominal_layer_heights(sim, last_segment: int, layers: list[int]) -> dict:
 
 
 class TruthWriter:
-    """Ground truth beside a run: the true top surface after each layer (PLY in O) and
-    ``faults.json``, each fault's effect measured against a fault-free run with the same seed.
-    The truth of an earlier run in the same folder is removed first (a shorter run must not
-    leave stale layers beside its own); other files stay."""
+    """Ground truth beside a run: the true top surface after each layer (PLY in O),
+    ``faults.json``, each fault's effect measured against a fault-free run with the same seed
+    and ``[twin_process]``, and per layer the map of that effect (``deviation_LLL.npz``).
+    Nothing already in the folder is removed here: ``dm2 simulate --truth`` clears an earlier
+    run's truth through the folder's dm2 manifest (:mod:`dm2.report.outdir`), so a shorter run
+    leaves no stale layer and a user's file of the same name is never deleted."""
 
     def __init__(self, truth_dir, sim):
         self.dir = Path(truth_dir)
         self.dir.mkdir(parents=True, exist_ok=True)
-        for p in self.dir.iterdir():
-            if re.fullmatch(r"layer_\d{3,}\.ply", p.name) or p.name == "faults.json":
-                p.unlink()
         self.sim = sim
         self.faulty: dict[int, np.ndarray] = {}
 
@@ -63,7 +61,7 @@ class TruthWriter:
 
     def finish(self, last_segment: int) -> None:
         from twin.world.heightfield import HEIGHTFIELD_CELL_MM
-        from twin.world.truth import write_fault_truth
+        from twin.world.truth import write_deviation_maps, write_fault_truth
 
         sc = self.sim.scenario
         nominal = (nominal_layer_heights(self.sim, last_segment, sorted(self.faulty))
@@ -71,3 +69,4 @@ class TruthWriter:
         write_fault_truth(self.dir / "faults.json", sc.faults, self.faulty, nominal,
                           toolpath=self.sim.toolpath, cell_mm=HEIGHTFIELD_CELL_MM,
                           area_threshold_mm=sc.monitor.delta_global_mm)
+        write_deviation_maps(self.dir, self.faulty, nominal, HEIGHTFIELD_CELL_MM)

@@ -33,6 +33,10 @@ Model (the paper's eq. for the coating distribution, sampled instead of integrat
   ``theta < critical_angle`` and 0 beyond: flat near normal impact (zeta(15 deg) = 0.98 zeta(0)
   at 75 deg critical angle), zeta(60 deg) = 0.29 zeta(0), smoothly to 0 with zero slope at the
   critical angle. Rebounding material is lost.
+* **The twin's own physics.** ``physics`` (:class:`twin.world.twin_physics.TwinPhysics`,
+  from the scenario's ``[twin_process]``) changes the curve's shape, the plume's radial profile
+  (super-Gaussian), the deposit's porosity and makes efficiency depend on each packet's flight
+  from the nozzle exit; without it the packets follow the nominal model above exactly.
 * **Splat.** The stuck volume is spread over the 5 x 5 cells around the hit with normalised
   Gaussian weights (one cell sigma), so the height field gains exactly that volume.
 
@@ -48,9 +52,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dm2.core.config import ProcessConfig
+from dm2.core.config import ProcessConfig, Scenario
 from twin.world import deposition_kernels as DK
 from twin.world.heightfield import HeightField
+from twin.world.twin_physics import NOMINAL, TwinPhysics
 
 log = logging.getLogger(__name__)
 
@@ -73,13 +78,12 @@ def plume_sigma_mm(process: ProcessConfig, standoff_delta_mm: float = 0.0) -> fl
     return sigma
 
 
-def deposition_efficiency(process: ProcessConfig, theta_rad) -> np.ndarray:
-    """``zeta(theta)`` for impact angles ``theta_rad`` (array) [rad]: fraction that sticks."""
-    theta = np.asarray(theta_rad, dtype=np.float64)
-    tc = math.radians(process.critical_angle_deg)
-    x = np.clip(theta / tc, 0.0, 1.0)
-    z = process.deposition_efficiency * np.cos(0.5 * np.pi * x * x) ** 2
-    return np.where(theta < tc, z, 0.0)
+def deposition_efficiency(process: ProcessConfig, theta_rad,
+                          physics: TwinPhysics = NOMINAL) -> np.ndarray:
+    """``zeta(theta)`` for impact angles ``theta_rad`` (array) [rad]: fraction that sticks
+    (at the standoff; ``physics`` picks the curve)."""
+    return process.deposition_efficiency * physics.relative_efficiency(
+        theta_rad, process.critical_angle_deg)
 
 
 class SprayModel:
@@ -89,16 +93,20 @@ class SprayModel:
     ----------
     process : ProcessConfig
     seed : int, seeds this model's packet stream
+    physics : TwinPhysics, the twin's physics beyond the nominal model (default: none)
 
     Attributes
     ----------
     fed_volume_mm3 : float, total packet volume drawn so far (before sticking)
-    deposited_volume_mm3 : float, total volume added to height fields so far
+    deposited_volume_mm3 : float, total volume added to height fields so far (pores included)
     missed_packets : int, packets that missed the plate
     """
 
-    def __init__(self, process: ProcessConfig, seed: int = 0):
+    def __init__(self, process: ProcessConfig, seed: int = 0, physics: TwinPhysics = NOMINAL):
         self.process = process
+        self.physics = physics
+        self._phys = physics.kernel_params(process.standoff_mm)
+        self._radial = physics.radial_table()
         self.seed = int(seed)
         self._state = np.array([np.uint64(self.seed & 0xFFFFFFFFFFFFFFFF)], dtype=np.uint64)
         DK.next_u64(self._state)  # decorrelate small seeds
@@ -108,6 +116,12 @@ class SprayModel:
         self.fed_volume_mm3 = 0.0
         self.deposited_volume_mm3 = 0.0
         self.missed_packets = 0
+
+    @property
+    def deposited_mass_g(self) -> float:
+        """Mass [g] of the material added so far (its volume less the pores)."""
+        return (self.deposited_volume_mm3 * (1.0 - self.physics.porosity)
+                * self.process.powder_density_g_cm3 / 1000.0)
 
     def sigma_mm(self, standoff_delta_mm: float = 0.0) -> float:
         s = self._sigma_cache.get(standoff_delta_mm)
@@ -136,7 +150,7 @@ class SprayModel:
             hf._h, hf._bmax, hf._zmax, hf._dirty, hf.cell_mm, hf.thickness_mm, self._state, lam,
             spot, axis, self.sigma_mm(standoff_delta_mm), p.standoff_mm + standoff_delta_mm,
             self.v_packet_mm3, p.deposition_efficiency * efficiency_factor, self._theta_c,
-            max(1, round(NORMAL_STEP_MM / hf.cell_mm)))
+            max(1, round(NORMAL_STEP_MM / hf.cell_mm)), self._phys, self._radial)
         self.fed_volume_mm3 += n * self.v_packet_mm3
         self.deposited_volume_mm3 += vol
         self.missed_packets += missed
@@ -187,7 +201,8 @@ class SprayModel:
                          self._state, plan.lam[a:b], plan.spots_O[a:b], plan.axes_O[a:b],
                          plan.sigma_mm[a:b], plan.back_mm[a:b], self.v_packet_mm3,
                          plan.zeta0[a:b], self._theta_c,
-                         max(1, round(NORMAL_STEP_MM / hf.cell_mm)), out, counts)
+                         max(1, round(NORMAL_STEP_MM / hf.cell_mm)), self._phys, self._radial,
+                         out, counts)
         self.fed_volume_mm3 += int(counts[0]) * self.v_packet_mm3
         self.deposited_volume_mm3 += float(out.sum())
         self.missed_packets += int(counts[1])
@@ -213,3 +228,25 @@ class SamplePlan:
     sigma_mm: np.ndarray
     back_mm: np.ndarray
     zeta0: np.ndarray
+
+
+def twin_process(scenario: Scenario) -> tuple[ProcessConfig, TwinPhysics]:
+    """The twin's process (``[process]`` with ``[twin_process]`` applied, sigma and efficiency
+    scaled) and its extra physics."""
+    tp = scenario.twin_process
+    proc = scenario.process.model_copy(update=tp.overrides())
+    proc = ProcessConfig.model_validate({
+        **proc.model_dump(),
+        "plume_sigma_mm": plume_sigma_mm(proc) * tp.plume_sigma_factor,
+        "deposition_efficiency": min(proc.deposition_efficiency * tp.efficiency_factor, 1.0)})
+    physics = TwinPhysics(efficiency_curve=tp.efficiency_curve,
+                          plateau_angle_deg=tp.plateau_angle_deg,
+                          plume_exponent=tp.plume_exponent, porosity=tp.porosity,
+                          standoff_efficiency_per_mm=tp.standoff_efficiency_per_mm)
+    return proc, physics
+
+
+def twin_spray_model(scenario: Scenario):
+    """The :class:`twin.world.deposition.SprayModel` of the scenario's twin (its seed)."""
+    proc, physics = twin_process(scenario)
+    return SprayModel(proc, seed=scenario.seed, physics=physics)

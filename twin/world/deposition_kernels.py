@@ -67,14 +67,47 @@ def poisson(state, lam):
             return int(k)
 
 
+# the twin's physics beyond the nominal model, packed for the kernels (see
+# twin.world.twin_physics.TwinPhysics.kernel_params): curve code, plateau angle [rad], volume
+# per dense volume (1 / (1 - porosity)), relative efficiency per mm of spray distance beyond
+# the reference standoff, that standoff [mm]
+PHYS_CURVE, PHYS_PLATEAU, PHYS_BULK, PHYS_STANDOFF_SLOPE, PHYS_STANDOFF_REF = range(5)
+CURVE_COS2, CURVE_COS, CURVE_LINEAR, CURVE_PLATEAU = range(4)
+
+
 @njit(cache=True)
-def efficiency_curve(theta, theta_c):
-    """Relative deposition efficiency ``cos^2(pi/2 (theta/theta_c)^2)``, 0 beyond ``theta_c``."""
+def efficiency_curve(theta, theta_c, code=CURVE_COS2, theta_p=0.0):
+    """Relative deposition efficiency at impact angle ``theta`` [rad], 0 from ``theta_c``.
+
+    ``code``: CURVE_COS2 ``cos^2(pi/2 (theta/theta_c)^2)`` (the nominal model), CURVE_COS
+    ``cos(theta)``, CURVE_LINEAR ``1 - theta/theta_c``, CURVE_PLATEAU 1 up to ``theta_p``,
+    then linear to 0 at ``theta_c``.
+    """
     if theta >= theta_c:
         return 0.0
+    if code == CURVE_COS:
+        return math.cos(theta)
+    if code == CURVE_LINEAR:
+        return 1.0 - theta / theta_c
+    if code == CURVE_PLATEAU:
+        return 1.0 if theta <= theta_p else (theta_c - theta) / (theta_c - theta_p)
     x = theta / theta_c
     c = math.cos(0.5 * math.pi * x * x)
     return c * c
+
+
+@njit(cache=True, inline="always")
+def radial_offset(u1, radial):
+    """Radius across the jet in plume sigmas for ``u1`` in (0, 1]: Box-Muller's Rayleigh radius
+    without a table (a Gaussian plume), else the inverse CDF tabulated in ``radial`` (n + 1
+    nodes at quantiles k / n), interpolated linearly."""
+    if radial.size == 0:
+        return math.sqrt(-2.0 * math.log(u1))
+    n = radial.size - 1
+    f = (1.0 - u1) * n
+    k = min(int(f), n - 1)
+    w = f - k
+    return radial[k] * (1.0 - w) + radial[k + 1] * w
 
 
 @njit(cache=True)
@@ -229,8 +262,11 @@ def _splat(H, bmax, zmax, dirty, cell, x, y, vol, w, unrolled=True):
 
 @njit(cache=True, nogil=True)
 def spray_step(H, bmax, zmax, dirty, cell, thickness, state, lam, spot, axis, sigma, back_mm,
-               v_packet, zeta0, theta_c, normal_cells):
+               v_packet, zeta0, theta_c, normal_cells, phys, radial):
     """Draw ``Poisson(lam)`` packets from the plume at ``spot`` along ``axis`` and deposit them.
+
+    ``phys`` (PHYS_* entries) and ``radial`` (:func:`radial_offset`) carry the twin's own
+    physics: efficiency curve, porosity, spray-distance efficiency and the plume's profile.
 
     Returns
     -------
@@ -256,6 +292,11 @@ def spray_step(H, bmax, zmax, dirty, cell, thickness, state, lam, spot, axis, si
     e2y = az * e1x - ax * e1z
     e2z = ax * e1y - ay * e1x
     vertical = abs(ax) < 1e-12 and abs(ay) < 1e-12 and az < 0.0
+    code = int(phys[PHYS_CURVE])
+    theta_p = phys[PHYS_PLATEAU]
+    bulk = phys[PHYS_BULK]
+    slope = phys[PHYS_STANDOFF_SLOPE]
+    s_ref = phys[PHYS_STANDOFF_REF]
     n_packets = poisson(state, lam)
     w = np.empty((2 * SPLAT_RADIUS_CELLS + 1) ** 2)
     deposited = 0.0
@@ -263,7 +304,7 @@ def spray_step(H, bmax, zmax, dirty, cell, thickness, state, lam, spot, axis, si
     for _ in range(n_packets):
         u1 = 1.0 - uniform(state)
         u2 = uniform(state)
-        r = sigma * math.sqrt(-2.0 * math.log(u1))
+        r = sigma * radial_offset(u1, radial)
         g1 = r * math.cos(2.0 * math.pi * u2)
         g2 = r * math.sin(2.0 * math.pi * u2)
         ox = spot[0] + g1 * e1x + g2 * e2x - back_mm * ax
@@ -284,7 +325,12 @@ def spray_step(H, bmax, zmax, dirty, cell, thickness, state, lam, spot, axis, si
         if cos_t <= 0.0:
             continue
         theta = math.acos(min(cos_t, 1.0))
-        vol = v_packet * min(zeta0 * efficiency_curve(theta, theta_c), 1.0)
+        zeta = zeta0 * efficiency_curve(theta, theta_c, code, theta_p)
+        if slope != 0.0:  # the nozzle exit lies t from the hit
+            zeta *= max(1.0 + slope * (t - s_ref), 0.0)
+        vol = v_packet * min(zeta, 1.0)
+        if bulk != 1.0:  # pores: the stuck mass stands taller than at full density
+            vol *= bulk
         if vol > 0.0:
             _splat(H, bmax, zmax, dirty, cell, hx, hy, vol, w)
             deposited += vol
@@ -293,7 +339,7 @@ def spray_step(H, bmax, zmax, dirty, cell, thickness, state, lam, spot, axis, si
 
 @njit(cache=True, nogil=True)
 def spray_samples(H, bmax, zmax, dirty, cell, thickness, state, lam, spots, axes, sigma, back_mm,
-                  v_packet, zeta0, theta_c, normal_cells, out_vol, out_counts):
+                  v_packet, zeta0, theta_c, normal_cells, phys, radial, out_vol, out_counts):
     """:func:`spray_step` for each executed-motion sample ``k`` (``lam[k] == 0`` skips it)."""
     for k in range(spots.shape[0]):
         if lam[k] <= 0.0:
@@ -301,7 +347,7 @@ def spray_samples(H, bmax, zmax, dirty, cell, thickness, state, lam, spots, axes
             continue
         vol, n, missed = spray_step(H, bmax, zmax, dirty, cell, thickness, state, lam[k], spots[k],
                                     axes[k], sigma[k], back_mm[k], v_packet, zeta0[k],
-                                    theta_c, normal_cells)
+                                    theta_c, normal_cells, phys, radial)
         out_vol[k] = vol
         out_counts[0] += n
         out_counts[1] += missed

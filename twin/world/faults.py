@@ -53,8 +53,10 @@ _REQUIRED = {
 }
 
 
-def check_fault(f: FaultConfig, index: int = 0) -> None:
-    """Raise ``ValueError`` naming ``faults[index]`` if a field its kind needs is missing."""
+def check_fault(f: FaultConfig, index: int = 0, n_layers: int | None = None) -> None:
+    """Raise ``ValueError`` naming ``faults[index]`` if a field its kind needs is missing, or
+    its layer window is negative or (with ``n_layers``, the part's layer count) starts beyond
+    the part's last layer, where the fault would never act."""
     missing = [k for k in _REQUIRED[f.kind] if getattr(f, k) is None]
     if f.kind == "efficiency_drift":
         if f.per_layer is None and f.factor is None:
@@ -64,7 +66,17 @@ def check_fault(f: FaultConfig, index: int = 0) -> None:
     if missing:
         raise ValueError(f"faults[{index}] (kind '{f.kind}'): missing {', '.join(missing)}")
     if f.factor is not None and f.factor < 0:
-        raise ValueError(f"faults[{index}] (kind '{f.kind}'): factor must be >= 0")
+        raise ValueError(f"faults[{index}] (kind '{f.kind}'): factor must be >= 0 "
+                         f"(got {f.factor})")
+    if f.layers is not None:
+        if f.layers[0] < 0:
+            raise ValueError(f"faults[{index}].layers: {list(f.layers)} starts below layer 0")
+        if n_layers is not None and f.layers[0] > n_layers - 1:
+            raise ValueError(f"faults[{index}].layers: {list(f.layers)} starts beyond the "
+                             f"part's last layer {n_layers - 1} (layers 0..{n_layers - 1}); "
+                             "the fault would never act")
+    if f.time_s is not None and f.time_s[0] < 0:
+        raise ValueError(f"faults[{index}].time_s: {list(f.time_s)} starts before 0 s")
 
 
 def _in_window(f: FaultConfig, t, layer, open_end: bool = False):
@@ -111,8 +123,10 @@ class FaultSchedule:
     def __init__(self, faults: Sequence[FaultConfig] = (), toolpath: Toolpath | None = None,
                  cell=None):
         self.faults = tuple(faults)
+        n_layers = int(toolpath.layer.max()) + 1 if toolpath is not None and \
+            len(toolpath.layer) else None
         for i, f in enumerate(self.faults):
-            check_fault(f, i)
+            check_fault(f, i, n_layers)
         self.toolpath = toolpath
         self.cell = cell
 

@@ -2,6 +2,9 @@
 
 * :func:`write_layer_surface`: the true top surface at the end of a layer as a PLY mesh in O
   [mm] (cropped to the built region plus a margin unless ``full=True``).
+* :func:`write_deviation_maps`: per layer the true deviation the faults caused (faulty minus
+  fault-free surface) as a height-field map in O, ``deviation_LLL.npz`` (the format of
+  ``dm2.bench.truth_maps``, which the bench scores against).
 * :func:`fault_truth` / :func:`write_fault_truth`: for every injected fault its region in O,
   sign (+1 overbuild, -1 underbuild), the layers it visibly affects and the deviation it causes,
   measured against a fault-free run with the same seed (the difference of two height fields).
@@ -22,6 +25,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -193,6 +197,41 @@ def fault_truth(faults: Sequence[FaultConfig], hf_faulty_by_layer, hf_nominal_by
         log.info("fault %d (%s): sign %+d, %.3f mm at layer %d", i, f.kind, sign, dev,
                  layers[-1])
     return {"schema": TRUTH_SCHEMA, "threshold_mm": threshold_mm, "faults": out}
+
+
+def write_deviation_maps(truth_dir, hf_faulty_by_layer, hf_nominal_by_layer, cell_mm: float,
+                         margin_mm: float = SURFACE_MARGIN_MM) -> list[Path]:
+    """Write ``deviation_LLL.npz`` per layer: ``deviation_mm`` (faulty minus fault-free heights
+    [mm], float32), ``surface_mm`` (the faulty true heights [mm], float32), ``cell_mm``, ``x0_mm``
+    / ``y0_mm`` (O coordinates of the first cell's centre) and ``layer``. Every layer's map
+    covers the same window: the cells with material in either run's last layer plus
+    ``margin_mm``. Returns the paths written."""
+    faulty = _as_layers(hf_faulty_by_layer)
+    nominal = _as_layers(hf_nominal_by_layer)
+    layers = sorted(set(faulty) & set(nominal))
+    if not layers:
+        return []
+    last = layers[-1]
+    built = (np.abs(faulty[last]) > 1e-3) | (np.abs(nominal[last]) > 1e-3)
+    ny, nx = built.shape
+    pad = int(math.ceil(margin_mm / cell_mm))
+    if built.any():
+        rows, cols = np.flatnonzero(built.any(axis=1)), np.flatnonzero(built.any(axis=0))
+        r0, r1 = max(rows[0] - pad, 0), min(rows[-1] + pad + 1, ny)
+        c0, c1 = max(cols[0] - pad, 0), min(cols[-1] + pad + 1, nx)
+    else:
+        r0, r1, c0, c1 = 0, ny, 0, nx
+    out = []
+    for k in layers:
+        path = Path(truth_dir) / f"deviation_{k:03d}.npz"
+        tmp = path.with_name(path.name + ".part.npz")
+        np.savez_compressed(
+            tmp, deviation_mm=(faulty[k] - nominal[k])[r0:r1, c0:c1].astype(np.float32),
+            surface_mm=faulty[k][r0:r1, c0:c1].astype(np.float32), cell_mm=float(cell_mm),
+            x0_mm=(c0 + 0.5) * cell_mm, y0_mm=(r0 + 0.5) * cell_mm, layer=int(k))
+        tmp.replace(path)
+        out.append(path)
+    return out
 
 
 def write_fault_truth(path, faults: Sequence[FaultConfig], hf_faulty_by_layer,

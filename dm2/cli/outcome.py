@@ -1,0 +1,75 @@
+"""How a run ends: one exit-code table for every command, drop lines, the damaged-input sentence.
+
+=====  =============================================================================
+code   meaning
+=====  =============================================================================
+0      success
+1      an expectation or target was missed (a scenario's ``[expect]``, a suite's
+       targets, a run that fused nothing or lost more than ``max_lost_share`` of its
+       input)
+2      bad input, or a refusal (configuration, files, an output folder dm2 may not
+       write)
+3      completed on damaged input (a truncated or corrupt recording), unless
+       ``--allow-truncated``
+=====  =============================================================================
+
+Where several apply, the highest wins (:func:`exit_code`).
+"""
+
+from __future__ import annotations
+
+EXIT_OK, EXIT_MISSED, EXIT_BAD_INPUT, EXIT_DAMAGED_INPUT = 0, 1, 2, 3
+
+# drop reasons that count points or connections, not messages: no share of the input
+NOT_MESSAGES = frozenset({"nan_points", "out_of_range", "reference_pose_gap",
+                          "connection_limit", "idle_connection"})
+
+
+def exit_code(*codes: int) -> int:
+    """The exit code of a run several outcomes apply to: the highest."""
+    return max((int(c) for c in codes), default=EXIT_OK)
+
+
+def counts_messages(reason: str) -> bool:
+    """Whether a drop reason counts messages (not points, gaps or connections)."""
+    return reason not in NOT_MESSAGES and not reason.endswith("points")
+
+
+def lost_messages(dropped: dict) -> int:
+    return int(sum(v for k, v in dropped.items() if counts_messages(k)))
+
+
+def drop_lines(dropped: dict) -> list[str]:
+    """One line per drop reason with its count, largest first."""
+    unit = {"nan_points": "points", "out_of_range": "points", "reference_pose_gap": "gaps",
+            "connection_limit": "connections", "idle_connection": "connections"}
+    return [f"dropped {n:,} {unit.get(k, 'messages' if counts_messages(k) else 'points')}: {k}"
+            for k, n in sorted(dropped.items(), key=lambda kv: (-kv[1], kv[0])) if n]
+
+
+def run_verdict(*, profiles_fused: int, dropped: dict, messages_in: int,
+                max_lost_share: float) -> tuple[int, str | None]:
+    """``(code, sentence)`` for a monitored run: EXIT_MISSED with a plain summary when it
+    fused nothing or lost more than ``max_lost_share`` of the messages it received."""
+    lost = lost_messages(dropped)
+    received = max(int(messages_in), 1)
+    share = lost / received
+    if profiles_fused == 0:
+        return EXIT_MISSED, (f"the run fused no profile: {messages_in:,} messages received, "
+                             f"{lost:,} dropped (see the reasons above); nothing was measured")
+    if share > max_lost_share:
+        return EXIT_MISSED, (f"the run lost {share:.0%} of its input ({lost:,} of {received:,} "
+                             f"messages; at most {max_lost_share:.0%} allowed by "
+                             "monitor.gates.max_lost_share): its results are not trustworthy")
+    return EXIT_OK, None
+
+
+def damaged_input_sentence(info: dict) -> str | None:
+    """One plain sentence when the input was truncated or damaged, else None."""
+    if info.get("complete", True):
+        return None
+    upto = info.get("last_stamp_s")
+    where = f"up to {upto:.3f} s" if upto is not None else "before its first message"
+    skipped = info.get("bytes_skipped", 0)
+    return (f"{info.get('file', 'the input')} is truncated or damaged: it was read {where}, "
+            f"and {skipped:,} bytes after that could not be read.")
