@@ -45,14 +45,18 @@ _POOL_LOCK = threading.Lock()
 
 
 def _resolved_all(parts: list) -> list:
-    """The chunk meshes of ``parts`` in order, volumes meshed on ``MESH_THREADS`` threads."""
+    """The chunk meshes of ``parts`` in order; with ``MESH_THREADS`` 2 the calling thread meshes
+    every other volume and a pool thread the rest."""
     global _POOL
     todo = [p for p in parts if isinstance(p, ChunkVolume)]
     if MESH_THREADS > 1 and len(todo) >= MIN_PARALLEL_CHUNKS:
         with _POOL_LOCK:
             if _POOL is None:
-                _POOL = ThreadPoolExecutor(MESH_THREADS, thread_name_prefix="surface-mesh")
-        list(_POOL.map(ChunkVolume.mesh, todo))
+                _POOL = ThreadPoolExecutor(MESH_THREADS - 1, thread_name_prefix="surface-mesh")
+        other = _POOL.submit(lambda: [v.mesh() for v in todo[1::2]])
+        for v in todo[0::2]:
+            v.mesh()
+        other.result()
     return [_resolved(p) for p in parts]
 
 
