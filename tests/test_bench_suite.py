@@ -47,15 +47,11 @@ def test_smoke_suite_detects_each_fault_with_sign_and_onset(smoke):
     assert "F1 " in output and "false tracks per control" in output
 
 
-@pytest.mark.xfail(strict=True, reason="missed target: no track at all on the smoke suite's "
-                   "fault-free control (the monitor reports local tracks on it)")
 def test_smoke_control_has_no_track(smoke):
     _, doc, _ = smoke
     assert doc["summary"]["false_tracks_per_control"] == {"control": 0}
 
 
-@pytest.mark.xfail(strict=True, reason="missed target: strict F1 >= 0.95 with no false track "
-                   "on the smoke suite's control, feed step and bump")
 def test_smoke_suite_meets_its_targets(smoke):
     _, doc, _ = smoke
     s = doc["summary"]

@@ -47,7 +47,15 @@ def test_dense_box_gives_exact_signed_deviation():
     assert fd.over_area_mm2 == pytest.approx(10 * 10 * v * v)
     assert fd.under_area_mm2 == pytest.approx(10 * 10 * v * v)
     assert rt.flagged_area_mm2(OVER) == pytest.approx(25.0)
+    assert fd.alarms == ()  # one comparison is no evidence: the flags must persist
+    stamps = np.linspace(1.0 + MON.realtime_persist_s / 2, 1.01 + MON.realtime_persist_s,
+                         MON.realtime_min_observations)
+    for k, t in enumerate(stamps):  # observed again: the weights grow, the surface stays
+        fd = rt.update(float(t), d, w * (k + 2), origin, ref)
+        if k < len(stamps) - 1:
+            assert fd.alarms == ()
     assert {a.kind for a in fd.alarms} == {"overbuild", "underbuild"}
+    assert all(a.first_flag_s == 1.0 for a in fd.alarms)
     assert np.isnan(rt.deviation_map_mm[100 + 5, 100 + 16])  # (row y, column x) unobserved
 
 

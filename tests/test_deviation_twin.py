@@ -43,9 +43,6 @@ def _pad(**extra):
     return parse_scenario(base, "pad (test)")
 
 
-@pytest.mark.xfail(strict=True, reason="missed target: no global track on the fault-free pad "
-                   "when the twin's physics differ from the monitor's model (default "
-                   "[twin_process]: the monitor reports underbuild tracks)")
 def test_fault_free_pad_has_no_global_track():
     dm = _monitor_build(_pad())
     assert len(dm.results) == 5

@@ -150,7 +150,7 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
         meta = {"scenario": sc.name, "scenario_file": str(scenario_file or ""), "seed": sc.seed,
                 "layers_simulated": len(session.results)}
         config_toml = dump_toml(sc.to_toml_dict())
-        sections = {"realtime": session.realtime_summary(),
+        sections = {"realtime": session.realtime_summary(), "process": session.process_summary(),
                     "reconstruction": {str(k): v for k, v in recon.items()}}
         include = {**{name: scratch / name for name in ("truth", "run.mcap")
                       if (scratch / name).exists()}, **(include or {})}

@@ -234,7 +234,8 @@ def monitor(
                      timing={**session.timing.to_dict(),
                              "wall_s": time.perf_counter() - t_start},
                      meta={"recording": str(run), "layers": len(session.results)},
-                     sections={"realtime": session.realtime_summary(), "input": input_info},
+                     sections={"realtime": session.realtime_summary(),
+                               "process": session.process_summary(), "input": input_info},
                      inputs=[run], command="dm2 monitor", force=force,
                      toolpath=tp)
         add_to_manifest(out, ["report/"])

@@ -14,6 +14,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from dm2.core.config_errors import model_named
+from dm2.core.config_uncertainty import UncertaintyConfig
 
 SCHEMA_VERSION = 1
 
@@ -258,13 +259,29 @@ class MonitorConfig(_Model):
     delta_local: float = Field(0.5, gt=0)
     min_weight: float = Field(1.0, ge=0)
     min_region_area_mm2: float = Field(4.0, ge=0)
-    # near-net reference clock along the executed path (see dm2.reference.path_clock): "programmed"
-    # = path
-    # length over the programmed speeds (every slowdown of the robot shows as overbuild);
-    # "executed" = the controller's time while the spray spot progresses, but standing still
-    # (progress slower than dwell_speed_mm_s: dwells, reorientation stops) deposits nothing
+    # reference clock (dm2.reference.path_clock): "programmed" = path length over programmed
+    # speeds (every robot slowdown shows as overbuild); "executed" = controller time while the
+    # spot progresses (dwells deposit nothing), as the shipped scenarios set it; see README
     reference_clock: Literal["executed", "programmed"] = "programmed"
     dwell_speed_mm_s: float = Field(1.0, gt=0)
+    uncertainty: UncertaintyConfig = UncertaintyConfig()
+    # evidence (dm2.defects.track): a track once seen in track_min_observations layers within
+    # track_window_layers; local-only regions are early warnings unless track_local_alone
+    track_min_observations: int = Field(2, ge=1)
+    track_window_layers: int = Field(2, ge=1)
+    track_local_alone: bool = False
+    min_region_volume_mm3: float = Field(1.0, ge=0)  # area x mean |deviation| floor
+    # real-time alarms: a column counts once flagged this long and in this many observations
+    realtime_persist_s: float = Field(0.1, ge=0)
+    realtime_min_observations: int = Field(2, ge=1)
+    # plate deviations this far outside the planned outline: overspray (dm2.defects.footprint)
+    overspray_margin_mm: float = Field(2.0, ge=0)
+    # the reference follows the process (dm2.pipeline.process_fit); None: on with the
+    # executed clock only (on the programmed one it would fit the slowdowns' overbuild)
+    process_fit: bool | None = None
+    process_fit_rate_per_layer: float = Field(0.02, ge=0, le=0.2)
+    process_fit_bound: float = Field(0.10, ge=0, lt=0.5)
+    process_finding_threshold: float = Field(0.05, gt=0)
     gates: InputGateConfig = InputGateConfig()
 
 

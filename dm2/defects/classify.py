@@ -15,6 +15,18 @@ feature (radius of curvature up to ``LOCAL_CURVATURE_RADIUS_MM``) counts with it
 normalised deviation. ``lambda > delta_L``
 is local overbuild, ``lambda < -delta_L`` local underbuild. Vertices whose fusion weight is below
 ``min_weight`` are unobserved and never called under- or overbuilt.
+
+Given each vertex's standard deviation ``sigma`` (:mod:`dm2.defects.uncertainty`), the
+vertices beyond ``delta_global_mm`` form connected same-signed candidate regions (over mesh
+edges); a region is over-/underbuilt only where at least ``MIN_CONFIDENT_AREA_MM2`` of it lies
+beyond ``k sigma`` (``monitor.uncertainty.confidence_k``): the bound decides whether there is
+a defect, the tolerance how far it reaches. The vertices of a region without that evidence are
+``uncertain``: reported and coloured, never segmented into a defect region (unless their local
+metric makes them a local defect). The local classes keep the paper's rule: they are early
+warnings, which open a track only together with a global observation of the region
+(dm2.defects.track).
+``overspray`` (:mod:`dm2.defects.footprint`) marks deviations on the plate outside the planned
+outline that are not joined to a defect at a wall; they are reported, never tracked.
 """
 
 from __future__ import annotations
@@ -25,11 +37,13 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-NORMAL, OVERBUILD, UNDERBUILD, LOCAL_OVERBUILD, LOCAL_UNDERBUILD, UNOBSERVED = range(6)
+(NORMAL, OVERBUILD, UNDERBUILD, LOCAL_OVERBUILD, LOCAL_UNDERBUILD, UNOBSERVED, UNCERTAIN,
+ OVERSPRAY) = range(8)
 CLASS_NAMES = ("normal", "overbuild", "underbuild", "local_overbuild", "local_underbuild",
-               "unobserved")
+               "unobserved", "uncertain", "overspray")
 DEFECT_CLASSES = (OVERBUILD, UNDERBUILD, LOCAL_OVERBUILD, LOCAL_UNDERBUILD)
 LOCAL_CURVATURE_RADIUS_MM = 10.0
+MIN_CONFIDENT_AREA_MM2 = 1.0  # of a candidate region beyond k sigma: it is a defect
 CURVATURE_SMOOTHING_ITERATIONS = 3
 
 
@@ -43,12 +57,14 @@ class VertexClasses:
     local_metric : (n,) float64, normalised curvature-weighted deviation (dimensionless)
     mean_curvature : (n,) float64 [1/mm], positive where convex (a bump seen from above)
     vertex_area_mm2 : (n,) float64 [mm^2], barycentric area per vertex
+    normals_O : (n, 3) float64, unit vertex normals (given, or area-weighted face normals)
     """
 
     class_code: np.ndarray
     local_metric: np.ndarray
     mean_curvature: np.ndarray
     vertex_area_mm2: np.ndarray
+    normals_O: np.ndarray | None = None
 
 
 @njit(cache=True)
@@ -138,8 +154,10 @@ def _border(v, f, loop) -> np.ndarray:
 
 
 def curvature_and_areas(vertices_O: np.ndarray, faces: np.ndarray, normals_O=None,
-                        smooth_iterations: int = CURVATURE_SMOOTHING_ITERATIONS):
-    """``(mean curvature [1/mm] (n,), vertex areas [mm^2] (n,))`` of a triangle mesh.
+                        smooth_iterations: int = CURVATURE_SMOOTHING_ITERATIONS,
+                        return_normals: bool = False):
+    """``(mean curvature [1/mm] (n,), vertex areas [mm^2] (n,))`` of a triangle mesh, and the
+    unit normals (n, 3) used for the sign with ``return_normals``.
 
     Mean curvature by the cotangent Laplacian, + where convex, 0 on the border of an open
     mesh, then smoothed through the faces. The sign is taken against ``normals_O`` when given,
@@ -149,7 +167,8 @@ def curvature_and_areas(vertices_O: np.ndarray, faces: np.ndarray, normals_O=Non
     f = np.ascontiguousarray(faces, dtype=np.int64).reshape(-1, 3)
     n = len(v)
     if len(f) == 0:
-        return np.zeros(n), np.zeros(n)
+        flat = np.tile([0.0, 0.0, 1.0], (n, 1))
+        return (np.zeros(n), np.zeros(n), flat) if return_normals else (np.zeros(n), np.zeros(n))
     lap, area, nrm, loop = _face_terms(v, f)
     hn = lap / np.maximum(area, 1e-12)[:, None]  # = 2 H n (points into a convex surface)
     normals = nrm if normals_O is None else np.asarray(normals_O, dtype=np.float64)
@@ -157,7 +176,8 @@ def curvature_and_areas(vertices_O: np.ndarray, faces: np.ndarray, normals_O=Non
     h = -0.5 * np.einsum("ij,ij->i", hn, normals)
     h[_border(v, f, loop)] = 0.0
     h[area <= 1e-12] = 0.0
-    return _smooth(h, f, int(smooth_iterations)), area
+    h = _smooth(h, f, int(smooth_iterations))
+    return (h, area, normals) if return_normals else (h, area)
 
 
 def mean_curvature(vertices_O: np.ndarray, faces: np.ndarray, normals_O=None,
@@ -167,7 +187,8 @@ def mean_curvature(vertices_O: np.ndarray, faces: np.ndarray, normals_O=None,
 
 
 def classify_vertices(vertices_O, faces, weight, signed_distance_mm, monitor_cfg,
-                      normals_O=None, reference_curvature=None) -> VertexClasses:
+                      normals_O=None, reference_curvature=None, sigma_mm=None,
+                      curvature=None) -> VertexClasses:
     """Class per vertex from the signed deviation (see module docstring).
 
     Parameters
@@ -180,19 +201,56 @@ def classify_vertices(vertices_O, faces, weight, signed_distance_mm, monitor_cfg
     normals_O : (n, 3) float64 or None, outward vertex normals (sign of the curvature)
     reference_curvature : (n,) float64 [1/mm] or None, the reference's mean curvature at each
         vertex's closest reference point; only curvature beyond it weights the local metric
+    sigma_mm : (n,) float64 [mm] or None, standard deviation of each deviation; with it a
+        global class needs ``|d| > monitor_cfg.uncertainty.confidence_k * sigma`` too
+    curvature : ``curvature_and_areas(..., return_normals=True)`` when computed already
     """
     d = np.asarray(signed_distance_mm, dtype=np.float64)
     w = np.asarray(weight, dtype=np.float64)
     dg = float(monitor_cfg.delta_global_mm)
     dl = float(monitor_cfg.delta_local)
-    h, area = curvature_and_areas(vertices_O, faces, normals_O)
+    h, area, normals = (curvature if curvature is not None else
+                        curvature_and_areas(vertices_O, faces, normals_O, return_normals=True))
     excess = h if reference_curvature is None else h - np.asarray(reference_curvature, float)
     agree = np.maximum(np.sign(d) * excess, 0.0)  # convex where above, concave where below
     metric = (d / dg) * np.minimum(1.0, agree * LOCAL_CURVATURE_RADIUS_MM)
+    beyond = np.ones(d.shape, bool) if sigma_mm is None else _confident_regions(
+        d, dg, np.abs(d) > float(monitor_cfg.uncertainty.confidence_k)
+        * np.asarray(sigma_mm, np.float64), area, faces)
     code = np.full(d.shape, NORMAL, dtype=np.int8)
+    code[(d > dg) & ~beyond] = UNCERTAIN
+    code[(d < -dg) & ~beyond] = UNCERTAIN
     code[metric > dl] = LOCAL_OVERBUILD
     code[metric < -dl] = LOCAL_UNDERBUILD
-    code[d > dg] = OVERBUILD
-    code[d < -dg] = UNDERBUILD
+    code[(d > dg) & beyond] = OVERBUILD
+    code[(d < -dg) & beyond] = UNDERBUILD
     code[w < float(monitor_cfg.min_weight)] = UNOBSERVED
-    return VertexClasses(code, metric, h, area)
+    return VertexClasses(code, metric, h, area, normals)
+
+
+def _confident_regions(d, dg, strong, area, faces) -> np.ndarray:
+    """(n,) bool: vertices of same-signed connected regions beyond ``+-dg`` holding at least
+    ``MIN_CONFIDENT_AREA_MM2`` of ``strong`` (beyond the bound) vertices."""
+    from scipy import sparse
+    from scipy.sparse.csgraph import connected_components
+
+    n = len(d)
+    cand = np.abs(d) > dg
+    out = np.zeros(n, bool)
+    ids = np.flatnonzero(cand)
+    if ids.size == 0:
+        return out
+    local = np.full(n, -1, np.int64)
+    local[ids] = np.arange(ids.size)
+    f = np.asarray(faces, np.int64).reshape(-1, 3)
+    f = f[cand[f].any(axis=1)]  # faces touching a candidate: the only edges that matter
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    e = e[cand[e[:, 0]] & cand[e[:, 1]] & (np.sign(d[e[:, 0]]) == np.sign(d[e[:, 1]]))]
+    m = ids.size
+    graph = sparse.coo_matrix((np.ones(len(e), np.int8), (local[e[:, 0]], local[e[:, 1]])),
+                              shape=(m, m))
+    _, labels = connected_components(graph, directed=False)
+    a = np.where(strong[ids], np.maximum(area[ids], 1e-3), 0.0)  # isolated points count a bit
+    strong_area = np.bincount(labels, a, minlength=labels.max() + 1)
+    out[ids] = strong_area[labels] >= MIN_CONFIDENT_AREA_MM2
+    return out

@@ -16,7 +16,9 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
-from dm2.defects.classify import classify_vertices
+from dm2.defects.classify import classify_vertices, curvature_and_areas
+from dm2.defects.footprint import mark_overspray
+from dm2.defects.uncertainty import uncertainty_features, vertex_sigma_mm
 from dm2.reference.height_map import ReferenceMap
 
 log = logging.getLogger(__name__)
@@ -182,6 +184,10 @@ class LayerDeviation:
     mean_curvature : (n,) float64 [1/mm], + convex
     vertex_area_mm2 : (n,) float64 [mm^2], barycentric area per vertex
     stamp_s : float [s]
+    sigma_mm : (n,) float64 [mm] or None, standard deviation of each vertex's deviation
+        (dm2.defects.uncertainty)
+    outside_mm : (n,) float64 [mm] or None, distance outside the planned outline
+    normals_O : (n, 3) float64 or None, unit vertex normals used for the classification
     """
 
     layer: int
@@ -195,6 +201,9 @@ class LayerDeviation:
     mean_curvature: np.ndarray
     vertex_area_mm2: np.ndarray
     stamp_s: float = 0.0
+    sigma_mm: np.ndarray | None = None
+    outside_mm: np.ndarray | None = None
+    normals_O: np.ndarray | None = None
 
     @property
     def n_vertices(self) -> int:
@@ -206,19 +215,35 @@ class LayerDeviation:
 
 
 def layer_deviation(surface, reference: ReferenceMap, monitor_cfg, layer: int | None = None,
-                    stamp_s: float | None = None) -> LayerDeviation:
-    """Signed deviation and classification of a measured surface against a reference.
+                    stamp_s: float | None = None, outline=None,
+                    uncertainty: bool = True) -> LayerDeviation:
+    """Signed deviation, uncertainty and classification of a measured surface.
 
-    ``monitor_cfg`` supplies ``delta_global_mm``, ``delta_local`` and ``min_weight``.
+    ``monitor_cfg`` supplies ``delta_global_mm``, ``delta_local``, ``min_weight``,
+    ``uncertainty`` and ``overspray_margin_mm``; ``outline`` (a
+    dm2.defects.footprint.PlannedOutline) enables the overspray class; ``uncertainty=False``
+    classifies on the deviation alone (the paper's rule).
     """
     v, f, w = _surface_arrays(surface)
     d, foot = closest_on_reference(v, reference)
     normals = getattr(surface, "normals_O", None)
-    classes = classify_vertices(v, f, w, d, monitor_cfg, normals_O=normals,
-                                reference_curvature=reference.mean_curvature_at(foot[:, :2]))
+    curv = curvature_and_areas(v, f, normals, return_normals=True)
+    ref_curv = reference.mean_curvature_at(foot[:, :2])
+    sigma = None
+    if uncertainty:
+        feats = uncertainty_features(v, w, curv[2], foot, reference, ref_curv,
+                                     float(monitor_cfg.min_weight))
+        sigma = vertex_sigma_mm(feats, monitor_cfg.uncertainty)
+    classes = classify_vertices(v, f, w, d, monitor_cfg, reference_curvature=ref_curv,
+                                sigma_mm=sigma, curvature=curv)
+    code, outside = classes.class_code, None
+    if outline is not None:
+        outside = outline.outside_at(v[:, :2])
+        code = mark_overspray(code, d, f, outside, float(monitor_cfg.overspray_margin_mm))
     layer = reference.layer if layer is None else int(layer)
     log.debug("layer %d: %d vertices, deviation %.3f..%.3f mm", layer, len(v),
               float(d.min()) if len(d) else 0.0, float(d.max()) if len(d) else 0.0)
-    return LayerDeviation(layer, v, f, w, d, foot, classes.class_code, classes.local_metric,
+    return LayerDeviation(layer, v, f, w, d, foot, code, classes.local_metric,
                           classes.mean_curvature, classes.vertex_area_mm2,
-                          float(reference.stamp_s if stamp_s is None else stamp_s))
+                          float(reference.stamp_s if stamp_s is None else stamp_s), sigma,
+                          outside, curv[2])

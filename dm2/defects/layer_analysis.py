@@ -75,13 +75,28 @@ class DefectMonitor:
     same_grid : bool, compare against the reference as the measurement represents it: point
         sampled at the TSDF voxel columns (see ReferenceMap.resampled), as the paper runs
         reference and measurement through the same volumetric representation
+    outline : dm2.defects.footprint.PlannedOutline or None, the planned footprint (enables
+        the overspray class)
+    uncertainty : bool, classify against each vertex's confidence bound
+        (dm2.defects.uncertainty); False applies the paper's thresholds alone
+
+    The default tracker confirms a region as a track once it has been seen in
+    ``track_min_observations`` layers within ``track_window_layers``, and (unless
+    ``track_local_alone``) once in a global class; the layer results of the layers before its
+    confirmation get its id then.
     """
 
     def __init__(self, monitor_cfg, tracker: RegionTracker | None = None,
-                 same_grid: bool = True):
+                 same_grid: bool = True, outline=None, uncertainty: bool = True):
         self.cfg = monitor_cfg
         self.same_grid = bool(same_grid)
-        self.tracker = tracker or RegionTracker()
+        self.outline = outline
+        self.uncertainty = bool(uncertainty)
+        self.tracker = tracker or RegionTracker(
+            confirm_observations=monitor_cfg.track_min_observations,
+            confirm_window_layers=max(monitor_cfg.track_window_layers,
+                                      monitor_cfg.track_min_observations),
+            confirm_requires_global=not monitor_cfg.track_local_alone)
         self.results: list[LayerResult] = []
 
     def analyse_layer(self, surface, reference: ReferenceMap, layer: int | None = None,
@@ -92,15 +107,22 @@ class DefectMonitor:
         compared = reference
         if self.same_grid and reference.cell_mm < self.cfg.voxel_mm:
             compared = reference.resampled(self.cfg.voxel_mm)
-        dev = layer_deviation(surface, compared, self.cfg, layer, stamp_s)
+        dev = layer_deviation(surface, compared, self.cfg, layer, stamp_s, outline=self.outline,
+                              uncertainty=self.uncertainty)
         t1 = time.perf_counter()
-        regions = segment_regions(dev, self.cfg.min_region_area_mm2)
+        regions = segment_regions(dev, self.cfg.min_region_area_mm2,
+                                  self.cfg.min_region_volume_mm3)
         t2 = time.perf_counter()
         ids = self.tracker.update(layer, regions)
         t3 = time.perf_counter()
         res = LayerResult(layer, dev, reference, regions, ids,
                           {"deviation": t1 - t0, "segment": t2 - t1, "track": t3 - t2})
         self.results.append(res)
+        by_layer = {r.layer: r for r in self.results}
+        for track in self.tracker.newly_confirmed:  # earlier layers' regions get the id now
+            for seen_layer, j in track.observations:
+                if seen_layer in by_layer:
+                    by_layer[seen_layer].track_ids[j] = track.id
         log.info("layer %d: %d region(s) %s", layer, len(regions),
                  ", ".join(f"{r.kind} {r.area_mm2:.0f} mm2" for r in regions[:5]))
         return res

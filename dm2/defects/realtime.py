@@ -11,6 +11,15 @@ persistent column map over the plate; an 8-connected patch of flagged columns re
 laser lines sample the surface a few mm apart, so unobserved columns between flagged ones are
 bridged (morphological closing of radius ``link_mm``) when a patch's area is measured; columns
 observed as normal are never counted.
+
+Evidence: as in the layer analysis, the bound decides whether there is a defect and the
+tolerance how far it reaches. A patch raises an alarm only when it holds a column beyond its
+confidence bound (its TSDF weight, the reference's slope and height,
+:mod:`dm2.defects.uncertainty`; ``uncertainty=False`` drops the bound) that is persistent:
+flagged for at least ``realtime_persist_s`` of process time and in
+``realtime_min_observations`` observations in a row (comparisons with new measurement, not
+the same TSDF compared again). A transient at the deposition front or a single noisy frame
+set raises nothing.
 """
 
 from __future__ import annotations
@@ -86,10 +95,11 @@ class RealtimeDeviation:
     z_margin_mm : float [mm], box reaches this far above/below the reference in the window
     link_mm : float [mm], unobserved gaps up to about twice this between flagged columns are
         bridged when patches are measured (laser lines sweep the surface a few mm apart)
+    uncertainty : bool, flag against each column's confidence bound too
     """
 
     def __init__(self, monitor_cfg, size_mm=(120.0, 120.0), radius_mm: float = 6.0,
-                 z_margin_mm: float = 3.0, link_mm: float = 2.0):
+                 z_margin_mm: float = 3.0, link_mm: float = 2.0, uncertainty: bool = True):
         self.cfg = monitor_cfg
         self.voxel_mm = float(monitor_cfg.voxel_mm)
         self.radius_mm = float(radius_mm)
@@ -100,6 +110,14 @@ class RealtimeDeviation:
         self.flag_map = np.zeros((ny, nx), np.int8)
         self.first_flag_s = np.full((ny, nx), np.nan)
         self._alarmed = np.zeros((ny, nx), bool)
+        self.flag_count = np.zeros((ny, nx), np.int64)
+        self._weight_map = np.zeros((ny, nx))
+        self.strong_map = np.zeros((ny, nx), bool)
+        u = monitor_cfg.uncertainty
+        self._bound = ((float(u.confidence_k), float(u.floor_mm), float(u.range_mm),
+                        float(u.wall_mm), float(u.height_mm)) if uncertainty else (0.0,) * 5)
+        self.persist_s = float(monitor_cfg.realtime_persist_s)
+        self.min_observations = int(monitor_cfg.realtime_min_observations)
         r = max(int(round(link_mm / self.voxel_mm)), 1)
         yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
         self._link = xx * xx + yy * yy <= r * r
@@ -153,11 +171,13 @@ class RealtimeDeviation:
         gi, gj, dev, flag, newly = compare_columns(
             d, np.asarray(weight, np.float32), np.float32(self.cfg.min_weight), i0, j0, k0, hw,
             v, float(self.cfg.delta_global_mm), float(stamp_s), self.deviation_map_mm,
-            self.flag_map, self.first_flag_s, self._alarmed)
+            self.flag_map, self.first_flag_s, self._alarmed, self.flag_count, self._bound,
+            self._weight_map, self.strong_map)
         n_over = int(np.count_nonzero(flag == OVER))
         n_under = int(np.count_nonzero(flag == UNDER))
-        # a patch can only reach the alarm area, or lose its alarmed columns, through a newly
-        # flagged column: columns observed as normal only shrink patches and clear their marks
+        # a patch can only reach the alarm area, or hold a persistent column, through a column
+        # flagged anew or observed flagged again: columns observed as normal only shrink
+        # patches and clear their marks
         alarms = self._raise_alarms(stamp_s, gi, gj) if newly else ()
         xy = np.empty((gi.shape[0], 2))
         xy[:, 0] = (gi + 0.5) * v
@@ -178,9 +198,12 @@ class RealtimeDeviation:
         min_cells = max(self.cfg.min_region_area_mm2 / (v * v), 1.0)
         deviation_mm = self.deviation_map_mm[r0:r1, c0:c1]
         first_flag_s = self.first_flag_s[r0:r1, c0:c1]
+        mature = (self.strong_map[r0:r1, c0:c1]
+                  & (self.flag_count[r0:r1, c0:c1] >= self.min_observations)
+                  & (stamp_s - first_flag_s >= self.persist_s))
         for kind in (OVER, UNDER):  # over first: its marks count for the under patches
             sizes, stats = patch_alarms(flags, kind, deviation_mm, alarmed, first_flag_s,
-                                        self._link, min_cells)
+                                        self._link, min_cells, mature)
             for size, (row, col, first) in zip(sizes.tolist(), stats.tolist(), strict=True):
                 centroid = np.array([(col + c0 + 0.5) * v, (row + r0 + 0.5) * v])
                 out.append(RealtimeAlarm(float(stamp_s), KIND_NAMES[kind], size * v * v,

@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from dm2.defects.uncertainty import HEIGHT_SCALE_MM
 from dm2.reference.height_map import bilinear_at
 
 OVER, UNDER = 1, 2
@@ -25,8 +26,16 @@ OVER, UNDER = 1, 2
 @njit(cache=True)
 def column_crossings(d, w, min_weight):
     """Fractional voxel index (nx, ny) of the topmost - to + crossing along z, NaN if none."""
+    return column_crossings_weights(d, w, min_weight)[0]
+
+
+@njit(cache=True)
+def column_crossings_weights(d, w, min_weight):
+    """:func:`column_crossings` and the smaller TSDF weight of the two voxels bracketing each
+    crossing (nx, ny) (0 where none)."""
     nx, ny, nz = d.shape
     out = np.full((nx, ny), np.nan)
+    wc = np.zeros((nx, ny))
     for i in range(nx):
         for j in range(ny):
             for k in range(nz - 2, -1, -1):
@@ -35,8 +44,9 @@ def column_crossings(d, w, min_weight):
                 a, b = d[i, j, k], d[i, j, k + 1]
                 if a < 0.0 <= b:
                     out[i, j] = k + (-a) / (b - a)
+                    wc[i, j] = min(w[i, j, k], w[i, j, k + 1])
                     break
-    return out
+    return out, wc
 
 
 @njit(cache=True)
@@ -69,18 +79,31 @@ def _slope(h, a, n, v, along_rows, fixed):
 
 @njit(cache=True)
 def compare_columns(d, w, min_weight, i0, j0, k0, hw, voxel_mm, delta_mm, stamp_s,
-                    deviation_map, flag_map, first_flag_s, alarmed):
+                    deviation_map, flag_map, first_flag_s, alarmed, flag_count=None,
+                    bound=(0.0, 0.0, 0.0, 0.0, 0.0), weight_map=None, strong_map=None):
     """Compare a dense TSDF box with the reference and update the column maps in place.
 
     ``d, w (nx, ny, nz)``: the box's signed distance [mm] and weight, voxel ``(i0, j0, k0)`` at
     index 0; ``hw (ny, nx)``: the reference [mm] at its columns. Each column with an observed
     zero crossing inside the maps gets its deviation: height above the reference projected on
     the reference normal, ``(z - h) / sqrt(1 + |grad h|^2)`` [mm]; beyond ``+-delta_mm`` it is
-    flagged over (1) or under (2). Returns ``gi, gj`` (map column indices), ``dev`` [mm] and
-    ``flag`` of those columns, in ``np.nonzero`` order, and how many columns were newly flagged
-    (flag changed to over or under).
+    flagged over (1) or under (2), and marked in ``strong_map`` where beyond the confidence
+    bound ``k * sigma`` too, with ``bound
+    = (k, floor_mm, range_mm, wall_mm, height_mm)`` and ``sigma^2 = floor^2 + range^2 / weight +
+    (wall * (1 - n_z))^2 + (height * h / HEIGHT_SCALE_MM)^2`` (the column's weight at its
+    crossing; ``n_z`` and the height ``h`` of the reference there; the terms of
+    :mod:`dm2.defects.uncertainty` but the edge, foot and gap: the reference's curvature at
+    voxel spacing follows the raster ridges, which the layer analysis smooths away).
+    ``flag_count`` counts each column's observations in a row with the same flag, an observation
+    being a comparison whose crossing weight (kept in ``weight_map``) or deviation changed since
+    the last: new measurement, not the same TSDF compared again. Returns ``gi, gj`` (map column
+    indices), ``dev`` [mm] and ``flag`` of those columns, in ``np.nonzero`` order, and how many
+    columns were newly flagged (flag changed to over or under) or, with ``flag_count``, observed
+    flagged again.
     """
-    cross = column_crossings(d, w, min_weight)
+    cross, wcross = column_crossings_weights(d, w, min_weight)
+    kb, fl2, rg2, wl2 = bound[0], bound[1] ** 2, bound[2] ** 2, bound[3] ** 2
+    ht = bound[4]
     nx, ny = cross.shape
     mny, mnx = flag_map.shape
     hy, hx = hw.shape
@@ -105,11 +128,34 @@ def compare_columns(d, w, min_weight, i0, j0, k0, hw, voxel_mm, delta_mm, stamp_
             else:
                 g2 = 0.0
             e = (z - hw[jj, ii]) / np.sqrt(1.0 + g2)
+            lim = 0.0
+            if kb > 0.0:
+                tilt = 1.0 - 1.0 / np.sqrt(1.0 + g2)
+                hgt = ht * max(hw[jj, ii], 0.0) / HEIGHT_SCALE_MM
+                sig = np.sqrt(fl2 + rg2 / max(wcross[ii, jj], 1.0) + wl2 * tilt * tilt
+                              + hgt * hgt)
+                lim = kb * sig
             f = OVER if e > delta_mm else (UNDER if e < -delta_mm else 0)
+            if strong_map is not None:
+                strong_map[y, x] = f != 0 and abs(e) > lim
+            fresh = True
+            if weight_map is not None:
+                fresh = wcross[ii, jj] != weight_map[y, x] or e != deviation_map[y, x]
+                weight_map[y, x] = wcross[ii, jj]
             deviation_map[y, x] = e
             if f != 0 and flag_map[y, x] != f:
                 first_flag_s[y, x] = stamp_s
                 newly += 1
+            elif f != 0 and fresh and flag_count is not None:
+                newly += 1  # observed flagged again: the column's evidence grew
+            if flag_count is not None:
+                if f == 0:
+                    flag_count[y, x] = 0
+                elif flag_map[y, x] == f:
+                    if fresh:
+                        flag_count[y, x] += 1
+                else:
+                    flag_count[y, x] = 1
             flag_map[y, x] = f
             if f == 0:
                 alarmed[y, x] = False
@@ -119,7 +165,8 @@ def compare_columns(d, w, min_weight, i0, j0, k0, hw, voxel_mm, delta_mm, stamp_
 
 
 @njit(cache=True)
-def patch_alarms(flags, kind, deviation_mm, alarmed, first_flag_s, link, min_cells):
+def patch_alarms(flags, kind, deviation_mm, alarmed, first_flag_s, link, min_cells,
+                 mature=None):
     """New alarms of one kind in a window of the column maps, marking their columns alarmed.
 
     The columns flagged ``kind`` (``hit``), bridged over unobserved columns (deviation NaN:
@@ -128,9 +175,10 @@ def patch_alarms(flags, kind, deviation_mm, alarmed, first_flag_s, link, min_cel
     ``(closing & (hit | unseen)) | hit``), form 8-connected patches, numbered in raster order.
     Each patch of at least ``min_cells`` columns that holds a flagged column and no alarmed one
     raises an alarm (an island of bridged unobserved columns cut off from the flagged ones by
-    observed-normal columns shows no defect). Returns per alarm, in patch order: its size
-    [columns], the mean row and column of its columns and the earliest first-flag stamp [s]
-    among them.
+    observed-normal columns shows no defect); with ``mature`` (bool, like ``flags``) the patch
+    must hold a flagged column that is mature (persistent) too. Returns per alarm, in patch
+    order: its size [columns], the mean row and column of its columns and the earliest
+    first-flag stamp [s] among them.
     """
     h, w = flags.shape
     hit = flags == kind
@@ -203,7 +251,7 @@ def patch_alarms(flags, kind, deviation_mm, alarmed, first_flag_s, link, min_cel
                 cols[lab] += x
                 if alarmed[y, x]:
                     taken[lab] = True
-                if hit[y, x]:
+                if hit[y, x] and (mature is None or mature[y, x]):
                     flagged[lab] = True
                 f = first_flag_s[y, x]
                 if not np.isnan(f) and not f >= first[lab]:

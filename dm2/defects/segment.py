@@ -1,7 +1,8 @@
 """Segment flagged vertices into defect regions over mesh connectivity (paper sec. 6.2).
 
 Vertices of the same defect class joined by a mesh edge form one region (connected components,
-``scipy.sparse.csgraph``). Regions smaller than ``min_region_area_mm2`` are dropped. Each region
+``scipy.sparse.csgraph``). Regions smaller than ``min_region_area_mm2`` or holding less than
+``min_region_volume_mm3`` of deviation are dropped. Each region
 carries its surface area, an axis-aligned bounding box in ``O`` enclosing the deviated surface
 together with the reference surface beneath it (so its z extent is the defect's height, as the
 paper's annotated boxes), its extreme and mean deviation and its centroid.
@@ -61,8 +62,10 @@ class Region:
                 "bbox_max_O_mm": self.bbox_max_O.tolist(), "n_vertices": int(len(self.vertex_ids))}
 
 
-def segment_regions(dev: LayerDeviation, min_region_area_mm2: float) -> list[Region]:
-    """Connected defect regions of ``dev``, largest first, each at least the minimum area."""
+def segment_regions(dev: LayerDeviation, min_region_area_mm2: float,
+                    min_region_volume_mm3: float = 0.0) -> list[Region]:
+    """Connected defect regions of ``dev``, largest first, each at least the minimum area and
+    the minimum volume (area-weighted sum of ``|deviation|``)."""
     n = dev.n_vertices
     code = dev.class_code
     flagged = np.isin(code, DEFECT_CLASSES)
@@ -78,7 +81,9 @@ def segment_regions(dev: LayerDeviation, min_region_area_mm2: float) -> list[Reg
     ids = np.flatnonzero(flagged)
     lab = labels[ids]
     region_area = np.bincount(lab, areas[ids])
-    big = np.flatnonzero(region_area >= min_region_area_mm2)
+    region_volume = np.bincount(lab, areas[ids] * np.abs(dev.signed_distance_mm[ids]))
+    big = np.flatnonzero((region_area >= min_region_area_mm2)
+                         & (region_volume >= min_region_volume_mm3))
     if big.size == 0:
         return []
     order = np.argsort(lab, kind="stable")

@@ -48,10 +48,12 @@ import numpy as np
 
 from dm2.core.config import MonitorConfig, ProcessConfig
 from dm2.core.messages import Calibration, LayerMark, RobotState, Toolpath
+from dm2.defects.footprint import PlannedOutline
 from dm2.defects.layer_analysis import DefectMonitor, LayerResult
 from dm2.defects.realtime import RealtimeDeviation
 from dm2.fusion.fusion import LayerSurface, Monitor
 from dm2.pipeline.layer_worker import LayerWorker
+from dm2.pipeline.process_fit import ProcessFit
 from dm2.reference.feed import ReferenceFeed
 from dm2.reference.model import NearNetReference
 
@@ -99,6 +101,13 @@ class SessionTiming:
                 "messages": self.messages, **self.extra}
 
 
+def _process_fit_on(monitor_cfg) -> bool:
+    """``[monitor] process_fit``, by default on with the executed reference clock only."""
+    if monitor_cfg.process_fit is None:
+        return monitor_cfg.reference_clock == "executed"
+    return bool(monitor_cfg.process_fit)
+
+
 class MonitoringSession:
     """Messages in, per-layer :class:`~dm2.defects.layer_analysis.LayerResult` out.
 
@@ -127,7 +136,16 @@ class MonitoringSession:
         self.on_layer = on_layer
         self.reference = NearNetReference(process, monitor_cfg, calibration,
                                           size_mm=tuple(plate_size_mm[:2]))
-        self.defects = DefectMonitor(monitor_cfg)
+        outline = (PlannedOutline.from_toolpath(toolpath, tuple(plate_size_mm[:2]),
+                                                monitor_cfg.voxel_mm)
+                   if toolpath is not None else None)
+        self.defects = DefectMonitor(monitor_cfg, outline=outline)
+        planned = (float(np.max(toolpath.position_O[:, 2])) if toolpath is not None
+                   and len(toolpath.position_O) else None)
+        self.process_fit = (ProcessFit(monitor_cfg.process_fit_rate_per_layer,
+                                       monitor_cfg.process_fit_bound,
+                                       monitor_cfg.process_finding_threshold, planned)
+                            if _process_fit_on(monitor_cfg) else None)
         self.monitor = Monitor(calibration, monitor_cfg, process, toolpath=toolpath,
                                on_layer_done=self._layer_done, defer_meshing=analysis_thread)
         self.timing = SessionTiming()
@@ -296,6 +314,12 @@ class MonitoringSession:
         self.timing.realtime_s += dt
         self._rt_latency_s.append(dt)
 
+    def process_summary(self) -> dict:
+        """The fitted process scale per layer and the process findings, for the report."""
+        if self.process_fit is None:
+            return {"fitted": None, "findings": []}
+        return self.process_fit.summary()
+
     def realtime_summary(self) -> dict:
         """Real-time deviation alarms and per-frame-set latency, for the report."""
         lat = np.asarray(self._rt_latency_s)
@@ -336,6 +360,8 @@ class MonitoringSession:
             log.warning("layer %d: no surface was reconstructed; skipped", done.layer)
             return
         result = self.defects.analyse_layer(surface, ref, done.layer, stamp)
+        if self.process_fit is not None:  # the reference deposits at the fitted scale next
+            self.reference.set_process_scale(self.process_fit.update(result))
         self.timing.analysis_s += time.perf_counter() - t0
         if self.on_layer is not None:
             self.on_layer(result)

@@ -6,8 +6,9 @@ time. With a toolpath, each state advances the reference's clock along the path 
 (:mod:`dm2.reference.path_clock`): by the controller's time while the spray spot progresses, but
 not while
 it stands still (``reference_clock = "executed"``: a dwell or a reorientation stop grows the
-part, not the reference), or by the programmed time of the path covered (``"programmed"``, the
-default: every slowdown of the robot grows the part more than the reference).
+part, not the reference), or by the programmed time of the path covered (``"programmed"``,
+MonitorConfig's default: every slowdown of the robot grows the part more than the
+reference).
 The clock is summed one state after the other, so the reference is the
 same however the states are sliced. Late or duplicated states cannot rewind
 the reference.

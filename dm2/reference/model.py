@@ -99,6 +99,8 @@ class NearNetReference:
         self.heights_mm = np.zeros((ny, nx))
         self.sigma_mm = plume_sigma_mm(process)
         self.v_dot_mm3_s = volume_rate_mm3_s(process)
+        self._v_dot_nominal_mm3_s = self.v_dot_mm3_s
+        self.process_scale = 1.0
         self._theta_c = math.radians(process.critical_angle_deg)
         self._T_O_F = invert(calibration.T_F_O)
         T_B_N = calibration.T_B_N
@@ -122,6 +124,14 @@ class NearNetReference:
         self.slope_probe_mm = max(SLOPE_PROBE_MM, self.cell_mm)
         self._slope_cells = (max(int(round(self.slope_probe_mm / self.cell_mm)), 1)
                              if self.angle_from_surface else 0)
+
+    def set_process_scale(self, scale: float) -> None:
+        """Deposit at ``scale`` times the nominal volume rate from now on (efficiency x feed
+        against nominal; dm2.pipeline.process_fit)."""
+        if not 0 < scale < 10:
+            raise ValueError(f"NearNetReference: process scale must be in (0, 10), got {scale}")
+        self.process_scale = float(scale)
+        self.v_dot_mm3_s = self._v_dot_nominal_mm3_s * self.process_scale
 
     def spot_O(self, T_B_F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Deposition spot and spray axis in ``O`` for flange poses ``T_B_F`` (..., 4, 4)."""

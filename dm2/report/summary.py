@@ -113,8 +113,11 @@ def track_sentence(track: dict) -> str:
 
 
 def verdict(report: dict) -> dict:
-    """``{"headline", "sentences", "more", "defects", "uncertain", "layers"}``: the verdict of
-    a report dict, from its tracks and layers only."""
+    """``{"headline", "sentences", "more", "defects", "uncertain", "layers", "findings"}``: the
+    verdict of a report dict, from its tracks, layers and process findings (what the
+    reference's process fit absorbed, dm2.pipeline.process_fit) only."""
+    findings = [f"Process finding: {f}." for f in
+                (report.get("process") or {}).get("findings", [])]
     tracks = by_severity(report.get("tracks", []))
     defects = [t for t in tracks if is_defect(t)]
     uncertain = len(tracks) - len(defects)
@@ -123,16 +126,17 @@ def verdict(report: dict) -> dict:
         headline = (f"No defect found in {n_layers} layer{'s' if n_layers != 1 else ''}; "
                     f"{uncertain} region{'s' if uncertain != 1 else ''} uncertain"
                     + (" (local deviations, listed below)" if uncertain else "") + ".")
-        return {"headline": headline, "sentences": [], "more": 0, "defects": 0,
-                "uncertain": uncertain, "layers": n_layers}
+        return {"headline": headline, "sentences": findings, "more": 0, "defects": 0,
+                "uncertain": uncertain, "layers": n_layers, "findings": len(findings)}
     headline = (f"{len(defects)} defect track{'s' if len(defects) != 1 else ''} in {n_layers} "
                 f"layer{'s' if n_layers != 1 else ''}"
                 + (f"; {uncertain} further region{'s' if uncertain != 1 else ''} uncertain "
                    "(local deviations)" if uncertain else "") + ".")
     shown = defects[:VERDICT_SENTENCES]
-    return {"headline": headline, "sentences": [track_sentence(t) + "." for t in shown],
+    return {"headline": headline,
+            "sentences": [track_sentence(t) + "." for t in shown] + findings,
             "more": len(defects) - len(shown), "defects": len(defects), "uncertain": uncertain,
-            "layers": n_layers}
+            "layers": n_layers, "findings": len(findings)}
 
 
 def alarm_layers(report: dict) -> list[int | None]:
