@@ -13,6 +13,13 @@ on two idle cores.
 Three profilers (640 points each) look at a growing 60 x 60 mm block while the spot rasters over
 its top, which rises 100 mm over the run. Profiles are cast analytically before timing starts.
 
+The peer: the same stream integrated by Open3D's ``VoxelBlockGrid`` (:mod:`open3d_peer`: one
+depth image per profile with the sensor's fan as intrinsics, the same 0.5 mm voxel, +-3-voxel
+truncation, 8**3 blocks and 2 threads), printed as points/s and the ratio; surface extraction of
+both from the same stream (median of ``--repeats``); and the accuracy of both against the
+analytic truth on a static scene (a box with a sphere cap on the plate, rastered by the same
+sensors), where the truth is the scene itself.
+
 Run: ``.venv/bin/python benchmarks/fusion.py [--frames 1200] [--repeats 3]``
 """
 
@@ -27,10 +34,12 @@ import time
 import tracemalloc
 from pathlib import Path
 
-import numpy as np
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import open3d_peer  # noqa: E402, I001  (sets Open3D's thread count before Open3D is imported)
+import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from test_monitor_scene import Scene, make_calibration, raster_run  # noqa: E402
+from test_monitor_scene import Scene, make_calibration, raster_lines, raster_run  # noqa: E402
 
 from dm2.core.config import MonitorConfig, ProcessConfig  # noqa: E402
 from dm2.core.messages import Profile  # noqa: E402
@@ -109,6 +118,59 @@ def numpy_baseline(origins, points, voxel, trunc):
     return acc, wsum
 
 
+def peer(cal, msgs, repeats: int) -> None:
+    """Open3D's VoxelBlockGrid on the same stream: speed, extraction and accuracy beside ours."""
+    cfg = MonitorConfig()
+    profiles = open3d_peer.synced_profiles(cal, msgs, cfg.max_pose_gap_s, cfg.reorder_window_s)
+    rates, ours, o3d_field = [], [], None
+    for _ in range(repeats):  # interleaved with ours, so both see the same machine load
+        o3d_field, dt = open3d_peer.open3d_run(profiles, cfg.voxel_mm, cfg.truncation_voxels)
+        rates.append(o3d_field.points / dt)
+        mon, elapsed, _ = run_once(cal, msgs, False)
+        ours.append(mon.points_fused / elapsed)
+    o3d_rate, ours_pts_s = statistics.median(rates), statistics.median(ours)
+    print(f"Open3D VoxelBlockGrid on the same stream ({os.environ['OMP_NUM_THREADS']} threads, "
+          f"{cfg.voxel_mm} mm voxels, +-{cfg.truncation_voxels:g} voxels, 8^3 blocks, one depth "
+          f"image per profile, poses given), median of {repeats}: {o3d_rate / 1e6:.2f} M "
+          f"points/s; ours end to end (sync + registration + TSDF, batched, 2 threads), "
+          f"interleaved with it: {ours_pts_s / 1e6:.2f} M points/s: ratio "
+          f"{ours_pts_s / o3d_rate:.2f}x")
+    mon = run_once(cal, msgs, False)[0]
+    ours_t, o3d_t = [], []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        surf = SurfaceExtractor(mon.tsdf, cfg.min_weight).update()
+        ours_t.append(time.perf_counter() - t)
+        t = time.perf_counter()
+        v_o3d, _ = o3d_field.extract(cfg.min_weight)
+        o3d_t.append(time.perf_counter() - t)
+    a, b = statistics.median(ours_t), statistics.median(o3d_t)
+    print(f"surface extraction from scratch of that stream, median of {repeats}: ours {a:.3f} s "
+          f"({surf.n_vertices} vertices), Open3D {b:.3f} s ({len(v_o3d)} vertices): ratio "
+          f"{b / a:.2f}x")
+    scene = Scene(boxes=[((40, 40, -1), (80, 80, 10))], spheres=[((60, 60, 10), 8.0)])
+    smsgs, _ = raster_run(scene, cal, raster_lines((35, 85), np.arange(35, 86, 2.0), 10.0),
+                          step_mm=1.0, noise_mm=0.05, seed=3)
+    mon = run_once(cal, smsgs, False)[0]
+    sprof = open3d_peer.synced_profiles(cal, smsgs, cfg.max_pose_gap_s, cfg.reorder_window_s)
+    o3d_static = open3d_peer.open3d_run(sprof, cfg.voxel_mm, cfg.truncation_voxels)[0]
+    ours_t, o3d_t = [], []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        ours_v = SurfaceExtractor(mon.tsdf, cfg.min_weight).update().vertices_O
+        ours_t.append(time.perf_counter() - t)
+        t = time.perf_counter()
+        o3d_v, _ = o3d_static.extract(cfg.min_weight)
+        o3d_t.append(time.perf_counter() - t)
+    ours = open3d_peer.surface_error(ours_v, scene.sdf)
+    theirs = open3d_peer.surface_error(o3d_v, scene.sdf)
+    print(f"static box + sphere cap (noise 0.05 mm), accuracy against the analytic truth "
+          f"(|sdf| at the vertices): ours RMS {ours[0]:.3f} mm, p95 {ours[1]:.3f} mm "
+          f"({ours[2]} vertices); Open3D RMS {theirs[0]:.3f} mm, p95 {theirs[1]:.3f} mm "
+          f"({theirs[2]} vertices); extraction from scratch, median of {repeats}: ours "
+          f"{statistics.median(ours_t):.3f} s, Open3D {statistics.median(o3d_t):.3f} s")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--frames", type=int, default=1200, help="frame sets (3 profiles each)")
@@ -137,6 +199,8 @@ def main() -> None:
           f"{new / one:.2f}x); {old / 1e6:.2f} M points/s one frame set per call "
           f"(batch_profiles=3, serial below {MIN_SPLIT_POINTS} points; ratio {new / old:.2f}x) "
           f"({mon.points_fused} points, {mon.tsdf.n_blocks} blocks, voxel {mon.cfg.voxel_mm} mm)")
+
+    peer(cal, msgs, args.repeats)
 
     c = time.process_time()
     run_once(cal, msgs, False, threads=1)

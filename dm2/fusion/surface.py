@@ -19,7 +19,9 @@ immediate :meth:`~SurfaceExtractor.update` would have returned.
 
 from __future__ import annotations
 
+import os
 import threading
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from scipy.ndimage import map_coordinates
@@ -34,6 +36,28 @@ __all__ = ["CHUNK_BLOCKS", "ChunkVolume", "PendingSurface", "SurfaceExtractor", 
 
 CHUNK_BLOCKS = 4
 _MISSING = object()
+# Chunk volumes are meshed by this many threads (skimage's marching cubes releases the GIL)
+# when a surface has at least MIN_PARALLEL_CHUNKS of them; the surface is the same.
+MESH_THREADS = 2 if (os.cpu_count() or 1) >= 2 else 1
+MIN_PARALLEL_CHUNKS = 8
+_POOL: ThreadPoolExecutor | None = None
+_POOL_LOCK = threading.Lock()
+
+
+def _resolved_all(parts: list) -> list:
+    """The chunk meshes of ``parts`` in order; with ``MESH_THREADS`` 2 the calling thread meshes
+    every other volume and a pool thread the rest."""
+    global _POOL
+    todo = [p for p in parts if isinstance(p, ChunkVolume)]
+    if MESH_THREADS > 1 and len(todo) >= MIN_PARALLEL_CHUNKS:
+        with _POOL_LOCK:
+            if _POOL is None:
+                _POOL = ThreadPoolExecutor(MESH_THREADS - 1, thread_name_prefix="surface-mesh")
+        other = _POOL.submit(lambda: [v.mesh() for v in todo[1::2]])
+        for v in todo[0::2]:
+            v.mesh()
+        other.result()
+    return [_resolved(p) for p in parts]
 
 
 def _chunks_of(blocks: np.ndarray) -> list[tuple[int, int, int]]:
@@ -91,7 +115,9 @@ def mesh_volume(d: np.ndarray, w: np.ndarray, origin: np.ndarray, voxel_mm: floa
     faces = faces[cube[ijk[:, 0], ijk[:, 1], ijk[:, 2]]]
     if not len(faces):
         return None
-    used = np.unique(faces)
+    keep = np.zeros(len(verts), dtype=np.bool_)
+    keep[faces] = True
+    used = np.flatnonzero(keep)  # np.unique(faces) without the sort
     remap = np.full(len(verts), -1, dtype=np.int64)
     remap[used] = np.arange(len(used))
     verts, normals, faces = verts[used], normals[used], remap[faces]
@@ -148,7 +174,7 @@ class PendingSurface:
     def result(self) -> SurfaceMesh:
         with self._lock:
             if self._surface is None:
-                self._surface = assemble([_resolved(p) for p in self._parts], self._voxel_mm)
+                self._surface = assemble(_resolved_all(self._parts), self._voxel_mm)
                 self._parts = None
             return self._surface
 
@@ -276,7 +302,7 @@ class SurfaceExtractor:
 
     def assemble(self) -> SurfaceMesh:
         """The surface from the chunk meshes cached now (volumes still pending are meshed)."""
-        return assemble([_resolved(p) for p in self._chunks_in_order()], self.tsdf.voxel_mm)
+        return assemble(_resolved_all(self._chunks_in_order()), self.tsdf.voxel_mm)
 
     def _chunks_in_order(self) -> list:
         """The chunks' meshes or volumes sorted by chunk coordinates: the surface's vertex

@@ -28,9 +28,18 @@ The paper's running average gives every past measurement equal say, so a surface
 growing is averaged with its own history and lags behind. Before a voxel in the *active* region
 (within ``active_radius_mm`` of the nozzle axis) is updated, its stored weight is clipped to
 ``weight_cap``; each new measurement then moves ``D`` by at least ``1 / (weight_cap + 1)`` of the
-way, so a 1 mm rise is followed within a few sensor passes. Voxels in the *inactive* region keep
-accumulating weight (up to ``max_weight``), which averages sensor noise down and keeps the
-finished surface still. ``weight_cap`` therefore trades noise (higher) against lag (lower).
+way, so a 1 mm rise is followed within a few sensor passes. Voxels in the *inactive* region
+accumulate weight up to ``inactive_weight_cap`` (default :data:`INACTIVE_WEIGHT_CAP`), which
+averages sensor noise down and keeps the finished surface still. ``weight_cap`` therefore trades
+noise (higher) against lag (lower).
+
+The inactive cap is a window too: surfaces outside the active region still change (overspray
+settles on the plate and the wall foot around the part, the plume's flank reaches beyond the
+active radius). With weights let to grow to 1e4, such a surface was the mean of its whole
+history: on the twisted tower the plate ring at the wall foot lagged 0.9 mm behind the truth
+after 23 layers (true height 2.56 mm, reconstructed 1.75 mm, weights ~300) and made 51 % of
+the layer's squared error; with the cap at 50 observations the layer's RMS fell from 0.186 to
+0.136 mm and its p95 from 0.361 to 0.248 mm, the same as the first layer's.
 """
 
 from __future__ import annotations
@@ -46,7 +55,10 @@ from dm2.fusion.tsdf.threads import SplitBuffers, fuse_split
 
 log = logging.getLogger(__name__)
 
-MAX_WEIGHT = 1.0e4  # weight of inactive voxels saturates here (float32 stays exact enough)
+# Weight of inactive voxels saturates here: about the last 50 observations make the surface
+# (see "Weight cap" above); sensor noise is averaged down by sqrt(50) and a changing surface is
+# followed within that many observations.
+INACTIVE_WEIGHT_CAP = 50.0
 _NO_BOUNDS = np.zeros(3)
 # Batches with fewer points are fused by the serial kernel (thread hand-off would dominate).
 MIN_SPLIT_POINTS = 4096
@@ -60,6 +72,8 @@ class SparseTSDF:
     voxel_mm : float [mm], voxel edge (0 < voxel_mm <= 2)
     truncation_mm : float [mm], half width of the band updated around each measured point
     weight_cap : float, stored weight is clipped to this before an active-region update
+    inactive_weight_cap : float, stored weights never exceed this (the inactive region's
+        window; default ``max(INACTIVE_WEIGHT_CAP, weight_cap)``, at least ``weight_cap``)
     initial_blocks : int, preallocated block rows (grows by doubling)
     threads : int, 1 or 2 (default: 2 where the machine has 2 or more cores). With 2, batches
         of at least ``MIN_SPLIT_POINTS`` points are fused by two threads that own alternate
@@ -69,16 +83,23 @@ class SparseTSDF:
 
     def __init__(self, voxel_mm: float = 0.5, truncation_mm: float = 1.5,
                  weight_cap: float = 8.0, initial_blocks: int = 1024,
-                 threads: int | None = None):
+                 threads: int | None = None,
+                 inactive_weight_cap: float | None = None):
         if not 0 < voxel_mm <= 2.0:
             raise ValueError(f"SparseTSDF.voxel_mm: {voxel_mm} outside (0, 2] mm")
         if truncation_mm <= 0:
             raise ValueError(f"SparseTSDF.truncation_mm: must be > 0, got {truncation_mm}")
         if weight_cap <= 0:
             raise ValueError(f"SparseTSDF.weight_cap: must be > 0, got {weight_cap}")
+        if inactive_weight_cap is None:
+            inactive_weight_cap = max(INACTIVE_WEIGHT_CAP, weight_cap)
+        if not inactive_weight_cap >= weight_cap:
+            raise ValueError(f"SparseTSDF.inactive_weight_cap: {inactive_weight_cap} must be "
+                             f">= weight_cap {weight_cap}")
         self.voxel_mm = float(voxel_mm)
         self.truncation_mm = float(truncation_mm)
         self.weight_cap = float(weight_cap)
+        self.inactive_weight_cap = float(inactive_weight_cap)
         if threads is None:
             threads = 2 if (os.cpu_count() or 1) >= 2 else 1
         if threads not in (1, 2):
@@ -145,12 +166,13 @@ class SparseTSDF:
             off = np.array([0, p.shape[0]], dtype=np.int64)
             none = np.zeros((0, 3))
             fuse_split(self, False, o, p, a, p, off, np.zeros((0, 4, 4)), none, none, 0.0,
-                       _NO_BOUNDS, _NO_BOUNDS, False, np.zeros(2, dtype=np.int64), MAX_WEIGHT)
+                       _NO_BOUNDS, _NO_BOUNDS, False, np.zeros(2, dtype=np.int64),
+                       self.inactive_weight_cap)
             return
         start = 0
         while start < p.shape[0]:
             start = K.integrate_rays(o, p, a, self.voxel_mm, self.truncation_mm,
-                                     self.weight_cap, MAX_WEIGHT, self._table_keys,
+                                     self.weight_cap, self.inactive_weight_cap, self._table_keys,
                                      self._table_slots, self.block_keys, self.voxels,
                                      self.touched, self._state, start)
             if start < p.shape[0]:
@@ -196,12 +218,12 @@ class SparseTSDF:
         if self.threads == 2 and n >= MIN_SPLIT_POINTS:
             none = np.zeros((0, 3))
             fuse_split(self, True, none, none, np.zeros(0, np.bool_), xz, off, T, spot, axis,
-                       r2, lo, hi, use_bounds, counts, MAX_WEIGHT)
+                       r2, lo, hi, use_bounds, counts, self.inactive_weight_cap)
             start = n
         while start < n:
             start = K.fuse_profiles(xz, off, T, spot, axis, r2, lo, hi, use_bounds, start,
                                     self.voxel_mm, self.truncation_mm, self.weight_cap,
-                                    MAX_WEIGHT, self._table_keys, self._table_slots,
+                                    self.inactive_weight_cap, self._table_keys, self._table_slots,
                                     self.block_keys, self.voxels, self.touched, self._state,
                                     counts)
             if start < n:

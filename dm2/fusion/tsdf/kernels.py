@@ -19,6 +19,12 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from dm2.fusion.tsdf.carve import (
+    CARVE_RUN_VOXELS,
+    CARVE_TRUNCATIONS,
+    COL_SHIFT,
+    carve_visit,
+)
 from dm2.fusion.tsdf.point_rays import NO_POSE, point_ray, profile_pose
 
 BLOCK = 8  # voxels per block edge
@@ -248,13 +254,19 @@ def _fuse(register, origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, a
     Signed distance ``d`` [mm] is positive in front of the measured point (free space towards
     the sensor) and negative behind it. Weights: ``w_A = 1`` over the whole band in the active
     region; ``w_I = 1`` in front and ``1 - behind / truncation`` behind the point elsewhere
-    (eqs 4-5). In the active region the stored weight is first capped at ``active_weight_cap``.
+    (eqs 4-5). In the active region the stored weight is first capped at ``active_weight_cap``,
+    and the walk goes on ``CARVE_TRUNCATIONS`` truncations beyond the band through allocated
+    blocks only, carving enclosed stale free space (:mod:`dm2.fusion.tsdf.carve`; a free run
+    ends where the walk enters another two-thread column, as the two-thread kernel sees it).
     ``voxels[slot, li, 0]`` is the signed distance, ``voxels[slot, li, 1]`` the weight.
     """
     capacity = voxels.shape[0]
     table_limit = table_keys.shape[0] // 2
     inv_vox = 1.0 / voxel_mm
     inv_trunc = 1.0 / truncation_mm
+    carve_vox = CARVE_TRUNCATIONS * truncation_mm * inv_vox
+    cs = BLOCK_SHIFT + COL_SHIFT
+    run = np.empty((CARVE_RUN_VOXELS, 2), dtype=np.int64)
     pose = NO_POSE
     ra = rb = (1 << 40, 0, 0, -1)  # the two blocks looked up last (bx, by, bz, slot)
     for k in range(offsets.shape[0] - 1):
@@ -286,6 +298,26 @@ def _fuse(register, origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, a
                     last_bx, last_by, last_bz = bx, by, bz
                 update_voxel(voxels, slot, vx, vy, vz, d, truncation_mm, inv_trunc, act,
                              active_weight_cap, max_weight)
+                t, vx, vy, vz, tmx, tmy, tmz, d = dda_step(vx, vy, vz, stx, sty, stz, tdx, tdy,
+                                                           tdz, tmx, tmy, tmz, d, ddx, ddy, ddz)
+            if not act:
+                continue
+            # beyond the band: allocated blocks only; a free run ends at a column edge
+            end = span + carve_vox
+            n_run, run_cx, run_cy = 0, 1 << 40, 0
+            while t <= end:
+                if (vx >> cs) != run_cx or (vy >> cs) != run_cy:
+                    n_run, run_cx, run_cy = 0, vx >> cs, vy >> cs
+                bx, by, bz = vx >> BLOCK_SHIFT, vy >> BLOCK_SHIFT, vz >> BLOCK_SHIFT
+                if bx != last_bx or by != last_by or bz != last_bz:
+                    slot = recent_slot(bx, by, bz, ra, rb)
+                    if slot < 0:
+                        slot = hash_find(table_keys, table_slots, pack_key(bx, by, bz))
+                        if slot >= 0:
+                            ra, rb = (bx, by, bz, slot), ra
+                    last_bx, last_by, last_bz = bx, by, bz
+                n_run = carve_visit(voxels, slot, vx, vy, vz, truncation_mm, run, n_run,
+                                    touched, capacity)
                 t, vx, vy, vz, tmx, tmy, tmz, d = dda_step(vx, vy, vz, stx, sty, stz, tdx, tdy,
                                                            tdz, tmx, tmy, tmz, d, ddx, ddy, ddz)
     return offsets[offsets.shape[0] - 1]

@@ -22,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from dm2.fusion.tsdf.carve import CARVE_RUN_VOXELS, CARVE_TRUNCATIONS, carve_visit, walk_columns
 from dm2.fusion.tsdf.kernels import (
     BLOCK_SHIFT,
     MAX_NEW_BLOCKS_PER_RAY,
@@ -55,6 +56,17 @@ def _staged_slot(key, base, st_keys, st_table_keys, st_table_slots, st_state):
     """Field row of a block the field lacks: its row in the thread's reserved rows (staged
     now when new). Not inlined: the fusion loop stays small, and this path is rare."""
     return base + hash_get_or_insert(key, st_table_keys, st_table_slots, st_keys, st_state)
+
+
+@njit(cache=True, nogil=True)
+def _found_slot(key, table_keys, table_slots, base, st_table_keys, st_table_slots):
+    """Field row of an allocated or staged block, -1 for neither (the carve beyond a ray's
+    band allocates nothing)."""
+    s = hash_find(table_keys, table_slots, key)
+    if s >= 0:
+        return s
+    s = hash_find(st_table_keys, st_table_slots, key)
+    return base + s if s >= 0 else -1
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -94,7 +106,10 @@ def _owned(tid, col_shift, start, register, origins_O, points_O, active, xz_S, o
     constants."""
     inv_vox = 1.0 / voxel_mm
     inv_trunc = 1.0 / truncation_mm
+    carve_mm = CARVE_TRUNCATIONS * truncation_mm
+    carve_vox = carve_mm * inv_vox
     cs = BLOCK_SHIFT + col_shift
+    run = np.empty((CARVE_RUN_VOXELS, 2), dtype=np.int64)
     st_capacity = st_keys.shape[0]
     pose = NO_POSE
     ra = rb = (1 << 40, 0, 0, -1)  # the two blocks looked up last (bx, by, bz, slot)
@@ -111,14 +126,9 @@ def _owned(tid, col_shift, start, register, origins_O, points_O, active, xz_S, o
                 bounds_hi, use_bounds, truncation_mm, counts)
             if not ok:
                 continue
-            # the columns of the ray's band (one voxel of margin for rounding)
-            t0, t1 = r - truncation_mm, r + truncation_mm
-            ax0, ax1 = (ox + dx * t0) * inv_vox, (ox + dx * t1) * inv_vox
-            ay0, ay1 = (oy + dy * t0) * inv_vox, (oy + dy * t1) * inv_vox
-            cx0 = (int(np.floor(min(ax0, ax1))) - 1) >> cs
-            cx1 = (int(np.floor(max(ax0, ax1))) + 1) >> cs
-            cy0 = (int(np.floor(min(ay0, ay1))) - 1) >> cs
-            cy1 = (int(np.floor(max(ay0, ay1))) + 1) >> cs
+            # the columns of the ray's walk (an active ray walks on beyond its band, carving)
+            cx0, cx1, cy0, cy1 = walk_columns(ox, oy, dx, dy, r, truncation_mm,
+                                              carve_mm if act else 0.0, inv_vox, cs)
             mine = cx0 == cx1 and cy0 == cy1
             if mine and ((cx0 + cy0) & 1) != tid:
                 continue  # the other thread's column
@@ -143,6 +153,28 @@ def _owned(tid, col_shift, start, register, origins_O, points_O, active, xz_S, o
                         last_bx, last_by, last_bz = bx, by, bz
                     update_voxel(voxels, slot, vx, vy, vz, d, truncation_mm, inv_trunc, act,
                                  active_weight_cap, max_weight)
+                t, vx, vy, vz, tmx, tmy, tmz, d = dda_step(vx, vy, vz, stx, sty, stz, tdx, tdy,
+                                                           tdz, tmx, tmy, tmz, d, ddx, ddy, ddz)
+            if not act:
+                continue
+            # beyond the band: runs end at column edges, as in the serial walk
+            end = span + carve_vox
+            n_run, run_cx, run_cy = 0, 1 << 40, 0
+            while t <= end:
+                if mine or ((vx >> cs) + (vy >> cs)) & 1 == tid:
+                    if (vx >> cs) != run_cx or (vy >> cs) != run_cy:
+                        n_run, run_cx, run_cy = 0, vx >> cs, vy >> cs
+                    bx, by, bz = vx >> BLOCK_SHIFT, vy >> BLOCK_SHIFT, vz >> BLOCK_SHIFT
+                    if bx != last_bx or by != last_by or bz != last_bz:
+                        slot = recent_slot(bx, by, bz, ra, rb)
+                        if slot < 0:
+                            slot = _found_slot(pack_key(bx, by, bz), table_keys, table_slots,
+                                               base, st_table_keys, st_table_slots)
+                            if slot >= 0:
+                                ra, rb = (bx, by, bz, slot), ra
+                        last_bx, last_by, last_bz = bx, by, bz
+                    n_run = carve_visit(voxels, slot, vx, vy, vz, truncation_mm, run, n_run,
+                                        touched, base)
                 t, vx, vy, vz, tmx, tmy, tmz, d = dda_step(vx, vy, vz, stx, sty, stz, tdx, tdy,
                                                            tdz, tmx, tmy, tmz, d, ddx, ddy, ddz)
     return offsets[offsets.shape[0] - 1]

@@ -21,9 +21,8 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from dm2.fusion.tsdf import owned_kernels as OK
+from dm2.fusion.tsdf.carve import COL_SHIFT  # the checkerboard of block columns in x, y
 
-# Block columns of 2**COL_SHIFT blocks are dealt to the two threads as a checkerboard in x, y.
-COL_SHIFT = 2
 STAGING_BLOCKS = 1024  # blocks a thread may stage per run before its staged blocks are committed
 _POOL: ThreadPoolExecutor | None = None
 

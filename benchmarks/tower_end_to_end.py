@@ -1,0 +1,197 @@
+"""The twisted tower end to end: ``dm2 run twisted_tower --no-record`` in a child process, then
+its stage times, real-time factor, peak RSS, track count and the reconstruction per layer band
+against the twin's true surface.
+
+Printed:
+
+- the CPU model, the number of cores and the load average before and after the run (the
+  machine may be shared: timings are only comparable at a similar load);
+- per stage wall time [s] from ``report.json`` (fusion, which holds the reference and layer
+  analysis a layer end triggers inside ``Monitor.feed``, and fusion net of the analysis;
+  reference, layer analysis, real-time deviation; the run before the report, twin included;
+  "report + start-up" is the rest of the child's wall time: writing the report folder,
+  interpreter start and imports), the real-time factor (process seconds over
+  wall seconds) and the child's peak RSS (``wait4``);
+- per band of ``--band`` layers, over all written (observed) vertices of the band's layer
+  meshes (``meshes/layer_NNN.ply``), each against the twin's true surface when that layer
+  closed (``truth/layer_NNN.ply``), inside the truth's xy extent less 1 mm (as ``dm2 run``
+  measures it): RMS and p95 of the unsigned distance [mm], and the coverage: the share of the
+  true surface's vertices over built cells (height above 1 um) that have a written vertex
+  within ``--cover-mm`` (default 1 mm, two voxels), mean over the band's layers;
+- the track count of the report.
+
+    .venv/bin/python benchmarks/tower_end_to_end.py [--duration S] [--band 8] [--out DIR]
+    .venv/bin/python benchmarks/tower_end_to_end.py --analyse DIR   (a folder kept with --out)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+CROP_MM = 1.0          # as dm2.cli.bench_runner.reconstruction_errors
+BUILT_MM = 1e-3        # a truth cell with material (as twin.world.truth.write_layer_surface)
+UNOBSERVED = 5.0       # dm2.defects.classify.CLASS_NAMES.index("unobserved")
+
+
+def cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def load_avg() -> str:
+    return " ".join(f"{x:.2f}" for x in os.getloadavg())
+
+
+def run_child(args, run_dir: Path) -> tuple[float, float, int]:
+    """``(wall_s, peak_rss_mib, returncode)`` of ``dm2 run`` into ``run_dir``."""
+    cmd = [sys.executable, "-m", "dm2.cli.main", "run", args.scenario, "--no-record",
+           "--out", str(run_dir)]
+    if args.duration is not None:
+        cmd += ["--duration", str(args.duration)]
+    env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    t0 = time.perf_counter()
+    with open(run_dir.parent / f"{run_dir.name}.log", "w") as log:
+        proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT)
+        _, status, usage = os.wait4(proc.pid, 0)
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    return time.perf_counter() - t0, usage.ru_maxrss / 1024.0, proc.returncode
+
+
+def layer_errors(run_dir: Path, layer: int, cover_mm: float):
+    """``(distances (n,), covered share)`` of one layer, or None without its files."""
+    import open3d as o3d
+    import trimesh
+    from scipy.spatial import cKDTree
+
+    from dm2.report.meshes import read_ply_vertex_fields
+
+    truth_path = run_dir / "truth" / f"layer_{layer:03d}.ply"
+    mesh_path = run_dir / "meshes" / f"layer_{layer:03d}.ply"
+    if not truth_path.exists() or not mesh_path.exists():
+        return None
+    truth = trimesh.load(truth_path, force="mesh")
+    f = read_ply_vertex_fields(mesh_path)
+    v = np.column_stack([f["x"], f["y"], f["z"]]).astype(np.float64)
+    v = v[f["scalar_class"] != UNOBSERVED]
+    tv = np.asarray(truth.vertices)
+    lo, hi = tv[:, :2].min(axis=0) + CROP_MM, tv[:, :2].max(axis=0) - CROP_MM
+    v = v[np.all((v[:, :2] >= lo) & (v[:, :2] <= hi), axis=1)]
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(tv.astype(np.float32)),
+                        o3d.core.Tensor(np.asarray(truth.faces, np.uint32)))
+    d = scene.compute_distance(o3d.core.Tensor(v.astype(np.float32))).numpy().astype(np.float64)
+    inside = np.all((tv[:, :2] >= lo) & (tv[:, :2] <= hi), axis=1)
+    built = tv[inside & (np.abs(tv[:, 2]) > BUILT_MM)]
+    if len(v) and len(built):
+        near, _ = cKDTree(v).query(built, distance_upper_bound=cover_mm)
+        covered = float(np.mean(np.isfinite(near)))
+    else:
+        covered = 0.0
+    return d, covered
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenario", default="twisted_tower")
+    ap.add_argument("--duration", type=float, default=None, help="process seconds to run")
+    ap.add_argument("--band", type=int, default=8, help="layers per band")
+    ap.add_argument("--cover-mm", type=float, default=1.0)
+    ap.add_argument("--out", type=Path, default=None, help="keep the run folder here")
+    ap.add_argument("--analyse", type=Path, default=None, metavar="RUN_DIR",
+                    help="only print the figures of a run folder this script kept with --out")
+    args = ap.parse_args()
+    if args.analyse is not None:
+        log = args.analyse.parent / f"{args.analyse.name}.wall"
+        wall, rss = (float(x) for x in log.read_text().split()) if log.exists() else (0.0, 0.0)
+        report(args.analyse, wall, rss, args)
+        return
+    print(f"CPU: {cpu_model()}, {os.cpu_count()} cores; load average before: {load_avg()}")
+    tmp = None
+    if args.out is None:
+        tmp = Path(tempfile.mkdtemp(prefix="dm2-tower-"))
+        run_dir = tmp / "run"
+    else:
+        run_dir = args.out.absolute()
+        run_dir.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        wall, rss_mib, rc = run_child(args, run_dir)
+        print(f"load average after: {load_avg()}")
+        (run_dir.parent / f"{run_dir.name}.wall").write_text(f"{wall} {rss_mib}\n")
+        if rc != 0:
+            log = (run_dir.parent / f"{run_dir.name}.log").read_text()[-3000:]
+            raise SystemExit(f"dm2 run failed (exit {rc}):\n{log}")
+        report(run_dir, wall, rss_mib, args)
+    finally:
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+def report(run_dir: Path, wall: float, rss_mib: float, args) -> None:
+    rep = json.loads((run_dir / "report.json").read_text())
+    t = rep["timing"]
+    process_s = float(t["simulated_process_s"])
+    # a layer end inside Monitor.feed runs that layer's reference and analysis: the session's
+    # fusion time holds them; "fusion, net" takes the layer analysis out
+    stages = {"fusion (with nested layer ends)": t["fusion_s"],
+              "fusion, net of layer analysis": t["fusion_s"] - t["analysis_s"],
+              "reference": t["reference_s"], "layer analysis": t["analysis_s"],
+              "real-time deviation": t["realtime_s"],
+              "run before the report": t["wall_s"]}
+    if wall > 0:
+        stages["report + start-up"] = wall - t["wall_s"]
+    n_layers = len(rep.get("layers", []))
+    if wall > 0:
+        print(f"{args.scenario}: {process_s:.0f} s of process, {n_layers} layers; dm2 run wall "
+              f"{wall:.1f} s = {process_s / wall:.1f}x real time; peak RSS {rss_mib:.0f} MiB")
+    else:  # a folder not written by this script: no child wall time or RSS
+        wall = t["wall_s"]
+        print(f"{args.scenario}: {process_s:.0f} s of process, {n_layers} layers; run wall "
+              f"before the report {wall:.1f} s = {process_s / wall:.1f}x real time")
+    for name, s in stages.items():
+        extra = f" ({s / max(n_layers, 1):.2f} s per layer)" if name == "layer analysis" else ""
+        print(f"  {name:>32s}: {s:7.1f} s{extra}")
+    print(f"tracks: {len(rep.get('tracks', []))}")
+    layers = sorted(int(k) for k in rep.get("reconstruction", {}))
+    print(f"reconstruction per {args.band}-layer band (all written vertices vs the twin's true "
+          f"surface at each layer's end; coverage: true built surface within {args.cover_mm:g} "
+          "mm of a written vertex)")
+    print(f"{'layers':>9} {'RMS mm':>7} {'p95 mm':>7} {'max mm':>7} {'cover':>6} {'vertices':>9}")
+    worst = [0.0, 0.0, 1.0]
+    for b0 in range(0, (max(layers) + 1) if layers else 0, args.band):
+        ds, cov = [], []
+        for k in range(b0, b0 + args.band):
+            r = layer_errors(run_dir, k, args.cover_mm)
+            if r is not None:
+                ds.append(r[0])
+                cov.append(r[1])
+        if not ds:
+            continue
+        d = np.concatenate(ds)
+        rms, p95, c = float(np.sqrt(np.mean(d ** 2))), float(np.percentile(d, 95)), \
+            float(np.mean(cov))
+        worst = [max(worst[0], rms), max(worst[1], p95), min(worst[2], c)]
+        print(f"{b0:4d}-{b0 + len(ds) - 1:<4d} {rms:7.3f} {p95:7.3f} {d.max():7.2f} "
+              f"{100 * c:5.1f}% {d.size:9d}")
+    print(f"worst band: RMS {worst[0]:.3f} mm, p95 {worst[1]:.3f} mm, coverage "
+          f"{100 * worst[2]:.1f}% (targets: <= 0.25 mm, <= 0.5 mm, >= 95 %)")
+
+
+if __name__ == "__main__":
+    main()
