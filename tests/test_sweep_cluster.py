@@ -53,8 +53,6 @@ def test_tiny_sweep_is_reproducible_on_a_local_cluster(sweep):
     assert first[2]["reconstruction_rms_mm"] != first[3]["reconstruction_rms_mm"]
 
 
-@pytest.mark.xfail(strict=True, reason="missed target: no false track (strict scoring, every "
-                   "track counts) in any case of the bump sweep")
 def test_tiny_sweep_has_no_false_track(sweep):
     first, _ = sweep
     assert all(r["false_positive_tracks"] == 0 for r in first)
