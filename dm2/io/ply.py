@@ -1,4 +1,5 @@
-"""Triangle meshes with per-vertex fields as binary PLY, through ``plyfile``.
+"""Triangle meshes with per-vertex fields as binary PLY: ``plyfile`` writes the header and
+reads any file; the triangles' bytes are packed here at once.
 
 One writer and one reader for every PLY dm2 writes (fused surfaces, deviation maps). The reader
 takes any valid PLY with a ``vertex`` and a ``face`` element, whatever the property order or
@@ -24,8 +25,8 @@ def write_mesh_ply(path: str | Path, vertex_fields: dict[str, np.ndarray], faces
     vertex = np.empty(n, dtype=[(k, v.dtype.str) for k, v in vertex_fields.items()])
     for k, v in vertex_fields.items():
         vertex[k] = v
+    # the face element describes the header only (its count and layout); the bytes are below
     face = np.empty(len(faces), dtype=[("vertex_indices", "<i4", (3,))])
-    face["vertex_indices"] = faces
     ply = PlyData([PlyElement.describe(vertex, "vertex"),
                    PlyElement.describe(face, "face", len_types={"vertex_indices": "u1"})],
                   text=False, byte_order="<", comments=list(comments))
