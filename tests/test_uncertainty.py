@@ -68,11 +68,17 @@ def test_coefficients_recovered_from_fault_free_deviations():
     f = np.column_stack([np.ones(n), 1 / rng.uniform(1, 8, n), rng.uniform(0, 1, n) ** 2,
                          (rng.random(n) < 0.1) * rng.uniform(0, 1, n) ** 2,
                          (rng.random(n) < 0.1) * 1.0, rng.uniform(0, 2, n) ** 2,
-                         rng.uniform(0, 1.2, n) ** 2])
-    true = np.array([0.08, 0.2, 0.3, 0.15, 0.25, 0.1, 0.2]) ** 2
+                         rng.uniform(0, 1.2, n) ** 2, rng.uniform(0, 3, n) ** 2])
+    true = np.array([0.08, 0.2, 0.3, 0.15, 0.25, 0.1, 0.2, 0.12]) ** 2
     d = rng.normal(0.0, np.sqrt(f @ true))
     got = np.sqrt(fit_coefficients(f, d))
     assert got == pytest.approx(np.sqrt(true), rel=0.1)
+    # an excluded feature (a prior) keeps its given value; the others are fitted around it
+    fixed = np.zeros(len(FEATURES))
+    fixed[7] = true[7]
+    kept = np.sqrt(fit_coefficients(f, d, exclude=("plume",), fixed=fixed))
+    assert kept[7] == np.sqrt(true[7])
+    assert kept == pytest.approx(np.sqrt(true), rel=0.1)
 
 
 def test_fit_on_a_noisy_fault_free_top_gives_its_noise_as_floor():
@@ -98,3 +104,26 @@ def test_fit_on_a_noisy_fault_free_top_gives_its_noise_as_floor():
     assert total == pytest.approx(noise_mm, rel=0.05)
     assert fit["wall_mm"] < 0.05 and fit["foot_mm"] < 0.05 and fit["height_mm"] < 0.05
     assert coefficients(MON.uncertainty).shape == (len(FEATURES),) and c.size == n
+
+
+def test_plume_sensitivity_is_how_the_reference_moves_with_its_plume_width():
+    # a straight pass of constant mass per length: a Gaussian ridge of width sigma; a plume 2 %
+    # wider lowers its crest and raises its flanks by sigma^2 h'' * ln(1.02) (heat equation)
+    cell, sigma, mass = 0.25, 2.95, 6.0
+    x = (np.arange(160) + 0.5) * cell - 20.0
+
+    def ridge(s):
+        return np.tile(mass / (np.sqrt(2 * np.pi) * s) * np.exp(-x * x / (2 * s * s)), (40, 1))
+
+    ref = ReferenceMap(ridge(sigma), cell, plume_sigma_mm=sigma)
+    xy = np.column_stack([(np.arange(40, 120) + 0.5) * cell, np.full(80, 5.0)])  # x -10..10
+    from dm2.reference.height_map import bilinear_height
+
+    moved = bilinear_height(ridge(sigma * 1.02) - ridge(sigma), cell, xy) / np.log(1.02)
+    got = ref.plume_sensitivity_at(xy, smooth_mm=0.05)
+    assert np.abs(got - moved).max() < 0.02 * np.abs(moved).max()
+    assert got[40] < 0 and got[10] > 0  # the crest comes down, the flanks go up
+    # a flat top does not move; a reference of unknown plume width has no sensitivity
+    flat = ReferenceMap(np.full((40, 40), 2.0), cell, plume_sigma_mm=sigma)
+    assert np.abs(flat.plume_sensitivity_at(xy[:5] + 10.0)).max() < 1e-9
+    assert np.all(ReferenceMap(ridge(sigma), cell).plume_sensitivity_at(xy) == 0.0)

@@ -25,3 +25,6 @@ class UncertaintyConfig(BaseModel):
     foot_mm: float = Field(0.0, ge=0)  # at the foot of a wall, near the plate
     gap_mm_per_mm: float = Field(0.0, ge=0)  # per mm to the nearest well observed vertex
     height_mm: float = Field(0.0, ge=0)  # reference error per 10 mm deposited (not fitted)
+    # relative uncertainty of the plume width (not fitted: a prior). The width follows from the
+    # jet's divergence half-angle, which is rarely known better than 5 against 6 deg (+9 %)
+    plume_rel: float = Field(0.10, ge=0)

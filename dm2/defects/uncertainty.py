@@ -31,6 +31,11 @@ gap        ``min(gap, GAP_CAP_MM)^2``, the distance     ``gap_mm_per_mm^2``: sur
 height     ``(h_ref / HEIGHT_SCALE_MM)^2``, the         ``height_mm^2``: the reference's error
            reference height at the vertex               accumulates with the deposited height
                                                         (layers the model has run open-loop)
+plume      ``(sigma^2 laplacian(h_ref))^2``, how far    ``plume_rel^2``: the plume width is
+           the reference moves per relative change of   known only to a fraction (a half
+           its plume width                              angle of 6 instead of 5 deg: +9 %);
+           (:meth:`ReferenceMap.plume_sensitivity_at`)  edges, wall feet and corners move
+                                                        with it, flat tops do not
 =========  ===========================================  ======================================
 
 A vertex is called over- or underbuilt only where ``|d| > delta_global_mm`` and
@@ -53,7 +58,7 @@ from scipy.spatial import cKDTree
 from dm2.defects.classify import LOCAL_CURVATURE_RADIUS_MM
 from dm2.reference.height_map import bilinear_height
 
-FEATURES = ("floor", "range", "wall", "edge", "foot", "gap", "height")
+FEATURES = ("floor", "range", "wall", "edge", "foot", "gap", "height", "plume")
 EDGE_RADIUS_MM = 2.0  # curvature 1/2 mm^-1 beyond the local radius's counts as a full edge
 FOOT_RADIUS_MM = 2.0  # the reference rising within this radius marks the foot of a wall
 FOOT_RISE_MM = 1.0  # ... by this much or more: full foot weight
@@ -64,9 +69,9 @@ HEIGHT_SCALE_MM = 10.0  # height_mm is the reference's error after 10 mm of depo
 
 
 def coefficients(ucfg) -> np.ndarray:
-    """Variance coefficients [mm^2] (7,) in :data:`FEATURES` order from an UncertaintyConfig."""
+    """Variance coefficients [mm^2] (8,) in :data:`FEATURES` order from an UncertaintyConfig."""
     return np.array([ucfg.floor_mm, ucfg.range_mm, ucfg.wall_mm, ucfg.edge_mm, ucfg.foot_mm,
-                     ucfg.gap_mm_per_mm, ucfg.height_mm], np.float64) ** 2
+                     ucfg.gap_mm_per_mm, ucfg.height_mm, ucfg.plume_rel], np.float64) ** 2
 
 
 def foot_rise_map(heights_mm: np.ndarray, cell_mm: float) -> np.ndarray:
@@ -91,7 +96,7 @@ def gap_distance_mm(vertices_O: np.ndarray, weight: np.ndarray, min_weight: floa
 
 def uncertainty_features(vertices_O, weight, normals_O, foot_O, reference,
                          reference_curvature, min_weight: float) -> np.ndarray:
-    """The (n, 7) feature matrix of :data:`FEATURES` (see the module docstring).
+    """The (n, 8) feature matrix of :data:`FEATURES` (see the module docstring).
 
     Parameters
     ----------
@@ -118,6 +123,7 @@ def uncertainty_features(vertices_O, weight, normals_O, foot_O, reference,
     f[:, 4] = (np.minimum(1.0, np.maximum(rise, 0.0) / FOOT_RISE_MM) * low) ** 2
     f[:, 5] = gap_distance_mm(v, np.where(np.isfinite(w), w, 1e9), min_weight) ** 2
     f[:, 6] = (np.maximum(foot[:, 2], 0.0) / HEIGHT_SCALE_MM) ** 2
+    f[:, 7] = reference.plume_sensitivity_at(foot[:, :2]) ** 2 if n else 0.0
     return f
 
 

@@ -19,12 +19,14 @@ class ReferenceMap:
     cell_mm : float [mm], grid spacing
     layer : int, the layer this reference belongs to
     stamp_s : float [s], process time of the last robot state integrated
+    plume_sigma_mm : float [mm], the plume width the model deposited with (0: not known)
     """
 
     heights_mm: np.ndarray
     cell_mm: float
     layer: int = 0
     stamp_s: float = 0.0
+    plume_sigma_mm: float = 0.0
 
     def __post_init__(self):
         h = np.ascontiguousarray(self.heights_mm, dtype=np.float64)
@@ -80,6 +82,24 @@ class ReferenceMap:
         curv = -num / (2.0 * (1 + hx * hx + hy * hy) ** 1.5)
         return bilinear_height(curv, self.cell_mm, xy_O)
 
+    def plume_sensitivity_at(self, xy_O, smooth_mm: float = 0.75) -> np.ndarray:
+        """``dh / d ln(sigma)`` [mm] (n,) at ``xy_O``: how much the reference moves per unit
+        relative change of its plume width, ``sigma^2 * laplacian(h)``.
+
+        A Gaussian footprint of width ``sigma`` is a heat kernel, so the reference's height
+        field obeys ``dh / d(sigma^2) = laplacian(h) / 2`` wherever it is a sum of such
+        footprints: a plume a fraction ``r`` wider lowers convex edges and raises the foot of
+        walls and concave corners by ``r sigma^2 laplacian(h)``, and leaves flat tops alone.
+        Zero where the plume width is not known.
+        """
+        from scipy.ndimage import gaussian_filter, laplace
+
+        if not self.plume_sigma_mm > 0:
+            return np.zeros(len(np.asarray(xy_O).reshape(-1, 2)))
+        h = gaussian_filter(self.heights_mm, smooth_mm / self.cell_mm, mode="nearest")
+        lap = laplace(h, mode="nearest") / (self.cell_mm * self.cell_mm)
+        return self.plume_sigma_mm ** 2 * bilinear_height(lap, self.cell_mm, xy_O)
+
     def resampled(self, cell_mm: float) -> ReferenceMap:
         """The surface point-sampled on a grid of ``cell_mm`` (centres at ``(i + 0.5) * cell``).
 
@@ -92,7 +112,7 @@ class ReferenceMap:
         ny = max(int(round(self.size_mm[1] / cell_mm)), 2)
         xx, yy = np.meshgrid((np.arange(nx) + 0.5) * cell_mm, (np.arange(ny) + 0.5) * cell_mm)
         h = self.height_at(np.column_stack([xx.ravel(), yy.ravel()])).reshape(ny, nx)
-        return ReferenceMap(h, cell_mm, self.layer, self.stamp_s)
+        return ReferenceMap(h, cell_mm, self.layer, self.stamp_s, self.plume_sigma_mm)
 
     def crop_indices(self, lo_xy, hi_xy, margin_mm: float = 0.0):
         """Row and column index slices covering ``[lo, hi]`` (+ margin) in ``O`` [mm]."""

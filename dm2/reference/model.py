@@ -218,7 +218,8 @@ class NearNetReference:
     def snapshot(self, layer: int | None = None) -> ReferenceMap:
         """The reference as of the last robot state (any time, not only at layer ends)."""
         return ReferenceMap(self._with_pending()[0], self.cell_mm,
-                            self.layer if layer is None else layer, self.stamp_s)
+                            self.layer if layer is None else layer, self.stamp_s,
+                            self.sigma_mm)
 
     def end_layer(self, layer: int | None = None) -> ReferenceMap:
         """Store and return the reference at the end of ``layer`` (default: the current one)."""
