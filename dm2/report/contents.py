@@ -77,8 +77,7 @@ def write_contents(tmp: Path, results, tracks, ranked: list[dict], *, config_tom
         r = by_layer.get(layer)
         if r is None:
             raise ValueError(f"write_report: no result for requested map layer {layer}")
-        marks = [(tid, kinds.get(tid, reg.kind), tuple(reg.centroid_O[:2]))
-                 for reg, tid in list(zip(r.regions, r.track_ids, strict=True))[:MAP_MARKERS]]
+        marks = layer_markers(r, kinds)
         name = f"maps/deviation_layer_{layer:03d}.png"
         plot_deviation_map(tmp / name, r.deviation, marks, limit_mm, outline=outline)
         files["deviation_maps"].append(name)
@@ -105,3 +104,12 @@ def write_contents(tmp: Path, results, tracks, ranked: list[dict], *, config_tom
     files["track_plots"] += [name for name, _ in items]
     return files
 
+
+def layer_markers(result, kinds: dict[int, str]) -> list[tuple[int, str, tuple[float, float]]]:
+    """``(track_id, kind, (x, y))`` of a layer's tracked regions, the first
+    :data:`MAP_MARKERS`: a region no track holds (not yet confirmed, or not evidence enough)
+    is coloured on the map but gets no number, as nothing in the table answers to it."""
+    pairs = [(reg, tid) for reg, tid in zip(result.regions, result.track_ids, strict=True)
+             if tid is not None]
+    return [(int(tid), kinds.get(tid, reg.kind), tuple(reg.centroid_O[:2]))
+            for reg, tid in pairs[:MAP_MARKERS]]
