@@ -20,6 +20,15 @@ flagged for at least ``realtime_persist_s`` of process time and in
 ``realtime_min_observations`` observations in a row (comparisons with new measurement, not
 the same TSDF compared again). A transient at the deposition front or a single noisy frame
 set raises nothing.
+
+The comparison follows the measurement (:func:`~dm2.defects.realtime_kernels.compare_columns`):
+a column is judged again only when its measured crossing changed, never because the
+reference grew over a surface measured earlier; and the TSDF's running average lags a surface
+under deposition, so a column's measurement is held against the interval from the reference at
+its previous observation to the reference now (overbuild above it, underbuild below it). As in
+the layer analysis, the bound holds the reference's edge term
+(:mod:`dm2.defects.realtime_curvature`), and columns ``overspray_margin_mm`` or more outside
+the planned outline (overspray on the plate) raise no alarm of their own.
 """
 
 from __future__ import annotations
@@ -29,6 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dm2.defects.realtime_curvature import window_mean_curvature
 from dm2.defects.realtime_kernels import (
     OVER,
     UNDER,
@@ -96,10 +106,14 @@ class RealtimeDeviation:
     link_mm : float [mm], unobserved gaps up to about twice this between flagged columns are
         bridged when patches are measured (laser lines sweep the surface a few mm apart)
     uncertainty : bool, flag against each column's confidence bound too
+    outline : dm2.defects.footprint.PlannedOutline or None, the planned footprint: a column
+        ``overspray_margin_mm`` or more outside it is overspray on the plate, which raises no
+        alarm by itself (it may belong to the patch of a defect nearer the part)
     """
 
     def __init__(self, monitor_cfg, size_mm=(120.0, 120.0), radius_mm: float = 6.0,
-                 z_margin_mm: float = 3.0, link_mm: float = 2.0, uncertainty: bool = True):
+                 z_margin_mm: float = 3.0, link_mm: float = 2.0, uncertainty: bool = True,
+                 outline=None):
         self.cfg = monitor_cfg
         self.voxel_mm = float(monitor_cfg.voxel_mm)
         self.radius_mm = float(radius_mm)
@@ -113,7 +127,16 @@ class RealtimeDeviation:
         self.flag_count = np.zeros((ny, nx), np.int64)
         self._weight_map = np.zeros((ny, nx))
         self.strong_map = np.zeros((ny, nx), bool)
+        self.measured_map_mm = np.full((ny, nx), np.nan)
+        self.expected_map_mm = np.full((ny, nx), np.nan)
         u = monitor_cfg.uncertainty
+        self._edge_mm = float(u.edge_mm) if uncertainty else 0.0
+        self._overspray = np.zeros((ny, nx), bool)
+        if outline is not None:
+            xx, yy = np.meshgrid((np.arange(nx) + 0.5) * self.voxel_mm,
+                                 (np.arange(ny) + 0.5) * self.voxel_mm)
+            outside = outline.outside_at(np.column_stack([xx.ravel(), yy.ravel()]))
+            self._overspray = (outside >= float(monitor_cfg.overspray_margin_mm)).reshape(ny, nx)
         self._bound = ((float(u.confidence_k), float(u.floor_mm), float(u.range_mm),
                         float(u.wall_mm), float(u.height_mm)) if uncertainty else (0.0,) * 5)
         self.persist_s = float(monitor_cfg.realtime_persist_s)
@@ -168,11 +191,19 @@ class RealtimeDeviation:
             hw = window_reference_heights(np.asarray(reference.heights_mm, np.float64),
                                           float(reference.cell_mm), i0, j0, i0 + d.shape[0],
                                           j0 + d.shape[1], v)
+        curv = None
+        if self._edge_mm > 0.0:
+            ny, nx = self.flag_map.shape
+            curv = window_mean_curvature(np.asarray(reference.heights_mm, np.float64),
+                                         float(reference.cell_mm), i0, j0, i0 + d.shape[0],
+                                         j0 + d.shape[1], v, nx, ny)
         gi, gj, dev, flag, newly = compare_columns(
             d, np.asarray(weight, np.float32), np.float32(self.cfg.min_weight), i0, j0, k0, hw,
             v, float(self.cfg.delta_global_mm), float(stamp_s), self.deviation_map_mm,
             self.flag_map, self.first_flag_s, self._alarmed, self.flag_count, self._bound,
-            self._weight_map, self.strong_map)
+            self._weight_map, self.strong_map, self.measured_map_mm, self.expected_map_mm, curv,
+            self._edge_mm)
+        self.strong_map[gj, gi] &= ~self._overspray[gj, gi]  # overspray: no alarm of its own
         n_over = int(np.count_nonzero(flag == OVER))
         n_under = int(np.count_nonzero(flag == UNDER))
         # a patch can only reach the alarm area, or hold a persistent column, through a column

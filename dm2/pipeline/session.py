@@ -151,7 +151,8 @@ class MonitoringSession:
         self.timing = SessionTiming()
         self.states = ReferenceFeed(self.reference, toolpath, monitor_cfg.reference_clock,
                                     monitor_cfg.dwell_speed_mm_s)
-        self.realtime = RealtimeDeviation(monitor_cfg, size_mm=tuple(plate_size_mm[:2]))
+        self.realtime = RealtimeDeviation(monitor_cfg, size_mm=tuple(plate_size_mm[:2]),
+                                          outline=outline)
         self._rt_profiles = 0
         self._rt_latency_s: list[float] = []
         self._finished = False
