@@ -276,6 +276,9 @@ class MonitorConfig(_Model):
     realtime_min_observations: int = Field(2, ge=1)
     # plate deviations this far outside the planned outline: overspray (dm2.defects.footprint)
     overspray_margin_mm: float = Field(2.0, ge=0)
+    # the newest layers whose whole deviation stays in memory; older ones wait on disk for the
+    # report (dm2.defects.spill), so a tall build's memory does not grow with its layers
+    layers_in_memory: int | None = Field(2, ge=1)
     # the reference follows the process (dm2.pipeline.process_fit); None: on with the
     # executed clock only (on the programmed one it would fit the slowdowns' overbuild)
     process_fit: bool | None = None
