@@ -219,3 +219,34 @@ def test_island_of_unobserved_columns_raises_no_alarm():
     assert sorted(sizes.tolist()) == [20, 20]  # the two flagged lines, not the island
     assert np.all(stats[:, 2] == 3.0)
     assert not alarmed[:, 8].any() and alarmed[5:25, 5].all() and alarmed[5:25, 11].all()
+
+
+def test_reference_growing_over_an_earlier_measurement_is_no_evidence():
+    """A column is judged on new measurement only, held against the interval from the
+    reference at its previous observation to the reference now: deposition that the
+    profilers have not seen yet raises nothing, a surface that stays low once the
+    deposition there is over is underbuilt."""
+    v = MON.voxel_mm
+    origin = (100, 100, 0)
+    nx, ny, nz = 20, 20, 16
+    zc = (np.arange(nz) + 0.5) * v
+    d = np.broadcast_to(zc[None, None, :] - 2.4, (nx, ny, nz)).astype(np.float32)
+    w = np.full(d.shape, 3.0, np.float32)
+    rt = RealtimeDeviation(MON)
+    fd = rt.update(1.0, d, w, origin, ReferenceMap(pad(2.4), CELL))
+    assert not fd.flag.any()
+    grown = ReferenceMap(pad(3.2), CELL)  # 0.8 mm deposited since, not yet observed
+    for t in np.arange(1.1, 3.0, 0.1):  # the same TSDF compared again and again
+        fd = rt.update(float(t), d, w, origin, grown)
+        assert fd.alarms == () and not fd.flag.any()
+    # observed anew: the surface may still lag the deposition it saw start ...
+    fd = rt.update(3.0, d, w + 1, origin, grown)
+    assert not fd.flag.any() and np.allclose(fd.deviation_mm, 0.0)
+    # ... but observed again at 2.4 mm, once the reference has stood at 3.2 mm: underbuild
+    alarms = []
+    for k, t in enumerate((3.1, 3.2, 3.3)):
+        fd = rt.update(t, d, w + 2 + k, origin, grown)
+        assert (fd.flag == UNDER).all()
+        assert np.allclose(fd.deviation_mm, -0.8, atol=1e-5)
+        alarms += fd.alarms
+    assert [a.kind for a in alarms] == ["underbuild"] and alarms[0].first_flag_s == 3.1
