@@ -30,3 +30,23 @@ def test_window_curvature_equals_the_whole_map_statement():
             assert np.abs(got).max() > 0.05  # the pad's edge and the dome are curved
         else:
             assert got.shape == (j1 - j0, i1 - i0) and np.abs(got).max() < 0.01  # flat plate
+
+
+def test_window_laplacian_gives_the_layer_analysis_plume_term():
+    # a Gaussian ridge (one straight pass): the real-time plume term sigma^2 * laplacian equals
+    # the layer analysis's ReferenceMap.plume_sensitivity_at (another stencil: within 3 %)
+    from dm2.defects.realtime_curvature import window_curvatures
+
+    cell, v, sigma = 0.25, 0.5, 2.95
+    c = (np.arange(480) + 0.5) * cell
+    xx, _ = np.meshgrid(c, c)
+    h = 6.0 / (np.sqrt(2 * np.pi) * sigma) * np.exp(-(xx - 60.0) ** 2 / (2 * sigma ** 2))
+    grid = ReferenceMap(h, cell, plume_sigma_mm=sigma).resampled(v)
+    i0, j0, i1, j1 = 100, 110, 140, 130  # x 50..70 mm across the ridge
+    _, lap = window_curvatures(h, cell, i0, j0, i1, j1, v, 240, 240)
+    ys, xs = np.mgrid[j0:j1, i0:i1]
+    xy = np.column_stack([(xs.ravel() + 0.5) * v, (ys.ravel() + 0.5) * v])
+    want = grid.plume_sensitivity_at(xy).reshape(lap.shape)
+    got = sigma ** 2 * lap
+    assert np.abs(got - want).max() < 0.03 * np.abs(want).max()
+    assert got[:, 20].max() < 0 and got[:, 0].min() > 0  # crest down, flanks (x 50 mm) up

@@ -38,7 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dm2.defects.realtime_curvature import window_mean_curvature
+from dm2.defects.realtime_curvature import window_curvatures
 from dm2.defects.realtime_kernels import (
     OVER,
     UNDER,
@@ -131,6 +131,7 @@ class RealtimeDeviation:
         self.expected_map_mm = np.full((ny, nx), np.nan)
         u = monitor_cfg.uncertainty
         self._edge_mm = float(u.edge_mm) if uncertainty else 0.0
+        self._plume_rel = float(u.plume_rel) if uncertainty else 0.0
         self._overspray = np.zeros((ny, nx), bool)
         if outline is not None:
             xx, yy = np.meshgrid((np.arange(nx) + 0.5) * self.voxel_mm,
@@ -191,18 +192,19 @@ class RealtimeDeviation:
             hw = window_reference_heights(np.asarray(reference.heights_mm, np.float64),
                                           float(reference.cell_mm), i0, j0, i0 + d.shape[0],
                                           j0 + d.shape[1], v)
-        curv = None
-        if self._edge_mm > 0.0:
+        curv = lap = None
+        plume_mm2 = self._plume_rel * float(getattr(reference, "plume_sigma_mm", 0.0)) ** 2
+        if self._edge_mm > 0.0 or plume_mm2 > 0.0:
             ny, nx = self.flag_map.shape
-            curv = window_mean_curvature(np.asarray(reference.heights_mm, np.float64),
-                                         float(reference.cell_mm), i0, j0, i0 + d.shape[0],
-                                         j0 + d.shape[1], v, nx, ny)
+            curv, lap = window_curvatures(np.asarray(reference.heights_mm, np.float64),
+                                          float(reference.cell_mm), i0, j0, i0 + d.shape[0],
+                                          j0 + d.shape[1], v, nx, ny)
         gi, gj, dev, flag, newly = compare_columns(
             d, np.asarray(weight, np.float32), np.float32(self.cfg.min_weight), i0, j0, k0, hw,
             v, float(self.cfg.delta_global_mm), float(stamp_s), self.deviation_map_mm,
             self.flag_map, self.first_flag_s, self._alarmed, self.flag_count, self._bound,
             self._weight_map, self.strong_map, self.measured_map_mm, self.expected_map_mm, curv,
-            self._edge_mm)
+            self._edge_mm, lap, plume_mm2)
         self.strong_map[gj, gi] &= ~self._overspray[gj, gi]  # overspray: no alarm of its own
         n_over = int(np.count_nonzero(flag == OVER))
         n_under = int(np.count_nonzero(flag == UNDER))

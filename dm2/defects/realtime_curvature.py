@@ -1,4 +1,4 @@
-"""The reference's mean curvature at the real-time window's voxel columns (numba).
+"""The reference's mean curvature and Laplacian at the real-time window's voxel columns (numba).
 
 The layer analysis gives a deviation at a rounded edge or corner of the reference its larger
 uncertainty (the ``edge`` term of :mod:`dm2.defects.uncertainty`), from the reference's mean
@@ -9,7 +9,9 @@ reference sampled at the voxel column centres of the window and a margin around 
 (the separable Gaussian of ``scipy.ndimage.gaussian_filter``, truncated at 4 sigma), then the
 derivatives as ``np.gradient`` and the curvature of the height field. Inside the plate, the
 margin makes the window's values those of the whole map (``tests/test_realtime_curvature.py``
-checks them against the scipy statement).
+checks them against the scipy statement). The Laplacian ``hxx + hyy`` of the same smoothed
+field gives the plume term (``sigma^2 laplacian(h)``,
+:meth:`dm2.reference.height_map.ReferenceMap.plume_sensitivity_at`).
 """
 
 from __future__ import annotations
@@ -76,16 +78,19 @@ def _grad(a, v, axis):
 
 
 @njit(cache=True)
-def window_mean_curvature(heights_mm, cell_mm, i0, j0, i1, j1, voxel_mm, nx_map, ny_map,
-                          smooth_mm=SMOOTH_MM):
-    """Mean curvature [1/mm] (j1 - j0, i1 - i0) of the reference at the voxel columns
-    ``i0:i1, j0:j1`` (+ where convex), the voxel-column grid being ``nx_map x ny_map``."""
+def window_curvatures(heights_mm, cell_mm, i0, j0, i1, j1, voxel_mm, nx_map, ny_map,
+                      smooth_mm=SMOOTH_MM):
+    """``(mean curvature [1/mm], laplacian [1/mm])``, each (j1 - j0, i1 - i0), of the reference
+    at the voxel columns ``i0:i1, j0:j1`` (curvature + where convex), the voxel-column grid
+    being ``nx_map x ny_map``."""
     w, r = _gauss_weights(smooth_mm / voxel_mm)
     p = r + 2
     a0, b0 = max(i0 - p, 0), max(j0 - p, 0)
     a1, b1 = min(i1 + p, nx_map), min(j1 + p, ny_map)
+    out = np.zeros((j1 - j0, i1 - i0))
+    lap = np.zeros((j1 - j0, i1 - i0))
     if b1 - b0 < 2 or a1 - a0 < 2:
-        return np.zeros((j1 - j0, i1 - i0))
+        return out, lap
     h = np.empty((b1 - b0, a1 - a0))
     for jj in range(b1 - b0):
         y = (b0 + jj + 0.5) * voxel_mm
@@ -94,15 +99,22 @@ def window_mean_curvature(heights_mm, cell_mm, i0, j0, i1, j1, voxel_mm, nx_map,
     s = _smooth_axis(_smooth_axis(h, w, r, 0), w, r, 1)
     hy, hx = _grad(s, voxel_mm, 0), _grad(s, voxel_mm, 1)
     hxy, hxx, hyy = _grad(hx, voxel_mm, 0), _grad(hx, voxel_mm, 1), _grad(hy, voxel_mm, 0)
-    out = np.empty((j1 - j0, i1 - i0))
     for jj in range(j1 - j0):
         for ii in range(i1 - i0):
             y, x = j0 + jj - b0, i0 + ii - a0
             if y < 0 or y >= s.shape[0] or x < 0 or x >= s.shape[1]:  # off the plate
-                out[jj, ii] = 0.0
                 continue
             gx, gy = hx[y, x], hy[y, x]
             num = ((1 + gy * gy) * hxx[y, x] - 2 * gx * gy * hxy[y, x]
                    + (1 + gx * gx) * hyy[y, x])
             out[jj, ii] = -num / (2.0 * (1 + gx * gx + gy * gy) ** 1.5)
-    return out
+            lap[jj, ii] = hxx[y, x] + hyy[y, x]
+    return out, lap
+
+
+def window_mean_curvature(heights_mm, cell_mm, i0, j0, i1, j1, voxel_mm, nx_map, ny_map,
+                          smooth_mm=SMOOTH_MM):
+    """Mean curvature [1/mm] (j1 - j0, i1 - i0) of the reference at the voxel columns
+    ``i0:i1, j0:j1`` (+ where convex), the voxel-column grid being ``nx_map x ny_map``."""
+    return window_curvatures(heights_mm, cell_mm, i0, j0, i1, j1, voxel_mm, nx_map, ny_map,
+                             smooth_mm)[0]

@@ -82,7 +82,8 @@ def _slope(h, a, n, v, along_rows, fixed):
 def compare_columns(d, w, min_weight, i0, j0, k0, hw, voxel_mm, delta_mm, stamp_s,
                     deviation_map, flag_map, first_flag_s, alarmed, flag_count=None,
                     bound=(0.0, 0.0, 0.0, 0.0, 0.0), weight_map=None, strong_map=None,
-                    measured_map=None, expected_map=None, curvature=None, edge_mm=0.0):
+                    measured_map=None, expected_map=None, curvature=None, edge_mm=0.0,
+                    laplacian=None, plume_mm2=0.0):
     """Compare a dense TSDF box with the reference and update the column maps in place.
 
     ``d, w (nx, ny, nz)``: the box's signed distance [mm] and weight, voxel ``(i0, j0, k0)`` at
@@ -120,7 +121,10 @@ def compare_columns(d, w, min_weight, i0, j0, k0, hw, voxel_mm, delta_mm, stamp_
     (:func:`dm2.defects.realtime_curvature.window_mean_curvature`), the bound holds the edge
     term of :mod:`dm2.defects.uncertainty` too, ``edge_mm * min(1, max(0, |H| - 1 /
     LOCAL_CURVATURE_RADIUS_MM) * EDGE_RADIUS_MM)``: the Gaussian model's known mismatch at the
-    reference's rounded edges and corners, as the layer analysis judges them.
+    reference's rounded edges and corners, as the layer analysis judges them. With
+    ``laplacian`` (ny, nx) [1/mm] of the same smoothed reference it holds the plume term too,
+    ``plume_mm2 * laplacian`` with ``plume_mm2 = plume_rel * sigma^2``: how far the reference
+    moves when its plume width is off by ``plume_rel``.
     """
     cross, wcross = column_crossings_weights(d, w, min_weight)
     kb, fl2, rg2, wl2 = bound[0], bound[1] ** 2, bound[2] ** 2, bound[3] ** 2
@@ -172,8 +176,9 @@ def compare_columns(d, w, min_weight, i0, j0, k0, hw, voxel_mm, delta_mm, stamp_
                 if curvature is not None:
                     excess = max(abs(curvature[jj, ii]) - 1.0 / LOCAL_CURVATURE_RADIUS_MM, 0.0)
                     edge = edge_mm * min(1.0, excess * EDGE_RADIUS_MM)
+                plume = plume_mm2 * laplacian[jj, ii] if laplacian is not None else 0.0
                 sig = np.sqrt(fl2 + rg2 / max(wcross[ii, jj], 1.0) + wl2 * tilt * tilt
-                              + hgt * hgt + edge * edge)
+                              + hgt * hgt + edge * edge + plume * plume)
                 lim = kb * sig
             f = OVER if e > delta_mm else (UNDER if e < -delta_mm else 0)
             if strong_map is not None:
