@@ -18,6 +18,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import nnls
 
+from dm2.core.tolerances import DIVISOR_FLOOR
 from dm2.defects.classify import UNOBSERVED
 from dm2.defects.uncertainty import FEATURES, uncertainty_features
 
@@ -54,7 +55,7 @@ def fit_coefficients(features: np.ndarray, deviation_mm: np.ndarray,
     the features named in ``exclude`` get 0."""
     F = np.asarray(features, np.float64)
     use = np.array([name not in exclude for name in FEATURES])
-    scale = np.maximum(F[:, use].max(axis=0), 1e-12)  # conditioning: every column up to 1
+    scale = np.maximum(F[:, use].max(axis=0), DIVISOR_FLOOR)  # conditioning: every column up to 1
     coef = np.zeros(len(FEATURES))
     coef[use], _ = nnls(F[:, use] / scale, np.asarray(deviation_mm, np.float64) ** 2)
     coef[use] /= scale

@@ -20,6 +20,8 @@ import math
 import numpy as np
 from numba import njit
 
+from dm2.core.tolerances import DOWNWARD_COS, NEAR_ZERO
+
 MARCH_REFINE_STEPS = 6  # bisections after the march brackets the surface (cell / 64)
 
 
@@ -76,7 +78,7 @@ def spots_from_poses(T_B_F, T_F_O, spot_B, axis_B, out_spot, out_axis):
 def march_to_surface(h, cell, zmax, ox, oy, oz, ax, ay, az, t_max):
     """Distance along the unit axis from ``o`` to the first crossing of the height map, or
     ``-1.0`` when the ray stays above it up to ``t_max`` (or does not point down)."""
-    if az > -1e-6:
+    if az > -DOWNWARD_COS:
         return -1.0
     t = 0.0
     if oz > zmax:  # nothing above zmax: start the march there
@@ -136,7 +138,7 @@ def deposit_spot(h, cell, px, py, pz, ax, ay, az, dt, v_dot, zeta0, theta_c, sig
     zeta_cos = max(math.cos(theta_c), 0.0)
     # an axis in a coordinate plane (infill, most edges) makes the Gaussian separable:
     # exp(-d2 / 2s^2) = ex[i] * ey[j]; the tail of ``scratch`` holds ex and ey
-    separable = abs(ax * ay) < 1e-12
+    separable = abs(ax * ay) < NEAR_ZERO
     off = scratch.shape[0] - (nx + ny + 2)
     if separable:
         for i in range(i_lo, i_hi + 1):

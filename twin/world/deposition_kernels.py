@@ -12,6 +12,7 @@ import math
 import numpy as np
 from numba import njit
 
+from dm2.core.tolerances import NEAR_ZERO
 from twin.world.heightfield_kernels import BLOCK, bilinear_height, ray_one
 
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
@@ -291,7 +292,7 @@ def spray_step(H, bmax, zmax, dirty, cell, thickness, state, lam, spot, axis, si
     e2x = ay * e1z - az * e1y
     e2y = az * e1x - ax * e1z
     e2z = ax * e1y - ay * e1x
-    vertical = abs(ax) < 1e-12 and abs(ay) < 1e-12 and az < 0.0
+    vertical = abs(ax) < NEAR_ZERO and abs(ay) < NEAR_ZERO and az < 0.0
     code = int(phys[PHYS_CURVE])
     theta_p = phys[PHYS_PLATEAU]
     bulk = phys[PHYS_BULK]
