@@ -58,6 +58,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from dm2.core.config import ConfigError, format_validation_error, read_toml
 from dm2.core.frames import from_euler_deg
+from dm2.core.tolerances import NEAR_ZERO, SAME_POINT_MM
 
 ARTIFACT_SCHEMA = 1
 
@@ -214,7 +215,7 @@ def ray_sphere(o: np.ndarray, d: np.ndarray, center: np.ndarray, radius: float) 
     ok = disc >= 0
     s = np.sqrt(np.where(ok, disc, 0.0))
     t0, t1 = -b - s, -b + s
-    t = np.where(t0 > 1e-9, t0, np.where(t1 > 1e-9, t1, np.inf))
+    t = np.where(t0 > SAME_POINT_MM, t0, np.where(t1 > SAME_POINT_MM, t1, np.inf))
     return np.where(ok, t, np.inf)
 
 
@@ -233,13 +234,13 @@ def ray_cylinder(o: np.ndarray, d: np.ndarray, base: np.ndarray, axis: np.ndarra
     C = np.einsum("ij,ij->i", o_perp, o_perp) - radius * radius
     with np.errstate(divide="ignore", invalid="ignore"):
         disc = B * B - A * C
-        ok = (disc >= 0) & (A > 1e-12)
+        ok = (disc >= 0) & (A > NEAR_ZERO)
         s = np.sqrt(np.where(ok, disc, 0.0))
         out = np.full(o.shape[0], np.inf)
         for sign in (1.0, -1.0):  # far root first, near root overwrites
-            t = np.where(ok, (-B + sign * s) / np.where(A > 1e-12, A, 1.0), np.inf)
+            t = np.where(ok, (-B + sign * s) / np.where(A > NEAR_ZERO, A, 1.0), np.inf)
             h = (oc @ a) + t * (d @ a)
-            hit = ok & (t > 1e-9) & (h >= 0) & (h <= length)
+            hit = ok & (t > SAME_POINT_MM) & (h >= 0) & (h <= length)
             out = np.where(hit & (t < out), t, out)
     return out
 
@@ -254,8 +255,8 @@ def ray_box(o: np.ndarray, d: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.
     t2 = np.nan_to_num(t2, nan=np.inf)
     tmin = np.max(np.minimum(t1, t2), axis=1)
     tmax = np.min(np.maximum(t1, t2), axis=1)
-    hit = (tmax >= np.maximum(tmin, 0.0)) & (tmax > 1e-9)
-    t = np.where(tmin > 1e-9, tmin, tmax)
+    hit = (tmax >= np.maximum(tmin, 0.0)) & (tmax > SAME_POINT_MM)
+    t = np.where(tmin > SAME_POINT_MM, tmin, tmax)
     return np.where(hit, t, np.inf)
 
 

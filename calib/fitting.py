@@ -6,6 +6,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from dm2.core.frames import make_T
+from dm2.core.tolerances import SMALL_ROTATION_RAD
 
 
 def fit_circle_xz(xz: np.ndarray) -> tuple[np.ndarray, float, float]:
@@ -84,7 +85,7 @@ def right_jacobian_so3(rotvec: np.ndarray) -> np.ndarray:
     K = np.array([[0.0, -rotvec[2], rotvec[1]],
                   [rotvec[2], 0.0, -rotvec[0]],
                   [-rotvec[1], rotvec[0], 0.0]])
-    if th < 1e-8:
+    if th < SMALL_ROTATION_RAD:
         return np.eye(3) - 0.5 * K
     return (np.eye(3) - (1.0 - np.cos(th)) / th ** 2 * K
             + (th - np.sin(th)) / th ** 3 * (K @ K))

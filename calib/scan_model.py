@@ -17,6 +17,7 @@ import numpy as np
 from calib.artifact import Artifact, ray_cylinder
 from dm2.core.config import SensorConfig
 from dm2.core.frames import apply, invert, rotate
+from dm2.core.tolerances import OCCLUSION_SLACK_MM
 
 
 @dataclass(frozen=True)
@@ -84,9 +85,9 @@ class Cylinder:
 def _blocked(artifact: Artifact, T_A_B: np.ndarray, occluders, o_B, d_B, length):
     """(n,) bool: segments from ``o_B`` along ``d_B`` hit something before ``length``."""
     t_art, _ = artifact.raycast_A(apply(T_A_B, o_B), rotate(T_A_B, d_B))
-    blocked = t_art < length - 1e-6
+    blocked = t_art < length - OCCLUSION_SLACK_MM
     for occ in occluders:
-        blocked |= occ.hit_t(o_B, d_B) < length - 1e-6
+        blocked |= occ.hit_t(o_B, d_B) < length - OCCLUSION_SLACK_MM
     return blocked
 
 

@@ -18,6 +18,7 @@ import numpy as np
 
 from dm2.core.config import ConfigError
 from dm2.core.frames import apply, from_quat_abb, make_T, to_quat_abb
+from dm2.core.tolerances import UNIT_NORM_TOL
 from dm2.core.toml_write import dump_toml
 
 
@@ -93,7 +94,7 @@ def touch_off_from_toml(text: str, source: str = "<touch-off>") -> np.ndarray:
             raise ConfigError(f"{source}: field 'touches[{i}]': {exc}") from None
         if t.shape != (3,) or q.shape != (4,) or not np.all(np.isfinite(np.r_[t, q])):
             raise ConfigError(f"{source}: field 'touches[{i}]': expected 3 + 4 finite numbers")
-        if abs(np.linalg.norm(q) - 1.0) > 1e-6:
+        if abs(np.linalg.norm(q) - 1.0) > UNIT_NORM_TOL:
             raise ConfigError(f"{source}: field 'touches[{i}].quaternion_wxyz': not a unit "
                               f"quaternion (norm {np.linalg.norm(q):.9g})")
         out.append(from_quat_abb(t, q))

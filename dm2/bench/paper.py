@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from dm2.core.tolerances import BUILT_HEIGHT_MM
+
 EDGE_BAND_MM = 3.0
 GRID_MM = 0.5
 
@@ -43,7 +45,8 @@ def part_heights(vertices_O: np.ndarray, n_layers: int, density_g_cm3: float,
     if holes.any() and (~holes).any():  # unobserved cells take their nearest neighbour
         idx = ndimage.distance_transform_edt(holes, return_distances=False, return_indices=True)
         filled = filled[tuple(idx)]
-    top = np.percentile(filled[filled > 1e-3], 95) if np.any(filled > 1e-3) else 0.0
+    built = filled > BUILT_HEIGHT_MM
+    top = np.percentile(filled[built], 95) if np.any(built) else 0.0
     footprint = filled > 0.5 * top if top > 0 else np.zeros(filled.shape, bool)
     if not footprint.any():
         return {"edge_height_mm": 0.0, "centre_height_mm": 0.0, "avg_edge_layer_mm": 0.0,

@@ -40,11 +40,12 @@ import numpy as np
 from dm2.core.config import ConfigError
 from dm2.core.frames import from_quat_abb, to_quat_abb
 from dm2.core.messages import SENSOR_IDS, Calibration, MessageError
+from dm2.core.tolerances import UNIT_NORM_TOL
 from dm2.core.toml_write import dump_toml
 
 CALIBRATION_SCHEMA = 1
 _POSE_KEYS = ("translation_mm", "quaternion_wxyz")
-_UNIT_TOLERANCE = 1e-6
+_UNIT_TOLERANCE = UNIT_NORM_TOL
 
 
 def _pose_table(T: np.ndarray) -> dict:

@@ -14,6 +14,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
+from dm2.core.tolerances import NEAR_ZERO, RELATIVE_LENGTH_ZERO
+
 FRAMES = ("B", "F", "O", "N", "S1", "S2", "S3")
 
 
@@ -83,7 +85,7 @@ def rotate(T_a_b: np.ndarray, vectors_b: np.ndarray) -> np.ndarray:
 def from_quat_abb(translation_mm, q_wxyz) -> np.ndarray:
     """Build ``T`` from a translation [mm] and an ABB-ordered quaternion ``(qw, qx, qy, qz)``."""
     q = np.asarray(q_wxyz, dtype=np.float64)
-    if q.shape != (4,) or not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-12:
+    if q.shape != (4,) or not np.all(np.isfinite(q)) or np.linalg.norm(q) < NEAR_ZERO:
         raise ValueError(f"quaternion (qw, qx, qy, qz) invalid: {q_wxyz!r}")
     return make_T(Rotation.from_quat(q[[1, 2, 3, 0]]), translation_mm)
 
@@ -125,7 +127,7 @@ def look_at(origin_mm, target_mm, up_hint=(0.0, 0.0, 1.0)) -> np.ndarray:
     o = np.asarray(origin_mm, dtype=np.float64)
     z = np.asarray(target_mm, dtype=np.float64) - o
     n = np.linalg.norm(z)
-    if n < 1e-12:
+    if n < NEAR_ZERO:
         raise ValueError("look_at: origin and target coincide")
     z /= n
     up = np.asarray(up_hint, dtype=np.float64)
@@ -144,11 +146,11 @@ def rotation_between(a, b) -> Rotation:
     axis = np.cross(a, b)
     s = np.linalg.norm(axis)
     c = float(np.clip(np.dot(a, b), -1.0, 1.0))
-    if s < 1e-12:
+    if s < NEAR_ZERO:
         if c > 0:
             return Rotation.identity()
         perp = np.cross(a, [1.0, 0.0, 0.0])
-        if np.linalg.norm(perp) < 1e-6:
+        if np.linalg.norm(perp) < RELATIVE_LENGTH_ZERO:
             perp = np.cross(a, [0.0, 1.0, 0.0])
         return Rotation.from_rotvec(np.pi * perp / np.linalg.norm(perp))
     return Rotation.from_rotvec(axis / s * np.arctan2(s, c))

@@ -10,6 +10,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from dm2.core.tolerances import UNIT_NORM_TOL
+
 SENSOR_IDS = ("S1", "S2", "S3")
 COUNTER_MODULO = 1 << 24  # scanCONTROL profile counters are 24 bit
 TOOLPATH_KINDS = ("infill", "edge", "skip", "overhang")
@@ -138,7 +140,7 @@ class RobotState:
         if T[3, 0] != 0.0 or T[3, 1] != 0.0 or T[3, 2] != 0.0 or T[3, 3] != 1.0:
             raise MessageError("RobotState.T_B_F: last row must be [0, 0, 0, 1]")
         R = T[:3, :3]
-        if float(np.abs(R.T @ R - _EYE3).max()) > 1e-6:
+        if float(np.abs(R.T @ R - _EYE3).max()) > UNIT_NORM_TOL:
             raise MessageError("RobotState.T_B_F: rotation part is not orthonormal")
         object.__setattr__(self, "joints_rad", j)
         object.__setattr__(self, "T_B_F", T)
@@ -239,7 +241,7 @@ class Toolpath:
         pos = _array("Toolpath", "position_O", self.position_O, np.float64, (None, 3), True)
         n = pos.shape[0]
         axis = _array("Toolpath", "axis_O", self.axis_O, np.float64, (n, 3), True)
-        if n and not np.allclose(np.linalg.norm(axis, axis=1), 1.0, atol=1e-6):
+        if n and not np.allclose(np.linalg.norm(axis, axis=1), 1.0, atol=UNIT_NORM_TOL):
             raise MessageError("Toolpath.axis_O: rows must be unit vectors")
         speed = _array("Toolpath", "speed_mm_s", self.speed_mm_s, np.float64, (n,), True)
         if n and np.any(speed <= 0):

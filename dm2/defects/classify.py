@@ -37,6 +37,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from dm2.core.tolerances import DIVISOR_FLOOR, NEAR_ZERO, RELATIVE_LENGTH_ZERO
+
 (NORMAL, OVERBUILD, UNDERBUILD, LOCAL_OVERBUILD, LOCAL_UNDERBUILD, UNOBSERVED, UNCERTAIN,
  OVERSPRAY) = range(8)
 CLASS_NAMES = ("normal", "overbuild", "underbuild", "local_overbuild", "local_underbuild",
@@ -86,7 +88,7 @@ def _face_terms(v, faces):
         cy = e0z * (-e2x) - e0x * (-e2z)
         cz = e0x * (-e2y) - e0y * (-e2x)
         dbl = math.sqrt(cx * cx + cy * cy + cz * cz)
-        if dbl < 1e-12:
+        if dbl < NEAR_ZERO:
             continue
         # corner a weights edge b->c, corner b edge c->a, corner c edge a->b (cot / 2)
         wa = -0.5 * (e0x * e2x + e0y * e2y + e0z * e2z) / dbl
@@ -150,7 +152,7 @@ def boundary_vertices(vertices_O: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 def _border(v, f, loop) -> np.ndarray:
     scale = np.linalg.norm(v[f[:, 1]] - v[f[:, 0]], axis=1).mean() if len(f) else 1.0
-    return np.linalg.norm(loop, axis=1) > 1e-6 * scale
+    return np.linalg.norm(loop, axis=1) > RELATIVE_LENGTH_ZERO * scale
 
 
 def curvature_and_areas(vertices_O: np.ndarray, faces: np.ndarray, normals_O=None,
@@ -170,12 +172,12 @@ def curvature_and_areas(vertices_O: np.ndarray, faces: np.ndarray, normals_O=Non
         flat = np.tile([0.0, 0.0, 1.0], (n, 1))
         return (np.zeros(n), np.zeros(n), flat) if return_normals else (np.zeros(n), np.zeros(n))
     lap, area, nrm, loop = _face_terms(v, f)
-    hn = lap / np.maximum(area, 1e-12)[:, None]  # = 2 H n (points into a convex surface)
+    hn = lap / np.maximum(area, DIVISOR_FLOOR)[:, None]  # = 2 H n (points into a convex surface)
     normals = nrm if normals_O is None else np.asarray(normals_O, dtype=np.float64)
-    normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), DIVISOR_FLOOR)
     h = -0.5 * np.einsum("ij,ij->i", hn, normals)
     h[_border(v, f, loop)] = 0.0
-    h[area <= 1e-12] = 0.0
+    h[area <= NEAR_ZERO] = 0.0
     h = _smooth(h, f, int(smooth_iterations))
     return (h, area, normals) if return_normals else (h, area)
 

@@ -226,12 +226,24 @@ def patch_alarms(flags, kind, deviation_mm, alarmed, first_flag_s, link, min_cel
     order: its size [columns], the mean row and column of its columns and the earliest
     first-flag stamp [s] among them.
     """
-    h, w = flags.shape
     hit = flags == kind
-    out_n = np.zeros(0, np.int64)
-    out_f = np.zeros((0, 3))
     if not hit.any():
-        return out_n, out_f
+        return np.zeros(0, np.int64), np.zeros((0, 3))
+    patch = _bridged_patch(hit, np.isnan(deviation_mm), link)
+    labels, n = _label_8_connected(patch)
+    size, rows, cols, first, taken, flagged = _patch_sums(labels, n, hit, alarmed, first_flag_s,
+                                                          mature)
+    raise_ = np.zeros(n + 1, np.bool_)
+    for lab in range(1, n + 1):
+        raise_[lab] = size[lab] >= min_cells and flagged[lab] and not taken[lab]
+    _mark_alarmed(labels, raise_, alarmed)
+    return _alarm_rows(raise_, size, rows, cols, first)
+
+
+@njit(cache=True)
+def _dilate(hit, link):
+    """(h, w) bool: ``hit`` dilated by the disk ``link`` (odd square of bools), clipped."""
+    h, w = hit.shape
     r = link.shape[0] // 2
     dil = np.zeros((h, w), np.bool_)
     for y in range(h):
@@ -242,24 +254,64 @@ def patch_alarms(flags, kind, deviation_mm, alarmed, first_flag_s, link, min_cel
                         yy, xx = y + a, x + b
                         if link[a + r, b + r] and 0 <= yy < h and 0 <= xx < w:
                             dil[yy, xx] = True
+    return dil
+
+
+@njit(cache=True)
+def _disk_inside(dil, link, y, x):
+    """The disk ``link`` centred on ``(y, x)`` lies inside ``dil`` (outside the window does
+    not count as inside): the erosion of ``dil`` at that column."""
+    h, w = dil.shape
+    r = link.shape[0] // 2
+    for a in range(-r, r + 1):
+        for b in range(-r, r + 1):
+            yy, xx = y + a, x + b
+            if link[a + r, b + r] and not (0 <= yy < h and 0 <= xx < w and dil[yy, xx]):
+                return False
+    return True
+
+
+@njit(cache=True)
+def _bridged_patch(hit, unseen, link):
+    """(h, w) bool: ``(closing(hit, link) & (hit | unseen)) | hit``: the flagged columns and
+    the unobserved ones that the closing bridges."""
+    h, w = hit.shape
+    dil = _dilate(hit, link)
     patch = np.zeros((h, w), np.bool_)
     for y in range(h):
         for x in range(w):
             if hit[y, x]:
                 patch[y, x] = True
-                continue
-            if not np.isnan(deviation_mm[y, x]) or not dil[y, x]:
-                continue
-            closed = True
-            for a in range(-r, r + 1):
-                for b in range(-r, r + 1):
-                    yy, xx = y + a, x + b
-                    if link[a + r, b + r] and not (0 <= yy < h and 0 <= xx < w and dil[yy, xx]):
-                        closed = False
-                        break
-                if not closed:
-                    break
-            patch[y, x] = closed
+            elif unseen[y, x] and dil[y, x]:
+                patch[y, x] = _disk_inside(dil, link, y, x)
+    return patch
+
+
+@njit(cache=True)
+def _flood_label(patch, labels, stack, y, x, n):
+    """Give label ``n`` to the 8-connected patch of ``patch`` holding ``(y, x)`` (depth
+    first, ``stack`` as scratch)."""
+    h, w = patch.shape
+    labels[y, x] = n
+    stack[0, 0], stack[0, 1] = y, x
+    top = 1
+    while top:
+        top -= 1
+        cy, cx = stack[top, 0], stack[top, 1]
+        for a in range(-1, 2):
+            for b in range(-1, 2):
+                yy, xx = cy + a, cx + b
+                if 0 <= yy < h and 0 <= xx < w and patch[yy, xx] and labels[yy, xx] == 0:
+                    labels[yy, xx] = n
+                    stack[top, 0], stack[top, 1] = yy, xx
+                    top += 1
+
+
+@njit(cache=True)
+def _label_8_connected(patch):
+    """8-connected labels (h, w) int64 of ``patch``, 1.. in raster order of each patch's first
+    column (0 outside), and their count (``scipy.ndimage.label`` with a full structure)."""
+    h, w = patch.shape
     labels = np.zeros((h, w), np.int64)
     stack = np.empty((h * w, 2), np.int64)
     n = 0
@@ -267,21 +319,16 @@ def patch_alarms(flags, kind, deviation_mm, alarmed, first_flag_s, link, min_cel
         for x in range(w):
             if patch[y, x] and labels[y, x] == 0:
                 n += 1
-                labels[y, x] = n
-                top = 0
-                stack[0, 0], stack[0, 1] = y, x
-                top = 1
-                while top:
-                    top -= 1
-                    cy, cx = stack[top, 0], stack[top, 1]
-                    for a in range(-1, 2):
-                        for b in range(-1, 2):
-                            yy, xx = cy + a, cx + b
-                            if 0 <= yy < h and 0 <= xx < w and patch[yy, xx] and \
-                                    labels[yy, xx] == 0:
-                                labels[yy, xx] = n
-                                stack[top, 0], stack[top, 1] = yy, xx
-                                top += 1
+                _flood_label(patch, labels, stack, y, x, n)
+    return labels, n
+
+
+@njit(cache=True)
+def _patch_sums(labels, n, hit, alarmed, first_flag_s, mature):
+    """Per label 0..n: column count, sum of rows and of columns, earliest first-flag stamp
+    [s] (NaN if none), whether it holds an alarmed column, and whether it holds a flagged one
+    (mature too, with ``mature``)."""
+    h, w = labels.shape
     size = np.zeros(n + 1, np.int64)
     taken = np.zeros(n + 1, np.bool_)
     flagged = np.zeros(n + 1, np.bool_)
@@ -302,24 +349,35 @@ def patch_alarms(flags, kind, deviation_mm, alarmed, first_flag_s, link, min_cel
                 f = first_flag_s[y, x]
                 if not np.isnan(f) and not f >= first[lab]:
                     first[lab] = f
-    raise_ = np.zeros(n + 1, np.bool_)
+    return size, rows, cols, first, taken, flagged
+
+
+@njit(cache=True)
+def _mark_alarmed(labels, raise_, alarmed):
+    """Mark alarmed every column whose label raises an alarm."""
+    h, w = labels.shape
+    for y in range(h):
+        for x in range(w):
+            if raise_[labels[y, x]]:
+                alarmed[y, x] = True
+
+
+@njit(cache=True)
+def _alarm_rows(raise_, size, rows, cols, first):
+    """Per raised label, in label order: its size [columns] and (mean row, mean column,
+    earliest first-flag stamp [s])."""
     m = 0
-    for lab in range(1, n + 1):
-        if size[lab] >= min_cells and flagged[lab] and not taken[lab]:
-            raise_[lab] = True
+    for lab in range(1, raise_.shape[0]):
+        if raise_[lab]:
             m += 1
     out_n = np.empty(m, np.int64)
     out_f = np.empty((m, 3))
     k = 0
-    for lab in range(1, n + 1):
+    for lab in range(1, raise_.shape[0]):
         if raise_[lab]:
             out_n[k] = size[lab]
             out_f[k, 0] = rows[lab] / size[lab]
             out_f[k, 1] = cols[lab] / size[lab]
             out_f[k, 2] = first[lab]
             k += 1
-    for y in range(h):
-        for x in range(w):
-            if raise_[labels[y, x]]:
-                alarmed[y, x] = True
     return out_n, out_f

@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from dm2.core.tolerances import RATIO_FLOOR
 from dm2.defects.segment import Region
 
 TREND_NAMES = ("amplifying", "self-compensating", "stable")
@@ -75,7 +76,7 @@ class Track:
         height = np.array([h["height_mm"] for h in self.history])
         area = np.array([h["area_mm2"] for h in self.history])
         h_slope = np.polyfit(layers, height, 1)[0]
-        a_slope = np.polyfit(layers, area, 1)[0] / max(area.mean(), 1e-9)
+        a_slope = np.polyfit(layers, area, 1)[0] / max(area.mean(), RATIO_FLOOR)
         if h_slope > 0.02 or (abs(h_slope) <= 0.02 and a_slope > 0.05):
             return "amplifying"
         if h_slope < -0.02 or (abs(h_slope) <= 0.02 and a_slope < -0.05):
@@ -257,7 +258,7 @@ class RegionTracker:
 
     def _change_state(self, t: Track, r: Region) -> str:
         prev = t.history[-1]
-        rel = (r.area_mm2 - prev["area_mm2"]) / max(prev["area_mm2"], 1e-9)
+        rel = (r.area_mm2 - prev["area_mm2"]) / max(prev["area_mm2"], RATIO_FLOOR)
         if rel > self.area_tolerance:
             return "growing"
         if rel < -self.area_tolerance:

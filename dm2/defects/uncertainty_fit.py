@@ -18,6 +18,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import nnls
 
+from dm2.core.tolerances import DIVISOR_FLOOR
 from dm2.defects.classify import UNOBSERVED
 from dm2.defects.uncertainty import FEATURES, coefficients, uncertainty_features
 
@@ -63,7 +64,7 @@ def fit_coefficients(features: np.ndarray, deviation_mm: np.ndarray,
     coef = np.zeros(len(FEATURES)) if fixed is None else np.array(fixed, np.float64)
     coef[use] = 0.0
     target = np.asarray(deviation_mm, np.float64) ** 2 - F[:, ~use] @ coef[~use]
-    scale = np.maximum(F[:, use].max(axis=0), 1e-12)  # conditioning: every column up to 1
+    scale = np.maximum(F[:, use].max(axis=0), DIVISOR_FLOOR)  # conditioning: columns up to 1
     coef[use], _ = nnls(F[:, use] / scale, target)
     coef[use] /= scale
     return coef

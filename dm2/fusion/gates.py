@@ -42,6 +42,7 @@ import numpy as np
 
 from dm2.core.config import InputGateConfig
 from dm2.core.messages import LayerMark, Profile, RobotState
+from dm2.core.tolerances import SAME_ANGLE_RAD
 
 log = logging.getLogger(__name__)
 
@@ -81,7 +82,7 @@ class InputGates:
         self.steps: list[dict] = []
         self._clocks: dict[str, _Clock] = {}
         self._ws = tuple(tuple(float(v) for v in c) for c in cfg.workspace_B_mm)  # (lo, hi)
-        self._q_lim = tuple((math.radians(a) - 1e-9, math.radians(b) + 1e-9)
+        self._q_lim = tuple((math.radians(a) - SAME_ANGLE_RAD, math.radians(b) + SAME_ANGLE_RAD)
                             for a, b in cfg.joint_limits_deg)
         self._v_max = cfg.max_tcp_speed_mm_s * cfg.speed_margin
         self._w_max = tuple(math.radians(w) * cfg.speed_margin for w in cfg.max_joint_speed_deg_s)

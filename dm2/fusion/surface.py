@@ -26,6 +26,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 from scipy.ndimage import map_coordinates
 
+from dm2.core.tolerances import DIVISOR_FLOOR, GRID_FRACTION_TOL
 from dm2.fusion.surface_mesh import SurfaceMesh, read_ply
 from dm2.fusion.tsdf import kernels as K
 from dm2.fusion.tsdf.field import SparseTSDF
@@ -125,7 +126,7 @@ def mesh_volume(d: np.ndarray, w: np.ndarray, origin: np.ndarray, voxel_mm: floa
     verts_O = verts + (origin + 0.5) * vox  # voxel centres sit at (i + 0.5) * voxel
     # vertices on the chunk's faces are shared with a neighbour; only they are merged
     g = verts / vox
-    border = np.any((np.abs(g) < 1e-4) | (np.abs(g - n) < 1e-4), axis=1)
+    border = np.any((np.abs(g) < GRID_FRACTION_TOL) | (np.abs(g - n) < GRID_FRACTION_TOL), axis=1)
     return verts_O, faces.astype(np.int64), wv, -normals.astype(np.float64), border
 
 
@@ -193,7 +194,7 @@ def assemble(parts: list, voxel_mm: float) -> SurfaceMesh:
     # merge vertices duplicated on chunk borders (only border vertices can be: a sort of
     # that small subset, not of the whole surface)
     on_border = np.flatnonzero(np.concatenate([p[4] for p in parts]))
-    key = np.round(verts[on_border] / (1e-4 * voxel_mm)).astype(np.int64)
+    key = np.round(verts[on_border] / (GRID_FRACTION_TOL * voxel_mm)).astype(np.int64)
     _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
     target = np.arange(len(verts))
     target[on_border] = on_border[first][inverse.ravel()]  # each copy -> its first copy
@@ -205,7 +206,7 @@ def assemble(parts: list, voxel_mm: float) -> SurfaceMesh:
     keep = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & \
         (faces[:, 0] != faces[:, 2])
     nrm = normals[kept]
-    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
+    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), DIVISOR_FLOOR)
     return SurfaceMesh(verts[kept], faces[keep], weight[kept], nrm)
 
 

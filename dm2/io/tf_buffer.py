@@ -18,6 +18,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from dm2.core.frames import invert
+from dm2.core.tolerances import STILL_POSE_MM, STILL_POSE_RAD
 
 
 class TfError(ValueError):
@@ -50,7 +51,7 @@ class _DynamicEdge:
         self.q_xyzw = q * flip[:, None]
         self.p_mm = T[:, :3, 3]
 
-    def moves(self, tol_mm: float = 1e-3, tol_rad: float = 1e-6) -> bool:
+    def moves(self, tol_mm: float = STILL_POSE_MM, tol_rad: float = STILL_POSE_RAD) -> bool:
         """Whether the samples differ (a fixed transform republished on ``/tf`` does not)."""
         if self.t_s.size < 2:
             return False

@@ -35,6 +35,7 @@ import numpy as np
 from numba import njit
 
 from dm2.core.messages import Profile
+from dm2.core.tolerances import SAME_TIME_S
 
 log = logging.getLogger(__name__)
 
@@ -166,7 +167,7 @@ def _theil_sen_at(t, k, stamp_s):
     for i in range(n):
         for j in range(i + 1, n):
             dt = t[j] - t[i]
-            if dt > 1e-9:
+            if dt > SAME_TIME_S:
                 slopes[m] = (k[j] - k[i]) / dt
                 m += 1
     slope = np.median(slopes[:m]) if m else 0.0

@@ -16,11 +16,36 @@ Per spot (see :mod:`dm2.reference.model` for the model):
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
 
+from dm2.core.tolerances import DOWNWARD_COS, NEAR_ZERO
+
 MARCH_REFINE_STEPS = 6  # bisections after the march brackets the surface (cell / 64)
+
+
+class Spray(NamedTuple):
+    """The deposition model of one call, bundled for the kernels (numba takes a named tuple)."""
+
+    v_dot: float  # deposited volume rate [mm^3/s]
+    zeta0: float  # deposition efficiency at normal incidence [-]
+    theta_c: float  # critical spray angle [rad]
+    sigma: float  # footprint standard deviation [mm]
+    n_sigma: float  # footprint truncated at this many sigma [-]
+    slope_cells: int  # central-difference half width of the surface normal [cells], 0: +z_O
+    back_mm: float  # nozzle exit behind the spot along the axis (the standoff) [mm]
+    lut: np.ndarray  # (n,) efficiency over cos theta in [0, 1] (:func:`efficiency_table`)
+
+
+class HeightMap(NamedTuple):
+    """The reference's height map and what the kernels keep beside it."""
+
+    h: np.ndarray  # (ny, nx) float64 heights [mm], cell-centred, updated in place
+    cell: float  # cell size [mm]
+    zmax: np.ndarray  # (1,) float64 the map's highest value so far [mm], kept up to date
+    scratch: np.ndarray  # footprint buffer: at least its cells plus nx + ny + 2
 
 
 @njit(cache=True)
@@ -76,7 +101,7 @@ def spots_from_poses(T_B_F, T_F_O, spot_B, axis_B, out_spot, out_axis):
 def march_to_surface(h, cell, zmax, ox, oy, oz, ax, ay, az, t_max):
     """Distance along the unit axis from ``o`` to the first crossing of the height map, or
     ``-1.0`` when the ray stays above it up to ``t_max`` (or does not point down)."""
-    if az > -1e-6:
+    if az > -DOWNWARD_COS:
         return -1.0
     t = 0.0
     if oz > zmax:  # nothing above zmax: start the march there
@@ -103,15 +128,12 @@ def march_to_surface(h, cell, zmax, ox, oy, oz, ax, ay, az, t_max):
 
 
 @njit(cache=True)
-def deposit_spot(h, cell, px, py, pz, ax, ay, az, dt, v_dot, zeta0, theta_c, sigma, n_sigma,
-                 slope_cells, back_mm, zmax, scratch, lut):
-    """Deposit ``dt`` seconds of spray aimed at ``p`` along ``a``; returns the volume [mm^3].
-
-    ``back_mm`` is the nozzle exit's distance behind ``p`` (the standoff); ``zmax`` (1,) the
-    map's highest value so far, kept up to date; ``scratch`` at least the footprint's cells
-    plus ``nx + ny + 2``; ``lut`` the efficiency sampled evenly over
-    ``cos theta`` in [0, 1] (:func:`efficiency_table`).
-    """
+def deposit_spot(hm, px, py, pz, ax, ay, az, dt, spray):
+    """Deposit ``dt`` seconds of ``spray`` (:class:`Spray`) aimed at ``p`` along ``a`` onto
+    the map ``hm`` (:class:`HeightMap`); returns the volume [mm^3]."""
+    h, cell, zmax, scratch = hm.h, hm.cell, hm.zmax, hm.scratch
+    v_dot, zeta0, theta_c, sigma = spray.v_dot, spray.zeta0, spray.theta_c, spray.sigma
+    n_sigma, slope_cells, back_mm, lut = spray.n_sigma, spray.slope_cells, spray.back_mm, spray.lut
     ny, nx = h.shape
     if dt <= 0.0 or az >= 0.0:
         return 0.0
@@ -136,7 +158,7 @@ def deposit_spot(h, cell, px, py, pz, ax, ay, az, dt, v_dot, zeta0, theta_c, sig
     zeta_cos = max(math.cos(theta_c), 0.0)
     # an axis in a coordinate plane (infill, most edges) makes the Gaussian separable:
     # exp(-d2 / 2s^2) = ex[i] * ey[j]; the tail of ``scratch`` holds ex and ey
-    separable = abs(ax * ay) < 1e-12
+    separable = abs(ax * ay) < NEAR_ZERO
     off = scratch.shape[0] - (nx + ny + 2)
     if separable:
         for i in range(i_lo, i_hi + 1):
@@ -183,27 +205,25 @@ def deposit_spot(h, cell, px, py, pz, ax, ay, az, dt, v_dot, zeta0, theta_c, sig
 
 
 @njit(cache=True)
-def flush_pending(h, cell, last, v_dot, zeta0, theta_c, sigma, n_sigma, slope_cells, back_mm,
-                  zmax, scratch, lut):
+def flush_pending(hm, last, spray):
     """Deposit the pending piece held in ``last[8:16]`` (if any) and clear it; returns volume."""
     acc_dt = last[8]
     if acc_dt <= 0.0:
         return 0.0
     ax, ay, az = last[13], last[14], last[15]
     an = math.sqrt(ax * ax + ay * ay + az * az)
-    vol = deposit_spot(h, cell, last[10] / acc_dt, last[11] / acc_dt, last[12] / acc_dt,
-                       ax / an, ay / an, az / an, acc_dt, v_dot, zeta0, theta_c, sigma,
-                       n_sigma, slope_cells, back_mm, zmax, scratch, lut)
+    vol = deposit_spot(hm, last[10] / acc_dt, last[11] / acc_dt, last[12] / acc_dt,
+                       ax / an, ay / an, az / an, acc_dt, spray)
     for c in range(8, 16):
         last[c] = 0.0
     return vol
 
 
 @njit(cache=True)
-def integrate_states(h, cell, stamps, T_B_F, on, T_F_O, spot_B, axis_B, last, buf_spot,
-                     buf_axis, v_dot, zeta0, theta_c, sigma, n_sigma, slope_cells, back_mm,
-                     max_gap_s, max_piece_s, zmax, scratch, lut):
-    """Deposit along the moves into each of the robot states ``(stamps, T_B_F, on)``.
+def integrate_states(hm, stamps, T_B_F, on, T_F_O, spot_B, axis_B, last, buf_spot, buf_axis,
+                     spray, max_gap_s, max_piece_s):
+    """Deposit ``spray`` (:class:`Spray`) onto the map ``hm`` (:class:`HeightMap`) along the
+    moves into each of the robot states ``(stamps, T_B_F, on)``.
 
     ``last`` (16,) holds ``(valid, stamp, spot xyz, axis xyz)`` of the state before this batch
     and the pending piece ``(dt, length, dt-weighted spot xyz, dt-weighted axis xyz)``; it is
@@ -215,7 +235,7 @@ def integrate_states(h, cell, stamps, T_B_F, on, T_F_O, spot_B, axis_B, last, bu
     """
     m = stamps.shape[0]
     spots_from_poses(T_B_F, T_F_O, spot_B, axis_B, buf_spot, buf_axis)
-    piece = sigma / 4.0
+    piece = spray.sigma / 4.0
     total = 0.0
     gaps = 0
     for k in range(m):
@@ -225,8 +245,7 @@ def integrate_states(h, cell, stamps, T_B_F, on, T_F_O, spot_B, axis_B, last, bu
                 if dt > max_gap_s:
                     gaps += 1
                 if dt > 0.0:  # what was gathered before the gap or the stop still lands
-                    total += flush_pending(h, cell, last, v_dot, zeta0, theta_c, sigma,
-                                           n_sigma, slope_cells, back_mm, zmax, scratch, lut)
+                    total += flush_pending(hm, last, spray)
             else:
                 p0x, p0y, p0z = last[2], last[3], last[4]
                 dx = buf_spot[k, 0] - p0x
@@ -235,8 +254,7 @@ def integrate_states(h, cell, stamps, T_B_F, on, T_F_O, spot_B, axis_B, last, bu
                 length = math.sqrt(dx * dx + dy * dy + dzz * dzz)
                 n = max(int(math.ceil(length / piece)), 1)
                 if n > 1:  # a long move: close what is pending, then split the move
-                    total += flush_pending(h, cell, last, v_dot, zeta0, theta_c, sigma,
-                                           n_sigma, slope_cells, back_mm, zmax, scratch, lut)
+                    total += flush_pending(hm, last, spray)
                 for q in range(n):
                     f = (q + 0.5) / n
                     w = dt / n
@@ -248,8 +266,7 @@ def integrate_states(h, cell, stamps, T_B_F, on, T_F_O, spot_B, axis_B, last, bu
                     for c in range(3):
                         last[13 + c] += w * (last[5 + c] + (buf_axis[k, c] - last[5 + c]) * f)
                     if n > 1 or last[9] >= piece or last[8] >= max_piece_s:
-                        total += flush_pending(h, cell, last, v_dot, zeta0, theta_c, sigma,
-                                               n_sigma, slope_cells, back_mm, zmax, scratch, lut)
+                        total += flush_pending(hm, last, spray)
         last[0] = 1.0
         last[1] = stamps[k]
         for c in range(3):

@@ -185,12 +185,10 @@ class NearNetReference:
         if self._buf_spot.shape[0] < stamps.size:
             self._buf_spot = np.empty((stamps.size, 3))
             self._buf_axis = np.empty((stamps.size, 3))
+        hm = RK.HeightMap(self.heights_mm, self.cell_mm, self._zmax, self._scratch)
         vol, gaps = RK.integrate_states(
-            self.heights_mm, self.cell_mm, stamps, T, on, self._T_F_O, self._spot_B,
-            self._axis_B, self._last, self._buf_spot, self._buf_axis, self.v_dot_mm3_s,
-            self.process.deposition_efficiency, self._theta_c, self.sigma_mm, FOOTPRINT_SIGMAS,
-            self._slope_cells, self.process.standoff_mm, MAX_INTEGRATION_GAP_S, MAX_PIECE_S,
-            self._zmax, self._scratch, self._lut)
+            hm, stamps, T, on, self._T_F_O, self._spot_B, self._axis_B, self._last,
+            self._buf_spot, self._buf_axis, self._spray(), MAX_INTEGRATION_GAP_S, MAX_PIECE_S)
         self.stamp_s = float(stamps[-1])
         self.gaps_skipped += int(gaps)
         self._deposited_mm3 += vol
@@ -204,11 +202,15 @@ class NearNetReference:
         does not depend on when they are taken.
         """
         h = self.heights_mm.copy()
-        vol = RK.flush_pending(h, self.cell_mm, self._last.copy(), self.v_dot_mm3_s,
-                               self.process.deposition_efficiency, self._theta_c, self.sigma_mm,
-                               FOOTPRINT_SIGMAS, self._slope_cells, self.process.standoff_mm,
-                               self._zmax.copy(), self._scratch, self._lut)
+        hm = RK.HeightMap(h, self.cell_mm, self._zmax.copy(), self._scratch)
+        vol = RK.flush_pending(hm, self._last.copy(), self._spray())
         return h, float(vol)
+
+    def _spray(self) -> RK.Spray:
+        """The deposition model as the kernels take it (the rate follows the process fit)."""
+        return RK.Spray(self.v_dot_mm3_s, self.process.deposition_efficiency, self._theta_c,
+                        self.sigma_mm, FOOTPRINT_SIGMAS, self._slope_cells,
+                        self.process.standoff_mm, self._lut)
 
     @property
     def deposited_mm3(self) -> float:

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dm2.core.tolerances import BUILT_HEIGHT_MM, RATIO_FLOOR
 from dm2.defects.deviation import LayerDeviation
 from dm2.io.ply import read_mesh_ply, write_mesh_ply
 from dm2.reference.height_map import ReferenceMap
@@ -25,7 +26,7 @@ def deviation_colours(signed_distance_mm: np.ndarray, class_code: np.ndarray,
     import matplotlib
 
     cmap = matplotlib.colormaps["RdBu_r"]
-    t = np.clip(signed_distance_mm / max(limit_mm, 1e-9), -1.0, 1.0) * 0.5 + 0.5
+    t = np.clip(signed_distance_mm / max(limit_mm, RATIO_FLOOR), -1.0, 1.0) * 0.5 + 0.5
     rgb = (cmap(t)[:, :3] * 255).astype(np.uint8)
     rgb[class_code == len(CLASS_RGB) - 1] = CLASS_RGB[-1]
     return rgb
@@ -73,7 +74,7 @@ def write_reference_stl(path: str | Path, reference: ReferenceMap, margin_mm: fl
 
     h = reference.heights_mm
     c = reference.cell_mm
-    rows, cols = np.nonzero(h > 1e-3)
+    rows, cols = np.nonzero(h > BUILT_HEIGHT_MM)
     if rows.size:
         lo = np.array([cols.min(), rows.min()]) * c
         hi = np.array([cols.max() + 1, rows.max() + 1]) * c

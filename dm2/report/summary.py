@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from dm2.core.tolerances import RATIO_FLOOR
+
 VERDICT_SENTENCES = 5  # defect tracks named in the verdict; the rest are in the table
 TREND_SLOPE_MM = 0.02  # [mm/layer] height slope beyond which a track grows or shrinks
 TREND_AREA_REL = 0.05  # relative area slope per layer beyond which it grows or shrinks
@@ -61,7 +63,7 @@ def trend(track: dict) -> str:
     h_slope = height_slope_mm_per_layer(track)
     layers = np.array([h["layer"] for h in hist], float)
     area = np.array([h["area_mm2"] for h in hist])
-    a_slope = np.polyfit(layers, area, 1)[0] / max(area.mean(), 1e-9)
+    a_slope = np.polyfit(layers, area, 1)[0] / max(area.mean(), RATIO_FLOOR)
     if h_slope > TREND_SLOPE_MM or (abs(h_slope) <= TREND_SLOPE_MM and a_slope > TREND_AREA_REL):
         return "amplifying"
     if h_slope < -TREND_SLOPE_MM or (abs(h_slope) <= TREND_SLOPE_MM

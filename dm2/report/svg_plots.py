@@ -11,6 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
+from dm2.core.tolerances import ROUNDING_SLACK
+
 W, H = 460, 300
 LEFT, RIGHT, TOP, GAP, BOTTOM = 62, 12, 26, 22, 34
 
@@ -21,7 +23,8 @@ def _ticks(lo: float, hi: float, n: int = 4) -> list[float]:
     raw = (hi - lo) / n
     mag = 10 ** np.floor(np.log10(raw))
     step = next(m * mag for m in (1, 2, 2.5, 5, 10) if m * mag >= raw)
-    return [float(v) for v in np.arange(np.ceil(lo / step) * step, hi + step * 1e-9, step)]
+    first = np.ceil(lo / step) * step
+    return [float(v) for v in np.arange(first, hi + step * ROUNDING_SLACK, step)]
 
 
 def _panel(x, y, y0: float, h: float, x_lo, x_hi, label: str, colour: str,

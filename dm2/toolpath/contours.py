@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import shapely
 
+from dm2.core.tolerances import SIMPLIFY_MM, SQUARED_LENGTH_FLOOR_MM2
+
 MITRE_LIMIT = 10.0  # keep sharp corners sharp when insetting (a 45 degree corner needs 2.6)
 
 
@@ -27,7 +29,7 @@ def contour_loops(region, inset_mm: float) -> list[np.ndarray]:
         if inset_mm > 0 else region
     if inset.is_empty:
         return []
-    inset = shapely.orient_polygons(shapely.simplify(inset, 1e-4), exterior_cw=False)
+    inset = shapely.orient_polygons(shapely.simplify(inset, SIMPLIFY_MM), exterior_cw=False)
     loops = []
     for poly in shapely.get_parts(inset):
         if poly.is_empty or poly.geom_type != "Polygon":
@@ -49,7 +51,7 @@ def open_loop_near(loop: np.ndarray, point_xy: np.ndarray, keep_clear_mm: float)
     """
     a, b = loop[:-1], loop[1:]
     ab = b - a
-    L2 = np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-24)
+    L2 = np.maximum(np.einsum("ij,ij->i", ab, ab), SQUARED_LENGTH_FLOOR_MM2)
     s = np.clip(np.einsum("ij,ij->i", point_xy - a, ab) / L2, 0.0, 1.0)
     proj = a + ab * s[:, None]
     i = int(np.argmin(np.linalg.norm(proj - point_xy, axis=1)))

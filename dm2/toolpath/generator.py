@@ -39,6 +39,7 @@ import trimesh
 
 from dm2.core.config import ToolpathConfig
 from dm2.core.messages import KIND_CODE, TOOLPATH_KINDS, Toolpath
+from dm2.core.tolerances import DIVISOR_FLOOR
 from dm2.toolpath.contours import contour_loops, corner_angles_deg, open_loop_near
 from dm2.toolpath.infill import raster_segments
 from dm2.toolpath.linking import DOWN_O, PathBuilder, Region, order_raster
@@ -93,7 +94,7 @@ class _Planner:
             axis = np.column_stack([self.jet_out * np.sin(self.alpha) * n_out,
                                     np.full(len(xy), -np.cos(self.alpha))])
             mid_normal = n_out[1:] + n_out[:-1]
-            mid_normal /= np.maximum(np.linalg.norm(mid_normal, axis=1), 1e-12)[:, None]
+            mid_normal /= np.maximum(np.linalg.norm(mid_normal, axis=1), DIVISOR_FLOOR)[:, None]
             kind = np.full(len(xy) - 1, KIND_CODE["edge"], dtype=np.int8)
             kind = classify_overhang(xy, kind, self.overhang[j],
                                      probe_offset_xy=mid_normal * max(self.inset - 0.01, 0))

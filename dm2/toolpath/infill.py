@@ -9,6 +9,8 @@ from __future__ import annotations
 import numpy as np
 import shapely
 
+from dm2.core.tolerances import DIVISOR_FLOOR
+
 CLIP_INSET_MM = 0.05  # line ends stay this far inside the region, so short links between
 # neighbouring ends stay inside it too (also along gently curved or slightly tilted edges)
 COVER_SLACK = 0.05  # fraction of a spacing the raster may leave uncovered at each side
@@ -107,7 +109,8 @@ def _has_parallel_run(region, direction, min_length_mm: float) -> bool:
         c = shapely.get_coordinates(ring)
         e = np.diff(c, axis=0)
         length = np.linalg.norm(e, axis=1)
-        sin = np.abs(e[:, 0] * direction[1] - e[:, 1] * direction[0]) / np.maximum(length, 1e-12)
+        cross = e[:, 0] * direction[1] - e[:, 1] * direction[0]
+        sin = np.abs(cross) / np.maximum(length, DIVISOR_FLOOR)
         par = sin < PARALLEL_SIN
         if not par.any():
             continue

@@ -13,10 +13,11 @@ import shapely
 from shapely.geometry import LineString, Point
 
 from dm2.core.messages import KIND_CODE
+from dm2.core.tolerances import GEOMETRY_SLACK_MM, SAME_POINT_MM
 from dm2.toolpath.polyline import drop_repeats
 
 LINK_FACTOR = 2.5  # raster ends closer than this many spacings (inside the region) are joined
-CONTAIN_TOL_MM = 1e-3
+CONTAIN_TOL_MM = GEOMETRY_SLACK_MM
 DOWN_O = np.array([0.0, 0.0, -1.0])
 
 
@@ -42,7 +43,7 @@ class Region:
     def route(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """Waypoints (excluding ``a``, ending with ``b``) of a skip from ``a`` to ``b``, (w, 2)."""
         b = np.asarray(b, dtype=np.float64)
-        if np.linalg.norm(b - a) < 1e-9 or self.contains_line(a, b) or not self.rings:
+        if np.linalg.norm(b - a) < SAME_POINT_MM or self.contains_line(a, b) or not self.rings:
             return b[None]
         outside = LineString([a, b]).difference(self._tol)
         i = int(np.argmin([r.distance(outside) for r in self.rings]))
@@ -148,10 +149,10 @@ class PathBuilder:
         if self.pos_xy is None:
             self._append(target_xy[None], z_mm, axis_at_target, kind_if_first, layer)
             return
-        if np.linalg.norm(target_xy - self.pos_xy) < 1e-9:
+        if np.linalg.norm(target_xy - self.pos_xy) < SAME_POINT_MM:
             return
         route = region.route(self.pos_xy, target_xy)
-        route = route[np.cumsum(np.linalg.norm(route - self.pos_xy, axis=1) > 1e-9) > 0]
+        route = route[np.cumsum(np.linalg.norm(route - self.pos_xy, axis=1) > SAME_POINT_MM) > 0]
         if len(route) > 1:
             self._append(route[:-1], z_mm, DOWN_O, KIND_CODE["skip"], layer)
         self._append(route[-1:], z_mm, axis_at_target, KIND_CODE["skip"], layer)

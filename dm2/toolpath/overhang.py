@@ -6,6 +6,7 @@ import numpy as np
 import shapely
 
 from dm2.core.messages import KIND_CODE
+from dm2.core.tolerances import GEOMETRY_SLACK_MM
 
 
 def overhang_regions(regions, min_mm: float) -> list:
@@ -25,7 +26,7 @@ def overhang_regions(regions, min_mm: float) -> list:
         if here.is_empty:
             out.append(shapely.Polygon())
             continue
-        grown = here.buffer(1e-3)
+        grown = here.buffer(GEOMETRY_SLACK_MM)
         ov = grown.difference(below.buffer(min_mm)) if not below.is_empty else grown
         if not ov.is_empty:
             shapely.prepare(ov)

@@ -7,10 +7,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from dm2.core.tolerances import DIVISOR_FLOOR, ROUNDING_SLACK, SAME_POINT_MM, TURN_EPS_RAD
+
 ARC_STEP_RAD = np.pi / 8  # arcs are drawn with at most 22.5 degrees per segment
 
 
-def drop_repeats(xy: np.ndarray, tol_mm: float = 1e-9) -> np.ndarray:
+def drop_repeats(xy: np.ndarray, tol_mm: float = SAME_POINT_MM) -> np.ndarray:
     """Remove consecutive points closer than ``tol_mm``."""
     xy = np.asarray(xy, dtype=np.float64)
     if len(xy) < 2:
@@ -58,10 +60,10 @@ def fillet(xy: np.ndarray, radius_mm: float, arc_step_rad: float = ARC_STEP_RAD,
     u = d / seg_len[:, None]
     theta = np.zeros(n)
     theta[1:-1] = turning_angles(xy)
-    turn = np.abs(theta) > 1e-6
+    turn = np.abs(theta) > TURN_EPS_RAD
     half = np.zeros(n)
     half[1:-1] = np.minimum(seg_len[:-1], seg_len[1:]) / 2
-    tan_half = np.tan(np.minimum(np.abs(theta), np.pi - 1e-6) / 2)
+    tan_half = np.tan(np.minimum(np.abs(theta), np.pi - TURN_EPS_RAD) / 2)
     t = np.where(turn, np.minimum(radius_mm, half), 0.0)
     r_eff = np.where(turn, t / np.where(turn, tan_half, 1.0), 0.0)
     u_in = np.zeros((n, 2))
@@ -79,7 +81,7 @@ def fillet(xy: np.ndarray, radius_mm: float, arc_step_rad: float = ARC_STEP_RAD,
     c, s = np.cos(phi), np.sin(phi)
     out = centre[src] + np.column_stack([c * v[:, 0] - s * v[:, 1], s * v[:, 0] + c * v[:, 1]])
     keep = np.ones(len(out), dtype=bool)
-    keep[1:] = np.linalg.norm(np.diff(out, axis=0), axis=1) > 1e-9  # arcs meeting end to end
+    keep[1:] = np.linalg.norm(np.diff(out, axis=0), axis=1) > SAME_POINT_MM  # arcs meet end to end
     return out[keep], src[keep]
 
 
@@ -96,7 +98,7 @@ def densify(xy: np.ndarray, max_step_mm: float) -> tuple[np.ndarray, np.ndarray]
     if len(xy) < 2:
         return xy, np.zeros(len(xy), dtype=np.int64)
     seg_len = np.linalg.norm(np.diff(xy, axis=0), axis=1)
-    n_sub = np.maximum(1, np.ceil(seg_len / max_step_mm - 1e-9)).astype(np.int64)
+    n_sub = np.maximum(1, np.ceil(seg_len / max_step_mm - ROUNDING_SLACK)).astype(np.int64)
     seg = np.repeat(np.arange(len(seg_len)), n_sub)
     offsets = np.concatenate([[0], np.cumsum(n_sub)[:-1]])
     frac = (np.arange(n_sub.sum()) - offsets[seg] + 1) / n_sub[seg]
@@ -118,10 +120,10 @@ def right_normals_closed(xy: np.ndarray) -> np.ndarray:
     """
     d = np.diff(xy, axis=0)
     seg_n = np.column_stack([d[:, 1], -d[:, 0]])
-    seg_n /= np.maximum(np.linalg.norm(seg_n, axis=1), 1e-12)[:, None]
+    seg_n /= np.maximum(np.linalg.norm(seg_n, axis=1), DIVISOR_FLOOR)[:, None]
     prev = np.vstack([seg_n[-1:], seg_n])  # segment into vertex i (wraps for the start)
     nxt = np.vstack([seg_n, seg_n[:1]])  # segment out of vertex i (wraps for the end)
     v = prev + nxt
     norm = np.linalg.norm(v, axis=1)
-    v = np.where(norm[:, None] > 1e-9, v / np.maximum(norm, 1e-12)[:, None], nxt)
+    v = np.where(norm[:, None] > SAME_POINT_MM, v / np.maximum(norm, DIVISOR_FLOOR)[:, None], nxt)
     return v

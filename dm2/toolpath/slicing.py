@@ -16,6 +16,8 @@ import trimesh
 from shapely.geometry import MultiPolygon, Polygon
 from trimesh import intersections
 
+from dm2.core.tolerances import ROUNDING_SLACK, SIMPLIFY_MM
+
 log = logging.getLogger(__name__)
 
 MIN_REGION_AREA_MM2 = 1e-3  # cross-section pieces smaller than this are slicing noise
@@ -50,7 +52,7 @@ def count_layers(top_z_mm: float, layer_mm: float) -> int:
     """Number of layers whose mid-height ``(k + 0.5) * layer_mm`` lies below ``top_z_mm``."""
     if layer_mm <= 0:
         raise ValueError(f"toolpath.layer_mm: must be positive, got {layer_mm}")
-    return max(0, int(np.floor(top_z_mm / layer_mm + 0.5 - 1e-9)))
+    return max(0, int(np.floor(top_z_mm / layer_mm + 0.5 - ROUNDING_SLACK)))
 
 
 def _section_region(segments_2d: np.ndarray) -> Polygon | MultiPolygon:
@@ -61,7 +63,7 @@ def _section_region(segments_2d: np.ndarray) -> Polygon | MultiPolygon:
     if not polys:
         return Polygon()
     region = shapely.make_valid(shapely.union_all(polys))
-    region = shapely.simplify(region, 1e-4)  # drop collinear section vertices
+    region = shapely.simplify(region, SIMPLIFY_MM)  # drop collinear section vertices
     parts = [g for g in shapely.get_parts(region)
              if isinstance(g, Polygon) and g.area > MIN_REGION_AREA_MM2]
     if not parts:

@@ -30,6 +30,7 @@ from scipy.spatial.transform import Rotation
 from dm2.core import frames
 from dm2.core.config import ConfigError
 from dm2.core.messages import SENSOR_IDS, Calibration
+from dm2.core.tolerances import ROUNDING_SLACK
 from twin.cell import kinematics as kin
 
 
@@ -49,7 +50,7 @@ def minimal_rotations(from_unit: np.ndarray, to_unit: np.ndarray) -> np.ndarray:
     b = np.asarray(to_unit, dtype=np.float64)
     v = np.cross(a, b)
     c = a @ b
-    if np.any(c < -1.0 + 1e-9):
+    if np.any(c < -1.0 + ROUNDING_SLACK):
         raise ValueError("minimal_rotations: a direction is opposite to the target direction")
     K = np.zeros((a.shape[0], 3, 3))
     K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]

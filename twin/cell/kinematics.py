@@ -23,6 +23,8 @@ import math
 import numpy as np
 from numba import njit
 
+from dm2.core.tolerances import NEAR_ZERO, SAME_ANGLE_RAD
+
 A1, D1, A2, A3, D4, D6 = 175.0, 495.0, 900.0, 175.0, 960.0, 135.0
 GEOMETRY_MM = np.array([A1, D1, A2, A3, D4, D6])
 JOINT_LIMITS_DEG = np.array([[-180.0, 180.0], [-90.0, 150.0], [-180.0, 75.0],
@@ -146,7 +148,7 @@ def _ik_branch(T, branch, seed, out):
     sb = math.sqrt(M[1, 0] * M[1, 0] + M[2, 0] * M[2, 0])
     sgn = -1.0 if branch & 4 else 1.0
     q5 = math.atan2(sgn * sb, M[0, 0])
-    if sb > 1e-12:
+    if sb > NEAR_ZERO:
         q4 = math.atan2(sgn * M[1, 0], -sgn * M[2, 0])
         q6 = math.atan2(sgn * M[0, 1], sgn * M[0, 2])
     else:  # exactly singular: keep axis 4 at the seed, axis 6 takes the rest
@@ -164,7 +166,7 @@ def _ik_branch(T, branch, seed, out):
 @njit(cache=True)
 def _within_limits(q, lim):
     for j in range(6):
-        if q[j] < lim[j, 0] - 1e-9 or q[j] > lim[j, 1] + 1e-9:
+        if q[j] < lim[j, 0] - SAME_ANGLE_RAD or q[j] > lim[j, 1] + SAME_ANGLE_RAD:
             return False
     return True
 

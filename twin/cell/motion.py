@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from dm2.core.messages import Toolpath
+from dm2.core.tolerances import ROUNDING_SLACK
 from twin.cell import kinematics as kin
 from twin.cell.cell import CellModel
 from twin.cell.trajectory import PathTiming, plan_path, sample_path
@@ -113,7 +114,7 @@ def execute_toolpath(toolpath: Toolpath, cell: CellModel, rate_hz: float = 250.0
         raise ValueError(f"rate_hz must be > 0, got {rate_hz}")
     timing = plan_toolpath(toolpath, cell, accel_mm_s2, dwell)
     dt = 1.0 / rate_hz
-    m = int(np.ceil(timing.duration_s / dt - 1e-9)) + 1
+    m = int(np.ceil(timing.duration_s / dt - ROUNDING_SLACK)) + 1
     t = np.arange(m) * dt
     pos, axis, speed, arc, kept, dwelling = sample_path(timing, t)
     segment = np.where(dwelling, timing.group_last[kept], timing.vertex_index[kept])

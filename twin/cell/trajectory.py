@@ -42,9 +42,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dm2.core.tolerances import (
+    SAME_ANGLE_RAD,
+    SAME_POINT_MM,
+    STRAIGHT_TURN_RAD,
+    TINY_DIVISOR_FLOOR,
+    TURN_EPS_RAD,
+)
 from twin.cell.trajectory_kernels import (
-    EPS_MM,
-    EPS_RAD,
     distinct_vertices,
     look_ahead,
     phases,
@@ -59,9 +64,9 @@ def corner_speed_limit(turn_rad: np.ndarray, zone_mm: np.ndarray, len_in_mm: np.
     with np.errstate(divide="ignore", invalid="ignore"):
         R = d / np.tan(turn / 2.0)
     v = np.sqrt(accel_mm_s2 * np.clip(R, 0.0, None))
-    v = np.where(turn < 1e-7, np.inf, v)
-    v = np.where((d <= 0.0) & (turn >= 1e-7), 0.0, v)
-    return np.where(turn > np.pi - 1e-7, 0.0, v)
+    v = np.where(turn < STRAIGHT_TURN_RAD, np.inf, v)
+    v = np.where((d <= 0.0) & (turn >= STRAIGHT_TURN_RAD), 0.0, v)
+    return np.where(turn > np.pi - STRAIGHT_TURN_RAD, 0.0, v)
 
 
 @dataclass(frozen=True)
@@ -144,9 +149,10 @@ def plan_path(position_O: np.ndarray, axis_O: np.ndarray, speed_mm_s: np.ndarray
     P, A = pos[idx], ax[idx]
     L = np.r_[0.0, np.linalg.norm(np.diff(P, axis=0), axis=1)]
     ang = np.r_[0.0, _angles(A[:-1], A[1:])]
-    moving = L > EPS_MM
+    moving = L > SAME_POINT_MM
     with np.errstate(divide="ignore"):
-        v_reor = np.where(ang > EPS_RAD, max_reorient_rad_s * L / np.maximum(ang, 1e-300),
+        v_reor = np.where(ang > SAME_ANGLE_RAD, max_reorient_rad_s * L
+                          / np.maximum(ang, TINY_DIVISOR_FLOOR),
                           np.inf)
     v_seg = np.minimum(np.asarray(speed_mm_s, float)[idx], v_reor)
     v_seg[0] = 0.0
@@ -154,7 +160,7 @@ def plan_path(position_O: np.ndarray, axis_O: np.ndarray, speed_mm_s: np.ndarray
     vcorner = np.full(k, np.inf)
     dzone = np.zeros(k)
     if k > 2:
-        u = np.diff(P, axis=0) / np.maximum(L[1:, None], 1e-300)
+        u = np.diff(P, axis=0) / np.maximum(L[1:, None], TINY_DIVISOR_FLOOR)
         turn = _angles(u[:-1], u[1:])
         zone = np.asarray(zone_mm, float)[idx][1:-1]
         vcorner[1:-1] = corner_speed_limit(turn, zone, L[1:-1], L[2:], a)
@@ -173,7 +179,7 @@ def plan_path(position_O: np.ndarray, axis_O: np.ndarray, speed_mm_s: np.ndarray
     dzone[dwell_k > 0] = 0.0
     arc = np.cumsum(L)
     # Knots: every kept vertex plus the ends of its zone; the zone is crossed at v_corner.
-    zi = np.flatnonzero(dzone > EPS_MM)
+    zi = np.flatnonzero(dzone > SAME_POINT_MM)
     ks = np.r_[arc, arc[zi] - dzone[zi], arc[zi] + dzone[zi]]
     kv = np.r_[vcorner, vcorner[zi], vcorner[zi]]
     kvert = np.r_[np.arange(k), np.full(2 * zi.size, -1)]
@@ -181,7 +187,7 @@ def plan_path(position_O: np.ndarray, axis_O: np.ndarray, speed_mm_s: np.ndarray
     ks, kv, kvert = ks[order], kv[order], kvert[order]
     # Merge a zone knot into a coincident neighbour (zones of adjacent corners may touch).
     drop = np.zeros(ks.size, dtype=bool)
-    for j in np.flatnonzero((np.diff(ks) < EPS_MM) & ((kvert[1:] < 0) | (kvert[:-1] < 0))):
+    for j in np.flatnonzero((np.diff(ks) < SAME_POINT_MM) & ((kvert[1:] < 0) | (kvert[:-1] < 0))):
         keep_j, drop_j = (j, j + 1) if kvert[j + 1] < 0 else (j + 1, j)
         kv[keep_j] = min(kv[keep_j], kv[drop_j])
         drop[drop_j] = True
@@ -246,9 +252,9 @@ def sample_path(timing: PathTiming, t_s: np.ndarray):
 def _slerp_unit(a0: np.ndarray, a1: np.ndarray, u: np.ndarray) -> np.ndarray:
     """Spherical interpolation between unit vectors (m, 3) at fractions u (m,)."""
     om = _angles(a0, a1)
-    if np.any(om > np.pi - 1e-6):
+    if np.any(om > np.pi - TURN_EPS_RAD):
         raise ValueError("spray axis reverses between consecutive toolpath points")
-    small = om < 1e-9
+    small = om < SAME_ANGLE_RAD
     so = np.where(small, 1.0, np.sin(om))
     w0 = np.where(small, 1.0 - u, np.sin((1.0 - u) * om) / so)
     w1 = np.where(small, u, np.sin(u * om) / so)

@@ -8,8 +8,8 @@ import math
 import numpy as np
 from numba import njit
 
-EPS_MM = 1e-9
-EPS_RAD = 1e-9
+from dm2.core.tolerances import SAME_ANGLE_RAD, SAME_POINT_MM
+
 # closer points are one point to the controller (see twin.cell.trajectory)
 PATH_RESOLUTION_MM = 0.01
 
@@ -30,12 +30,12 @@ def distinct_vertices(pos: np.ndarray, ax: np.ndarray) -> np.ndarray:
         if d > PATH_RESOLUTION_MM:
             keep[i] = True
             last = i
-        elif d <= EPS_MM:
+        elif d <= SAME_POINT_MM:
             c = ax[i, 0] * ax[last, 0] + ax[i, 1] * ax[last, 1] + ax[i, 2] * ax[last, 2]
             s = math.sqrt((ax[i, 1] * ax[last, 2] - ax[i, 2] * ax[last, 1]) ** 2
                           + (ax[i, 2] * ax[last, 0] - ax[i, 0] * ax[last, 2]) ** 2
                           + (ax[i, 0] * ax[last, 1] - ax[i, 1] * ax[last, 0]) ** 2)
-            if math.atan2(s, c) > EPS_RAD:
+            if math.atan2(s, c) > SAME_ANGLE_RAD:
                 keep[i] = True
                 last = i
     return keep
@@ -55,7 +55,7 @@ def phases(ks, kv, kvert, kl, cap, owner, moving, ang, dwell_k, a, max_reorient)
     t = 0.0
     for j in range(ks.size):
         i = kvert[j]
-        if j > 0 and kl[j] > EPS_MM:
+        if j > 0 and kl[j] > SAME_POINT_MM:
             v0, v1, vc, Lj = kv[j - 1], kv[j], cap[j], kl[j]
             vp = max(min(vc, math.sqrt(a * Lj + 0.5 * (v0 * v0 + v1 * v1))), v0, v1)
             ta, tdec = (vp - v0) / a, (vp - v1) / a

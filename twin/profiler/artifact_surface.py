@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-_EPS_MM = 1e-9
+from dm2.core.tolerances import NEAR_ZERO, SAME_POINT_MM
 
 
 @dataclass(frozen=True)
@@ -84,7 +84,7 @@ class SphereArtifactSurface:
             dist = np.linalg.norm(v, axis=1)
             gap = np.abs(dist - r)
             take = gap < best
-            normals[take] = v[take] / np.maximum(dist[take, None], _EPS_MM)
+            normals[take] = v[take] / np.maximum(dist[take, None], SAME_POINT_MM)
             best = np.where(take, gap, best)
             if pr > 0:
                 radial = p[:, :2] - c[:2]
@@ -92,7 +92,7 @@ class SphereArtifactSurface:
                 gap = np.where((p[:, 2] >= 0) & (p[:, 2] <= c[2]), np.abs(rad - pr), np.inf)
                 take = gap < best
                 normals[take] = np.column_stack([radial[take] / np.maximum(rad[take, None],
-                                                                           _EPS_MM),
+                                                                           SAME_POINT_MM),
                                                  np.zeros(int(take.sum()))])
                 best = np.where(take, gap, best)
         lx, ly, th = self.plate_size_mm
@@ -115,8 +115,8 @@ class SphereArtifactSurface:
         t2 = np.nan_to_num(t2, nan=np.inf)
         t_in = np.max(np.minimum(t1, t2), axis=1)
         t_out = np.min(np.maximum(t1, t2), axis=1)
-        hit = (t_out >= np.maximum(t_in, 0.0)) & (t_out > _EPS_MM)
-        return np.where(hit, np.where(t_in > _EPS_MM, t_in, 0.0), np.inf)
+        hit = (t_out >= np.maximum(t_in, 0.0)) & (t_out > SAME_POINT_MM)
+        return np.where(hit, np.where(t_in > SAME_POINT_MM, t_in, 0.0), np.inf)
 
 
 def _sphere_t(o, d, center, radius) -> np.ndarray:
@@ -126,7 +126,8 @@ def _sphere_t(o, d, center, radius) -> np.ndarray:
     disc = b * b - c
     s = np.sqrt(np.where(disc >= 0, disc, 0.0))
     t0, t1 = -b - s, -b + s
-    t = np.where(t0 > _EPS_MM, t0, np.where(t1 > _EPS_MM, 0.0, np.inf))  # inside: blocked
+    # an origin inside the sphere (t0 behind, t1 ahead) is blocked at once
+    t = np.where(t0 > SAME_POINT_MM, t0, np.where(t1 > SAME_POINT_MM, 0.0, np.inf))
     return np.where(disc >= 0, t, np.inf)
 
 
@@ -138,8 +139,8 @@ def _post_t(o, d, center, radius) -> np.ndarray:
     c = ox * ox + oy * oy - radius * radius
     with np.errstate(divide="ignore", invalid="ignore"):
         disc = b * b - a * c
-        ok = (disc >= 0) & (a > 1e-12)
+        ok = (disc >= 0) & (a > NEAR_ZERO)
         t = np.where(ok, (-b - np.sqrt(np.where(ok, disc, 0.0))) / np.where(ok, a, 1.0), np.inf)
     z = o[:, 2] + t * d[:, 2]
-    hit = ok & (t > _EPS_MM) & (z >= 0.0) & (z <= center[2])
+    hit = ok & (t > SAME_POINT_MM) & (z >= 0.0) & (z <= center[2])
     return np.where(hit, t, np.inf)

@@ -15,6 +15,7 @@ import math
 import numpy as np
 from numba import njit
 
+from dm2.core.tolerances import FACING_COS
 from twin.profiler.occluders import cylinder_blocks_one as _cylinder_blocks_one
 from twin.world.heightfield_kernels import bilinear_height, normal_at, ray_one
 
@@ -174,7 +175,7 @@ def trace_pass(H, bmax, cell, thickness, zmax, lx, ly, face_tol, origin, dirs, t
                     starts, u, remaining, t_cam)
         for q in range(m):
             facing = (nrm[q, 0] * u_cam[q, 0] + nrm[q, 1] * u_cam[q, 1]
-                      + nrm[q, 2] * u_cam[q, 2]) > 1e-9
+                      + nrm[q, 2] * u_cam[q, 2]) > FACING_COS
             why = VALID
             if not facing:
                 why = BACK_FACING

@@ -9,6 +9,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dm2.core.tolerances import OCCLUSION_SLACK_MM
+
 # Why a point is missing (ProfileTrace.reason).
 VALID = 0
 NO_SURFACE = 1  # nothing hit inside the measuring range
@@ -22,7 +24,7 @@ REASONS = ("valid", "no_surface", "laser_blocked", "camera_shadow", "camera_bloc
            "back_facing", "too_dark", "dropout")
 
 _LIFT_MM = 0.01  # camera rays start this far off the surface, along its normal
-_FACE_TOL_MM = 1e-6  # hits this far below the top surface lie on a plate face
+_FACE_TOL_MM = OCCLUSION_SLACK_MM  # hits this far below the top surface lie on a plate face
 
 
 

@@ -14,6 +14,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from dm2.core.messages import Profile
+from dm2.core.tolerances import FACING_COS
 from twin.profiler.model import (
     _FACE_TOL_MM,
     _LIFT_MM,
@@ -92,7 +93,7 @@ def _camera_visibility(hf, T_B_O, camera_O, camera_reach_mm, hits_O, normals_O,
     dist = np.linalg.norm(to_cam, axis=1)
     u = to_cam / dist[:, None]
     out = np.full(hits_O.shape[0], VALID, dtype=np.int8)
-    facing = _dot_rows(normals_O, u) > 1e-9
+    facing = _dot_rows(normals_O, u) > FACING_COS
     out[~facing] = BACK_FACING
     starts = hits_O + _LIFT_MM * normals_O
     remaining = np.linalg.norm(camera_O - starts, axis=1)

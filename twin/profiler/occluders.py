@@ -15,8 +15,7 @@ from numba import njit
 
 from dm2.core.config import CellConfig
 from dm2.core.frames import invert
-
-_EPS = 1e-12
+from dm2.core.tolerances import NEAR_ZERO
 
 
 @dataclass(frozen=True)
@@ -74,7 +73,7 @@ def _cylinder_entry(ox, oy, oz, dx, dy, dz, r2, length):
     t_enter = 0.0
     t_exit = np.inf
     # slab along the axis
-    if abs(dz) > _EPS:
+    if abs(dz) > NEAR_ZERO:
         t0 = (0.0 - oz) / dz
         t1 = (length - oz) / dz
         t_enter = max(t_enter, min(t0, t1))
@@ -85,7 +84,7 @@ def _cylinder_entry(ox, oy, oz, dx, dy, dz, r2, length):
     a = dx * dx + dy * dy
     b = 2.0 * (ox * dx + oy * dy)
     c = ox * ox + oy * oy - r2
-    if a > _EPS:
+    if a > NEAR_ZERO:
         disc = b * b - 4.0 * a * c
         if disc < 0.0:
             return np.inf

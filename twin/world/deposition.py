@@ -147,10 +147,9 @@ class SprayModel:
         p = self.process
         lam = p.packets_per_s * feed_factor * dt_s
         vol, n, missed = DK.spray_step(
-            hf._h, hf._bmax, hf._zmax, hf._dirty, hf.cell_mm, hf.thickness_mm, self._state, lam,
-            spot, axis, self.sigma_mm(standoff_delta_mm), p.standoff_mm + standoff_delta_mm,
-            self.v_packet_mm3, p.deposition_efficiency * efficiency_factor, self._theta_c,
-            max(1, round(NORMAL_STEP_MM / hf.cell_mm)), self._phys, self._radial)
+            _field_arrays(hf), self._state, lam, spot, axis, self.sigma_mm(standoff_delta_mm),
+            p.standoff_mm + standoff_delta_mm, p.deposition_efficiency * efficiency_factor,
+            self._plume(hf))
         self.fed_volume_mm3 += n * self.v_packet_mm3
         self.deposited_volume_mm3 += vol
         self.missed_packets += missed
@@ -197,16 +196,23 @@ class SprayModel:
         """Deposit samples ``a:b`` of ``plan``; the deposited volume per sample (b - a,)."""
         out = np.zeros(b - a)
         counts = np.zeros(2, dtype=np.int64)
-        DK.spray_samples(hf._h, hf._bmax, hf._zmax, hf._dirty, hf.cell_mm, hf.thickness_mm,
-                         self._state, plan.lam[a:b], plan.spots_O[a:b], plan.axes_O[a:b],
-                         plan.sigma_mm[a:b], plan.back_mm[a:b], self.v_packet_mm3,
-                         plan.zeta0[a:b], self._theta_c,
-                         max(1, round(NORMAL_STEP_MM / hf.cell_mm)), self._phys, self._radial,
-                         out, counts)
+        DK.spray_samples(_field_arrays(hf), self._state, plan.lam[a:b], plan.spots_O[a:b],
+                         plan.axes_O[a:b], plan.sigma_mm[a:b], plan.back_mm[a:b],
+                         plan.zeta0[a:b], self._plume(hf), out, counts)
         self.fed_volume_mm3 += int(counts[0]) * self.v_packet_mm3
         self.deposited_volume_mm3 += float(out.sum())
         self.missed_packets += int(counts[1])
         return out
+
+    def _plume(self, hf: HeightField) -> DK.Plume:
+        """The fixed part of the spray as the kernels take it, on ``hf``'s node spacing."""
+        return DK.Plume(self.v_packet_mm3, self._theta_c,
+                        max(1, round(NORMAL_STEP_MM / hf.cell_mm)), self._phys, self._radial)
+
+
+def _field_arrays(hf: HeightField) -> DK.FieldArrays:
+    """``hf``'s arrays as the deposition kernels take them (views, updated in place)."""
+    return DK.FieldArrays(hf._h, hf._bmax, hf._zmax, hf._dirty, hf.cell_mm, hf.thickness_mm)
 
 
 @dataclass(frozen=True)

@@ -8,11 +8,34 @@ every packet bit for bit.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
 
+from dm2.core.tolerances import NEAR_ZERO
 from twin.world.heightfield_kernels import BLOCK, bilinear_height, ray_one
+
+
+class FieldArrays(NamedTuple):
+    """A :class:`twin.world.heightfield.HeightField`'s arrays as the kernels take them."""
+
+    H: np.ndarray  # (ny, nx) float64 node heights [mm], updated in place
+    bmax: np.ndarray  # (nby, nbx) float64 per-block upper bound of H [mm]
+    zmax: np.ndarray  # (1,) float64 upper bound of the whole field [mm]
+    dirty: np.ndarray  # (nby, nbx) bool blocks changed since the last mesh
+    cell: float  # node spacing [mm]
+    thickness: float  # plate thickness [mm]
+
+
+class Plume(NamedTuple):
+    """The parts of the twin's spray that stay fixed over a call."""
+
+    v_packet: float  # volume of one powder packet [mm^3]
+    theta_c: float  # critical spray angle [rad]
+    normal_cells: int  # half width of the smoothed surface normal [nodes]
+    phys: np.ndarray  # PHYS_* entries: efficiency curve, porosity, spray-distance efficiency
+    radial: np.ndarray  # radial profile of the plume (:func:`radial_offset`)
 
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 _M1 = np.uint64(0xBF58476D1CE4E5B9)
@@ -261,17 +284,22 @@ def _splat(H, bmax, zmax, dirty, cell, x, y, vol, w, unrolled=True):
 
 
 @njit(cache=True, nogil=True)
-def spray_step(H, bmax, zmax, dirty, cell, thickness, state, lam, spot, axis, sigma, back_mm,
-               v_packet, zeta0, theta_c, normal_cells, phys, radial):
-    """Draw ``Poisson(lam)`` packets from the plume at ``spot`` along ``axis`` and deposit them.
+def spray_step(field, state, lam, spot, axis, sigma, back_mm, zeta0, plume):
+    """Draw ``Poisson(lam)`` packets from the plume at ``spot`` along ``axis`` and deposit them
+    onto ``field`` (:class:`FieldArrays`).
 
-    ``phys`` (PHYS_* entries) and ``radial`` (:func:`radial_offset`) carry the twin's own
-    physics: efficiency curve, porosity, spray-distance efficiency and the plume's profile.
+    ``plume`` (:class:`Plume`) carries the twin's own physics: efficiency curve, porosity,
+    spray-distance efficiency and the plume's profile; ``sigma`` [mm], ``back_mm`` (the nozzle
+    exit behind ``spot``) and ``zeta0`` (efficiency at normal incidence) are this step's.
 
     Returns
     -------
     (deposited volume [mm^3], packets drawn, packets that missed the plate)
     """
+    H, bmax, zmax, dirty = field.H, field.bmax, field.zmax, field.dirty
+    cell, thickness = field.cell, field.thickness
+    v_packet, theta_c, normal_cells = plume.v_packet, plume.theta_c, plume.normal_cells
+    phys, radial = plume.phys, plume.radial
     ax = axis[0]
     ay = axis[1]
     az = axis[2]
@@ -291,7 +319,7 @@ def spray_step(H, bmax, zmax, dirty, cell, thickness, state, lam, spot, axis, si
     e2x = ay * e1z - az * e1y
     e2y = az * e1x - ax * e1z
     e2z = ax * e1y - ay * e1x
-    vertical = abs(ax) < 1e-12 and abs(ay) < 1e-12 and az < 0.0
+    vertical = abs(ax) < NEAR_ZERO and abs(ay) < NEAR_ZERO and az < 0.0
     code = int(phys[PHYS_CURVE])
     theta_p = phys[PHYS_PLATEAU]
     bulk = phys[PHYS_BULK]
@@ -338,16 +366,15 @@ def spray_step(H, bmax, zmax, dirty, cell, thickness, state, lam, spot, axis, si
 
 
 @njit(cache=True, nogil=True)
-def spray_samples(H, bmax, zmax, dirty, cell, thickness, state, lam, spots, axes, sigma, back_mm,
-                  v_packet, zeta0, theta_c, normal_cells, phys, radial, out_vol, out_counts):
+def spray_samples(field, state, lam, spots, axes, sigma, back_mm, zeta0, plume, out_vol,
+                  out_counts):
     """:func:`spray_step` for each executed-motion sample ``k`` (``lam[k] == 0`` skips it)."""
     for k in range(spots.shape[0]):
         if lam[k] <= 0.0:
             out_vol[k] = 0.0
             continue
-        vol, n, missed = spray_step(H, bmax, zmax, dirty, cell, thickness, state, lam[k], spots[k],
-                                    axes[k], sigma[k], back_mm[k], v_packet, zeta0[k],
-                                    theta_c, normal_cells, phys, radial)
+        vol, n, missed = spray_step(field, state, lam[k], spots[k], axes[k], sigma[k],
+                                    back_mm[k], zeta0[k], plume)
         out_vol[k] = vol
         out_counts[0] += n
         out_counts[1] += missed

@@ -38,6 +38,7 @@ from scipy.spatial.transform import Rotation
 from dm2.core.config import CalibrationPerturbation, FaultConfig
 from dm2.core.frames import make_T
 from dm2.core.messages import Calibration, Toolpath
+from dm2.core.tolerances import DIVISOR_FLOOR, SAME_POINT_MM
 
 log = logging.getLogger(__name__)
 
@@ -98,7 +99,7 @@ def _progress(f: FaultConfig, t, layer):
     t = np.asarray(t, dtype=np.float64)
     layer = np.asarray(layer, dtype=np.float64)
     if f.time_s is not None:
-        span = max(f.time_s[1] - f.time_s[0], 1e-12)
+        span = max(f.time_s[1] - f.time_s[0], DIVISOR_FLOOR)
         return np.clip((t - f.time_s[0]) / span, 0.0, 1.0) + 0.0 * layer
     if f.layers is not None:
         n = f.layers[1] - f.layers[0] + 1
@@ -238,7 +239,7 @@ def interior_angles_deg(position_O: np.ndarray, chord_mm: float) -> np.ndarray:
     fwd = at(s + 2 * chord_mm) - at(s + chord_mm)
     nb = np.linalg.norm(back, axis=1)
     nf = np.linalg.norm(fwd, axis=1)
-    ok = (nb > 1e-9) & (nf > 1e-9)
+    ok = (nb > SAME_POINT_MM) & (nf > SAME_POINT_MM)
     cos = np.ones(n)
     cos[ok] = np.einsum("ij,ij->i", back[ok], fwd[ok]) / (nb[ok] * nf[ok])
     return 180.0 - np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))

@@ -22,6 +22,7 @@ import logging
 
 import numpy as np
 
+from dm2.core.tolerances import ROUNDING_SLACK
 from twin.world import heightfield_kernels as K
 
 log = logging.getLogger(__name__)
@@ -50,8 +51,8 @@ class HeightField:
             raise ValueError(f"HeightField.thickness_mm: must be positive, got {thickness_mm!r}")
         nx = int(round(size[0] / cell_mm))
         ny = int(round(size[1] / cell_mm))
-        if not (np.isclose(nx * cell_mm, size[0], rtol=1e-9, atol=0)
-                and np.isclose(ny * cell_mm, size[1], rtol=1e-9, atol=0)):
+        if not (np.isclose(nx * cell_mm, size[0], rtol=ROUNDING_SLACK, atol=0)
+                and np.isclose(ny * cell_mm, size[1], rtol=ROUNDING_SLACK, atol=0)):
             raise ValueError(f"HeightField: size_mm {tuple(size[:2])} is not a multiple of "
                              f"cell_mm {cell_mm}")
         self.size_mm = (float(size[0]), float(size[1]))

@@ -21,8 +21,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from dm2.core.tolerances import INTERVAL_NUDGE, NEAR_ZERO, RELATIVE_ZERO, TINY_DIVISOR_FLOOR
+
 BLOCK = 8
-_EPS = 1e-12
 
 
 @njit(cache=True)
@@ -111,7 +112,7 @@ def _patch_hit(H, pi, pj, U0, V0, z0, dU, dV, dz, ta, tb):
     a2 = -D * dU * dV
     span = tb - ta
     best = np.inf
-    if abs(a2) * span < 1e-12 * (abs(a1) + 1e-300) or a2 == 0.0:
+    if abs(a2) * span < RELATIVE_ZERO * (abs(a1) + TINY_DIVISOR_FLOOR) or a2 == 0.0:
         if a1 < 0.0:
             best = -a0 / a1
     else:
@@ -127,14 +128,14 @@ def _patch_hit(H, pi, pj, U0, V0, z0, dU, dV, dz, ta, tb):
                 best = r1
             elif r2 >= 0.0:
                 best = r2
-    if best <= span + 1e-12 * (1.0 + span):
+    if best <= span + RELATIVE_ZERO * (1.0 + span):
         return ta + min(best, span)
     return np.inf
 
 
 @njit(cache=True)
 def _slab(o, d, lo, hi, t0, t1):
-    if abs(d) < _EPS:
+    if abs(d) < NEAR_ZERO:
         if o < lo or o > hi:
             return 1.0, 0.0
         return t0, t1
@@ -162,7 +163,7 @@ def ray_one(H, bmax, cell, thickness, zmax, ox, oy, oz, dx, dy, dz, max_range):
     nby = bmax.shape[0]
     bsize = float(BLOCK)
     # coarse walk over blocks
-    tm = 0.5 * (t0 + t1) if t1 - t0 < 1e-9 else t0 + 1e-9 * (t1 - t0)
+    tm = 0.5 * (t0 + t1) if t1 - t0 < INTERVAL_NUDGE else t0 + INTERVAL_NUDGE * (t1 - t0)
     bi = min(max(int(np.floor((U0 + dU * tm) / bsize)), 0), nbx - 1)
     bj = min(max(int(np.floor((V0 + dV * tm) / bsize)), 0), nby - 1)
     stepbi = 1 if dU > 0 else -1
@@ -170,15 +171,15 @@ def ray_one(H, bmax, cell, thickness, zmax, ox, oy, oz, dx, dy, dz, max_range):
     t = t0
     while t <= t1:
         # exit of this block
-        if dU > _EPS:
+        if dU > NEAR_ZERO:
             tu = ((bi + 1) * bsize - U0) / dU
-        elif dU < -_EPS:
+        elif dU < -NEAR_ZERO:
             tu = (bi * bsize - U0) / dU
         else:
             tu = np.inf
-        if dV > _EPS:
+        if dV > NEAR_ZERO:
             tv = ((bj + 1) * bsize - V0) / dV
-        elif dV < -_EPS:
+        elif dV < -NEAR_ZERO:
             tv = (bj * bsize - V0) / dV
         else:
             tv = np.inf
@@ -206,7 +207,7 @@ def _walk_block(H, bi, bj, U0, V0, z0, dU, dV, dz, ta, tb, top):
     """First hit in block ``(bi, bj)`` (height bound ``top``) between ``ta`` and ``tb``, patch
     by patch; a ray that does not descend leaves as soon as it is above ``top``."""
     ny, nx = H.shape
-    tm = ta + 1e-9 * (tb - ta) if tb > ta else ta
+    tm = ta + INTERVAL_NUDGE * (tb - ta) if tb > ta else ta
     lo_i = bi * BLOCK
     hi_i = min(lo_i + BLOCK - 1, nx)
     lo_j = bj * BLOCK
@@ -215,15 +216,15 @@ def _walk_block(H, bi, bj, U0, V0, z0, dU, dV, dz, ta, tb, top):
     pj = min(max(int(np.floor(V0 + dV * tm)), lo_j), hi_j)
     t = ta
     while True:
-        if dU > _EPS:
+        if dU > NEAR_ZERO:
             tu = (pi + 1 - U0) / dU
-        elif dU < -_EPS:
+        elif dU < -NEAR_ZERO:
             tu = (pi - U0) / dU
         else:
             tu = np.inf
-        if dV > _EPS:
+        if dV > NEAR_ZERO:
             tv = (pj + 1 - V0) / dV
-        elif dV < -_EPS:
+        elif dV < -NEAR_ZERO:
             tv = (pj - V0) / dV
         else:
             tv = np.inf

@@ -33,6 +33,7 @@ import numpy as np
 
 from dm2.core.config import FaultConfig
 from dm2.core.messages import Toolpath
+from dm2.core.tolerances import BUILT_HEIGHT_MM
 from twin.world.faults import find_corners
 from twin.world.heightfield import HeightField
 
@@ -54,7 +55,7 @@ def write_layer_surface(hf: HeightField, path, full: bool = False,
     path = Path(path)
     window = None
     if not full:
-        built = np.abs(hf.heights_mm) > 1e-3
+        built = np.abs(hf.heights_mm) > BUILT_HEIGHT_MM
         if built.any():
             x, y = hf.centres_mm()
             cols = np.flatnonzero(built.any(axis=0))
@@ -134,7 +135,8 @@ def fault_truth(faults: Sequence[FaultConfig], hf_faulty_by_layer, hf_nominal_by
     y = (np.arange(shape[0]) + 0.5) * c
     gx, gy = np.meshgrid(x, y)
     final = nominal[layers[-1]]
-    top = np.percentile(final[final > 1e-3], 95) if np.any(final > 1e-3) else 0.0
+    built = final > BUILT_HEIGHT_MM
+    top = np.percentile(final[built], 95) if np.any(built) else 0.0
     footprint = final > footprint_fraction * top if top > 0 else np.ones(shape, bool)
     outline = final > 0.5 * top if top > 0 else np.ones(shape, bool)  # region of global faults
 
@@ -212,7 +214,7 @@ def write_deviation_maps(truth_dir, hf_faulty_by_layer, hf_nominal_by_layer, cel
     if not layers:
         return []
     last = layers[-1]
-    built = (np.abs(faulty[last]) > 1e-3) | (np.abs(nominal[last]) > 1e-3)
+    built = (np.abs(faulty[last]) > BUILT_HEIGHT_MM) | (np.abs(nominal[last]) > BUILT_HEIGHT_MM)
     ny, nx = built.shape
     pad = int(math.ceil(margin_mm / cell_mm))
     if built.any():
