@@ -169,7 +169,7 @@ class TsdfFusion:
     def feed(self, msg) -> None:
         """Take one message of any kind; bad ones are counted in :attr:`dropped`, never raised."""
         if self._finished:
-            raise RuntimeError("TsdfFusion.feed: the monitor was finished")
+            raise RuntimeError("TsdfFusion.feed: the fusion was finished")
         ready = self.sync.push(msg)
         if ready:
             self._handle(ready)

@@ -3,7 +3,7 @@ out-of-range points and sensor dropouts.
 
 :class:`LiveAnalysis` wraps :class:`~dm2.pipeline.pipeline.Pipeline` (the same object
 ``dm2 run`` drives in process, so a live run and an in-process run of the same stream give the
-same layers and tracks), gives the fusion monitor the plate's box so points far outside count
+same layers and tracks), gives the fusion stage the plate's box so points far outside count
 ``out_of_range``, notes sensors silent for longer than allowed (``sensor_dropout`` events) and,
 with an output folder, rewrites the report after every analysed layer. With ``live=True`` the
 pipeline fuses first and catches up when asked (:meth:`LiveAnalysis.catch_up`, the live loop's

@@ -1,9 +1,10 @@
-"""A monitoring session: the whole pipeline from messages to per-layer defect results.
+"""A monitoring session: the stages interleaved in stream order, messages to layer results.
 
+The drivers build a :class:`~dm2.pipeline.pipeline.Pipeline`, which runs this object.
 :class:`MonitoringSession` wires the stages of the paper's sections 5 and 6 for one build:
-every message goes to the fusion :class:`~dm2.fusion.fusion.TsdfFusion`; robot states also grow the
-near-net :class:`~dm2.reference.model.NearNetReference` along the executed motion; when the monitor
-closes a layer, that layer's surface is compared with the reference of the same layer
+every message goes to the fusion :class:`~dm2.fusion.fusion.TsdfFusion`; robot states also grow
+the near-net :class:`~dm2.reference.model.NearNetReference` along the executed motion; when the
+fusion closes a layer, that layer's surface is compared with the reference of the same layer
 (:class:`~dm2.defects.layer_analysis.LayerAnalysis`: deviation, classification, segmentation,
 tracking).
 
@@ -33,7 +34,7 @@ segmentation, tracking) on a worker thread, in layer order, off the fusion path.
 The same object serves the twin in process, recordings and live sources: it only sees
 messages. The reference of layer ``L`` is taken when the stream reports the start of layer
 ``L + 1`` (a ``LayerMark``), so it holds exactly the deposition of layers ``0..L``; streams
-without layer marks take it when the monitor closes the layer.
+without layer marks take it when the fusion closes the layer.
 """
 
 from __future__ import annotations
