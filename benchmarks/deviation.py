@@ -14,7 +14,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from dm2.core.config import MonitorConfig
-from dm2.defects.layer_analysis import DefectMonitor
+from dm2.defects.layer_analysis import LayerAnalysis
 from dm2.defects.realtime import RealtimeDeviation
 from dm2.fusion.tsdf.field import SparseTSDF
 from dm2.reference.height_map import ReferenceMap
@@ -51,7 +51,7 @@ def bench_layer(repeats: int) -> None:
     cfg = MonitorConfig()
     ref = reference_pad()
     surf = measured_layer(ref, 448, rng)
-    mon = DefectMonitor(cfg)
+    mon = LayerAnalysis(cfg)
     mon.analyse_layer(surf, ref, layer=0)  # warm-up (numba, Open3D)
     totals, stages = [], []
     for k in range(repeats):

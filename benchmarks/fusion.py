@@ -43,7 +43,7 @@ from test_monitor_scene import Scene, make_calibration, raster_lines, raster_run
 
 from dm2.core.config import MonitorConfig, ProcessConfig  # noqa: E402
 from dm2.core.messages import Profile  # noqa: E402
-from dm2.fusion.fusion import REPLAY_BATCH_PROFILES, Monitor  # noqa: E402
+from dm2.fusion.fusion import REPLAY_BATCH_PROFILES, TsdfFusion  # noqa: E402
 from dm2.fusion.surface import SurfaceExtractor  # noqa: E402
 from dm2.fusion.tsdf.field import MIN_SPLIT_POINTS, SparseTSDF  # noqa: E402
 
@@ -70,7 +70,7 @@ def run_once(cal, msgs, measure_latency: bool, batch_profiles: int = REPLAY_BATC
              layer_every: int = 0, threads: int = 2):
     """One replay; with ``layer_every`` > 0 the surface is extracted every that many profiles
     (like a layer end) and the extraction times are returned instead of latencies."""
-    mon = Monitor(cal, MonitorConfig(), ProcessConfig(), batch_profiles=batch_profiles)
+    mon = TsdfFusion(cal, MonitorConfig(), ProcessConfig(), batch_profiles=batch_profiles)
     mon.tsdf.threads = threads
     lat, acc = [], 0.0
     t0 = time.perf_counter()

@@ -7,7 +7,7 @@ Printed:
 - the CPU model, the number of cores and the load average before and after the run (the
   machine may be shared: timings are only comparable at a similar load);
 - per stage wall time [s] from ``report.json`` (fusion, which holds the reference and layer
-  analysis a layer end triggers inside ``Monitor.feed``, and fusion net of the analysis;
+  analysis a layer end triggers inside ``TsdfFusion.feed``, and fusion net of the analysis;
   reference, layer analysis, real-time deviation; the run before the report, twin included;
   "report + start-up" is the rest of the child's wall time: writing the report folder,
   interpreter start and imports), the real-time factor (process seconds over
@@ -147,7 +147,7 @@ def report(run_dir: Path, wall: float, rss_mib: float, args) -> None:
     rep = json.loads((run_dir / "report.json").read_text())
     t = rep["timing"]
     process_s = float(t["simulated_process_s"])
-    # a layer end inside Monitor.feed runs that layer's reference and analysis: the session's
+    # a layer end inside TsdfFusion.feed runs that layer's reference and analysis: the session's
     # fusion time holds them; "fusion, net" takes the layer analysis out
     stages = {"fusion (with nested layer ends)": t["fusion_s"],
               "fusion, net of layer analysis": t["fusion_s"] - t["analysis_s"],

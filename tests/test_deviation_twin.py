@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from dm2.core.config import load_scenario, parse_scenario
-from dm2.defects.layer_analysis import DefectMonitor
-from dm2.fusion.fusion import Monitor
+from dm2.defects.layer_analysis import LayerAnalysis
+from dm2.fusion.fusion import TsdfFusion
 from dm2.reference.model import NearNetReference
 from dm2.report.report_json import compare_with_truth
 
@@ -19,7 +19,7 @@ def _monitor_build(scenario):
     from twin.stream.simulate import Simulation
 
     sim = Simulation(scenario)
-    mon = Monitor(sim.calibration, scenario.monitor, scenario.process)
+    mon = TsdfFusion(sim.calibration, scenario.monitor, scenario.process)
     ref = NearNetReference(scenario.process, scenario.monitor, sim.calibration,
                            size_mm=scenario.cell.plate_size_mm[:2])
     for msg in sim.messages(None, None):
@@ -27,7 +27,7 @@ def _monitor_build(scenario):
         ref.feed(msg)
     mon.finish()
     ref.end_layer()
-    dm = DefectMonitor(scenario.monitor)
+    dm = LayerAnalysis(scenario.monitor)
     for ls in mon.layer_done:
         if ls.surface.n_vertices:
             dm.analyse_layer(ls.surface, ref.layers[ls.layer])

@@ -42,7 +42,7 @@ def run(cell, msgs, tmp_path, arrivals=None, record=False):
 def baseline(twin, tmp_path_factory):
     cell, msgs = twin
     r = run(cell, msgs, tmp_path_factory.mktemp("base"))
-    return r.analysis.dropped, r.analysis.monitor.profiles_fused, len(r.analysis.tracks)
+    return r.analysis.dropped, r.analysis.fusion.profiles_fused, len(r.analysis.tracks)
 
 
 def fused_profiles(msgs, t0=1.5, t1=DURATION_S - 0.5, min_valid=100):
@@ -72,7 +72,7 @@ def test_nan_and_out_of_range_points(twin, baseline, tmp_path):
         msgs[i] = dataclasses.replace(p, xz_S=xz)
     r = run(cell, msgs, tmp_path)
     assert extra(r.analysis.dropped, baseline[0]) == {"nan_points": 30, "out_of_range": 21}
-    assert r.analysis.monitor.profiles_fused == baseline[1]
+    assert r.analysis.fusion.profiles_fused == baseline[1]
 
 
 def test_empty_profiles_duplicates_late_messages(twin, baseline, tmp_path):
@@ -93,7 +93,7 @@ def test_empty_profiles_duplicates_late_messages(twin, baseline, tmp_path):
     r = run(cell, out, tmp_path)
     assert extra(r.analysis.dropped, baseline[0]) == {"empty_profile": 4,
                                                       "duplicate_counter": 6, "late_message": 3}
-    assert r.analysis.monitor.profiles_fused == baseline[1]
+    assert r.analysis.fusion.profiles_fused == baseline[1]
 
 
 def test_out_of_order_within_window_loses_nothing(twin, baseline, tmp_path):
@@ -104,7 +104,7 @@ def test_out_of_order_within_window_loses_nothing(twin, baseline, tmp_path):
     assert shuffled != list(msgs)
     r = run(cell, shuffled, tmp_path)
     assert r.analysis.dropped == baseline[0]
-    assert r.analysis.monitor.profiles_fused == baseline[1]
+    assert r.analysis.fusion.profiles_fused == baseline[1]
 
 
 def test_counter_wrap_is_not_a_duplicate(twin, baseline, tmp_path):
@@ -117,7 +117,7 @@ def test_counter_wrap_is_not_a_duplicate(twin, baseline, tmp_path):
         out.append(m)
     r = run(cell, out, tmp_path)
     assert r.analysis.dropped == baseline[0]
-    assert r.analysis.monitor.profiles_fused == baseline[1]
+    assert r.analysis.fusion.profiles_fused == baseline[1]
 
 
 def test_clock_skew_and_drift_are_aligned(twin, baseline, tmp_path):
@@ -130,7 +130,7 @@ def test_clock_skew_and_drift_are_aligned(twin, baseline, tmp_path):
         out.append(m)
     r = run(cell, out, tmp_path, arrivals)
     assert r.analysis.dropped == baseline[0]
-    assert r.analysis.monitor.profiles_fused == baseline[1]
+    assert r.analysis.fusion.profiles_fused == baseline[1]
     assert set(r.aligner.engaged) == {"S1", "S2", "S3"}
     assert r.aligner.correction_s["S1"] == pytest.approx(3.0 + 200e-6 * DURATION_S, abs=0.02)
 
@@ -157,7 +157,7 @@ def test_sensor_and_pose_dropout(twin, baseline, tmp_path):
     r = run(cell, out, tmp_path)
     assert extra(r.analysis.dropped, baseline[0]) == {"pose_gap": expect_gap}
     assert r.analysis.events == {"sensor_dropout": 1}
-    assert r.analysis.monitor.profiles_fused > 0
+    assert r.analysis.fusion.profiles_fused > 0
 
 
 def test_the_run_freezes_the_heap_out_of_the_collector_and_thaws_it(twin, tmp_path):
@@ -199,7 +199,7 @@ def test_one_datagram_or_frame_stamped_1000_s_ahead_costs_that_message(twin, bas
     out[i_prof] = dataclasses.replace(out[i_prof], stamp_s=out[i_prof].stamp_s + 1000.0)
     r = run(cell, out, tmp_path, [m.stamp_s for m in msgs])  # arriving on time
     assert extra(r.analysis.dropped, baseline[0]) == {"implausible_stamp": 2}
-    assert r.analysis.monitor.profiles_fused == baseline[1] - 1
+    assert r.analysis.fusion.profiles_fused == baseline[1] - 1
     assert r.gates.steps == []
 
 
@@ -212,7 +212,7 @@ def test_a_first_stamp_far_off_does_not_seed_the_band(twin, baseline, tmp_path):
     # the first state only: the stream's first profile, which only it bracketed, cannot be
     # posed without it (pose_gap); everything after is untouched
     assert extra(r.analysis.dropped, baseline[0]) == {"implausible_stamp": 1, "pose_gap": 1}
-    assert r.analysis.monitor.profiles_fused == baseline[1] - 1
+    assert r.analysis.fusion.profiles_fused == baseline[1] - 1
 
 
 def test_absurd_but_finite_poses_are_dropped_and_counted(twin, baseline, tmp_path):
@@ -230,7 +230,7 @@ def test_absurd_but_finite_poses_are_dropped_and_counted(twin, baseline, tmp_pat
     out[idx[500]] = dataclasses.replace(out[idx[500]], T_B_F=jump)
     r = run(cell, out, tmp_path)
     assert extra(r.analysis.dropped, baseline[0]) == {"implausible_pose": 3}
-    assert r.analysis.monitor.profiles_fused == baseline[1]
+    assert r.analysis.fusion.profiles_fused == baseline[1]
     assert len(r.analysis.tracks) == baseline[2]
 
 
@@ -250,7 +250,7 @@ def test_a_lasting_clock_step_is_resynced_within_a_second(twin, baseline, tmp_pa
     (s,) = r.gates.steps
     assert s["source"] == "robot" and s["step_s"] == pytest.approx(step, abs=0.01)
     assert r.analysis.dropped.get("implausible_stamp", 0) == 0  # the held second came back
-    lost = baseline[1] - r.analysis.monitor.profiles_fused
+    lost = baseline[1] - r.analysis.fusion.profiles_fused
     per_s = baseline[1] / DURATION_S
     assert 0 <= lost <= 1.2 * per_s  # at most about the second before the re-sync
     assert len(r.analysis.tracks) == baseline[2]
@@ -267,7 +267,7 @@ def test_a_datagram_stamped_1e12_s_ahead_leaves_the_recording_whole(twin, baseli
     out[i] = dataclasses.replace(out[i], stamp_s=out[i].stamp_s + 1e12)
     r = run(cell, out, tmp_path, [m.stamp_s for m in msgs], record=True)
     assert extra(r.analysis.dropped, baseline[0]) == {"implausible_stamp": 1}
-    assert r.analysis.monitor.profiles_fused == baseline[1]
+    assert r.analysis.fusion.profiles_fused == baseline[1]
     recorded = [m for m in read_recording(r.recording_path).messages()
                 if isinstance(m, RobotState)]
     assert len(recorded) == sum(isinstance(m, RobotState) for m in msgs) - 1

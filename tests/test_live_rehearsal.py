@@ -82,7 +82,7 @@ def test_loopback_rehearsal_matches_in_process_run(tmp_path):
         assert a.track_ids == b.track_ids
         for ga, gb in zip(a.regions, b.regions, strict=True):
             assert ga.area_mm2 == pytest.approx(gb.area_mm2, rel=0.02)
-    assert live.monitor.profiles_fused == session.monitor.profiles_fused
+    assert live.fusion.profiles_fused == session.fusion.profiles_fused
     assert live.dropped == session.dropped
     report = json.loads((runner.report_dir / "report.json").read_text())
     assert [(t["id"], t["kind"]) for t in report["tracks"]] == [(1, "overbuild")]
@@ -135,7 +135,7 @@ def test_socket_faults_are_counted_in_report_json(tmp_path):
     expected.update({"malformed_egm": 2, "oversized_datagram": 1, "truncated_frame": 1,
                      "oversized_frame": 1})
     assert report["dropped"] == expected
-    assert runner.analysis.monitor.profiles_fused == clean.analysis.monitor.profiles_fused
+    assert runner.analysis.fusion.profiles_fused == clean.analysis.fusion.profiles_fused
 
 
 def _cell_and_out(sim, folder):

@@ -10,7 +10,7 @@ from test_monitor_scene import Scene, make_calibration, raster_lines, raster_run
 import dm2.fusion.fusion as pipeline_mod
 from dm2.core.config import MonitorConfig, ProcessConfig
 from dm2.core.messages import LayerMark, Toolpath
-from dm2.fusion.fusion import Monitor
+from dm2.fusion.fusion import TsdfFusion
 from dm2.fusion.registration import register_profiles
 
 
@@ -30,7 +30,7 @@ def test_registration_puts_every_point_on_the_true_surface(cal, monkeypatch):
         return real(self, xz_S, offsets, T_O_S, *args)
 
     monkeypatch.setattr(pipeline_mod.SparseTSDF, "integrate_profiles", spy)
-    mon = Monitor(cal, MonitorConfig(), ProcessConfig())
+    mon = TsdfFusion(cal, MonitorConfig(), ProcessConfig())
     mon.feed_all(msgs)
     mon.finish()
     pts = np.concatenate(got)
@@ -43,7 +43,7 @@ def test_static_part_is_reconstructed_within_a_quarter_millimetre(cal):
     scene = Scene(boxes=[((50, 50, 0), (66, 66, 6))], spheres=[((78, 46, -4), 10.0)])
     msgs, hits = raster_run(scene, cal, raster_lines((38, 92), np.arange(38, 74, 6.0)),
                             step_mm=1.5, noise_mm=0.05, seed=3)
-    mon = Monitor(cal, MonitorConfig(voxel_mm=0.5), ProcessConfig())
+    mon = TsdfFusion(cal, MonitorConfig(voxel_mm=0.5), ProcessConfig())
     mon.feed_all(msgs)
     surf = mon.finish()[-1].surface
     dist = scene.sdf(surf.vertices_O)
@@ -69,7 +69,7 @@ def _region_mean_z(surf, y_lo, y_hi):
 def test_raised_active_surface_is_followed_and_inactive_surface_stays(cal):
     flat = Scene()
     raised = Scene(boxes=[((30, 57.5, -1), (90, 62.5, 1.0))])  # +1 mm strip under the spot
-    mon = Monitor(cal, MonitorConfig(), ProcessConfig())
+    mon = TsdfFusion(cal, MonitorConfig(), ProcessConfig())
     assert mon.active_radius_mm > 2.5  # the strip lies inside the active region
     state = {"t": 0.0, "c": 0}
 
@@ -120,7 +120,7 @@ def test_layers_follow_layer_marks(cal):
     msgs0, msgs1 = _two_layers(cal)
     stream = [LayerMark(0.0, 0)] + msgs0 + [LayerMark(msgs0[-1].stamp_s + 0.05, 1)] + msgs1
     done = []
-    mon = Monitor(cal, MonitorConfig(), ProcessConfig(), on_layer_done=done.append)
+    mon = TsdfFusion(cal, MonitorConfig(), ProcessConfig(), on_layer_done=done.append)
     mon.feed_all(stream)
     mon.finish()
     assert [ls.layer for ls in mon.layer_done] == [0, 1] and done == mon.layer_done
@@ -141,7 +141,7 @@ def test_layers_follow_the_toolpath_without_marks(cal):
     tp = Toolpath(pos, np.tile([0, 0, -1.0], (2 * n, 1)), np.full(2 * n, 30.0),
                   np.zeros(2 * n), lay, np.ones(2 * n, bool), np.zeros(2 * n))
     msgs0, msgs1 = _two_layers(cal)
-    mon = Monitor(cal, MonitorConfig(), ProcessConfig(), toolpath=tp)
+    mon = TsdfFusion(cal, MonitorConfig(), ProcessConfig(), toolpath=tp)
     mon.feed_all(msgs0 + msgs1)
     assert mon.current_layer == 1
     mon.finish()
@@ -151,7 +151,7 @@ def test_layers_follow_the_toolpath_without_marks(cal):
 
 def test_without_marks_or_toolpath_the_run_is_one_layer(cal):
     msgs, _ = raster_run(Scene(), cal, [((40, 60, 0), (60, 60, 0))], step_mm=2.0)
-    mon = Monitor(cal, MonitorConfig(), ProcessConfig())
+    mon = TsdfFusion(cal, MonitorConfig(), ProcessConfig())
     mon.feed_all(msgs)
     assert mon.layer_done == []
     assert [ls.layer for ls in mon.finish()] == [0]
@@ -161,7 +161,7 @@ def test_without_marks_or_toolpath_the_run_is_one_layer(cal):
 def test_points_outside_the_monitored_bounds_are_counted_out_of_range(cal):
     msgs, hits = raster_run(Scene(), cal, [((40, 60, 0), (60, 60, 0))], step_mm=2.0)
     bounds = ((50.0, 0.0, -10.0), (120.0, 120.0, 50.0))
-    mon = Monitor(cal, MonitorConfig(voxel_mm=2.0), ProcessConfig(), bounds_O=bounds)
+    mon = TsdfFusion(cal, MonitorConfig(voxel_mm=2.0), ProcessConfig(), bounds_O=bounds)
     mon.feed_all(msgs)
     surf = mon.finish()[-1].surface
     outside = int(np.count_nonzero(hits[:, 0] < 50.0))

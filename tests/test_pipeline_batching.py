@@ -9,7 +9,7 @@ from test_pipeline import _two_layers
 
 from dm2.core.config import MonitorConfig, ProcessConfig
 from dm2.core.messages import Profile, RobotState, Toolpath
-from dm2.fusion.fusion import Monitor
+from dm2.fusion.fusion import TsdfFusion
 from dm2.fusion.registration import profile_frames, register_profiles, spot_B
 from dm2.fusion.tsdf.field import SparseTSDF
 
@@ -31,7 +31,7 @@ def _toolpath():
 
 
 def _run(cal, msgs, batch, toolpath=None, bounds=None):
-    mon = Monitor(cal, MonitorConfig(), ProcessConfig(), toolpath=toolpath, bounds_O=bounds,
+    mon = TsdfFusion(cal, MonitorConfig(), ProcessConfig(), toolpath=toolpath, bounds_O=bounds,
                   batch_profiles=batch, max_delay_s=np.inf)
     mon.feed_all(msgs)
     mon.finish()

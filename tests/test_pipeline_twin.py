@@ -11,7 +11,7 @@ from scipy.spatial import cKDTree
 from dm2.core.config import MonitorConfig, parse_scenario
 from dm2.core.frames import invert
 from dm2.core.messages import RobotState
-from dm2.fusion.fusion import Monitor
+from dm2.fusion.fusion import TsdfFusion
 from dm2.fusion.registration import register_profile
 
 twin_cell = pytest.importorskip("twin.cell.cell")
@@ -53,7 +53,7 @@ def test_twin_profiles_of_a_static_part_reconstruct_within_a_quarter_millimetre(
     dedup = {}
     for m in msgs:
         dedup.setdefault((type(m).__name__, m.stamp_s), m)
-    mon = Monitor(cal, MonitorConfig(voxel_mm=0.5), sc.process)
+    mon = TsdfFusion(cal, MonitorConfig(voxel_mm=0.5), sc.process)
     mon.feed_all(dedup.values())
     surf = mon.finish()[-1].surface
     truth = hf.to_mesh()

@@ -10,7 +10,7 @@ import trimesh
 from test_deviation import CELL, MON, gaussian, pad_heights, top_surface
 
 from dm2.core.config import ExpectConfig, ExpectTrack
-from dm2.defects.layer_analysis import DefectMonitor
+from dm2.defects.layer_analysis import LayerAnalysis
 from dm2.reference.height_map import ReferenceMap
 from dm2.report import REPORT_SCHEMA, check_output_dir, write_report
 from dm2.report.meshes import read_ply_vertex_fields
@@ -20,7 +20,7 @@ CENTRE = (50.0, 70.0)
 
 @pytest.fixture(scope="module")
 def monitored():
-    mon = DefectMonitor(MON)
+    mon = LayerAnalysis(MON)
     for layer in range(6):
         ref_h, xx, yy = pad_heights(layer)
         meas = ref_h + (gaussian(xx, yy, CENTRE, 0.6 + 0.2 * layer, 5.0) if layer >= 2 else 0)

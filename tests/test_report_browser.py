@@ -93,11 +93,11 @@ def test_verdict_names_the_bump_and_comes_from_the_monitor(runs):
 def test_a_run_without_deviation_reads_no_defect_found(tmp_path):
     from test_deviation import CELL, MON, pad_heights, top_surface
 
-    from dm2.defects.layer_analysis import DefectMonitor
+    from dm2.defects.layer_analysis import LayerAnalysis
     from dm2.reference.height_map import ReferenceMap
     from dm2.report import write_report
 
-    mon = DefectMonitor(MON)
+    mon = LayerAnalysis(MON)
     for layer in range(4):
         ref_h, _, _ = pad_heights(layer)
         mon.analyse_layer(top_surface(ref_h), ReferenceMap(ref_h, CELL, layer))

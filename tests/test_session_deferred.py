@@ -26,7 +26,7 @@ def _run(pad_stream, defer: bool, catch_up_every: int = 5, yield_every: int = 3)
     sc, sim, msgs = pad_stream
     s = MonitoringSession(sim.calibration, sc.monitor, sc.process, sc.cell.plate_size_mm,
                           toolpath=sim.toolpath, analysis_thread=defer)
-    s.monitor.max_delay_s = np.inf  # batches by count only: no wall-clock dependence
+    s.fusion.max_delay_s = np.inf  # batches by count only: no wall-clock dependence
     asked = [0]
 
     def should_yield() -> bool:  # an inbox that fills up every few slices
@@ -70,9 +70,9 @@ def test_deferred_matches_immediate_bit_for_bit(pad_stream, immediate, every, mo
     # layer ends only copied chunk boxes on the fusion thread; the worker meshed them
     assert not any(in_gather for _, in_gather in meshed_on)
     assert sum(name == "layer-analysis" for name, _ in meshed_on) > 0
-    assert len(a.monitor.layer_done) >= 2
+    assert len(a.fusion.layer_done) >= 2
     assert np.array_equal(a.reference.heights_mm, b.reference.heights_mm)
-    for x, y in zip(a.monitor.layer_done, b.monitor.layer_done, strict=True):
+    for x, y in zip(a.fusion.layer_done, b.fusion.layer_done, strict=True):
         assert x.layer == y.layer and x.stamp_s == y.stamp_s
         assert np.array_equal(x.surface.vertices_O, y.surface.vertices_O)
         assert np.array_equal(x.surface.faces, y.surface.faces)

@@ -6,7 +6,7 @@ import pickle
 import numpy as np
 from test_deviation import CELL, MON, gaussian, pad_heights, top_surface
 
-from dm2.defects.layer_analysis import DefectMonitor
+from dm2.defects.layer_analysis import LayerAnalysis
 from dm2.defects.spill import SpilledDeviation
 from dm2.reference.height_map import ReferenceMap
 from dm2.report import write_report
@@ -16,7 +16,7 @@ CENTRE = (50.0, 70.0)
 
 def _build(layers_in_memory):
     """Six layers of a pad with a bump growing from layer 2 (0.6 mm + 0.2 mm a layer)."""
-    mon = DefectMonitor(MON.model_copy(update={"layers_in_memory": layers_in_memory}))
+    mon = LayerAnalysis(MON.model_copy(update={"layers_in_memory": layers_in_memory}))
     for layer in range(6):
         ref_h, xx, yy = pad_heights(layer)
         meas = ref_h + (gaussian(xx, yy, CENTRE, 0.6 + 0.2 * layer, 5.0) if layer >= 2 else 0)

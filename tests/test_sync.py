@@ -9,7 +9,7 @@ from test_monitor_scene import Scene, make_calibration, raster_run
 from dm2.core.config import MonitorConfig, ProcessConfig
 from dm2.core.frames import PoseInterpolator, from_euler_deg, pose_error
 from dm2.core.messages import Calibration, Profile, RobotState
-from dm2.fusion.fusion import Monitor
+from dm2.fusion.fusion import TsdfFusion
 from dm2.fusion.posebuffer import PoseBuffer
 from dm2.fusion.sync import StreamSync
 
@@ -103,7 +103,7 @@ def run():
 
 
 def _fused(cal, msgs, cfg=MonitorConfig()):
-    mon = Monitor(cal, cfg, ProcessConfig())
+    mon = TsdfFusion(cal, cfg, ProcessConfig())
     mon.feed_all(msgs)
     mon.finish()
     return mon
@@ -166,4 +166,4 @@ def test_late_messages_within_the_window_are_reordered(run):
 
 def test_monitor_rejects_an_empty_calibration():
     with pytest.raises(ValueError, match="T_B_S"):
-        Monitor(Calibration({}, np.eye(4), np.eye(4)), MonitorConfig(), ProcessConfig())
+        TsdfFusion(Calibration({}, np.eye(4), np.eye(4)), MonitorConfig(), ProcessConfig())

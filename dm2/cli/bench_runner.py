@@ -2,8 +2,7 @@
 
 :func:`run_scenario` is the body of ``dm2 run`` and of every bench and sweep case: it builds
 the twin's :class:`twin.stream.simulate.Simulation`, streams its messages into a
-:class:`dm2.pipeline.session.MonitoringSession` (optionally recording them to MCAP), writes the
-report
+:class:`dm2.pipeline.pipeline.Pipeline` (optionally recording them to MCAP), writes the report
 with the twin's fault truth and the scenario's ``[expect]`` section, and measures how far each
 layer's reconstructed surface lies from the twin's true surface of the same layer.
 
@@ -62,28 +61,32 @@ class ScenarioRun:
     monitor_s: float = 0.0
 
 
-def stream_session(sim, session, scratch: Path, record: bool,
-                   progress: Progress | None = None) -> None:
-    """Feed the simulation's message stream (truth into ``scratch/truth``) to ``session``.
+def recorded(messages, writer):
+    """``messages``, each also written to ``writer`` (a RecordingWriter) on the way."""
+    for msg in messages:
+        writer.write(msg)
+        yield msg
+
+
+def stream_to_pipeline(sim, pipeline, scratch: Path, record: bool,
+                       progress: Progress | None = None) -> None:
+    """Run ``pipeline`` on the simulation's message stream (truth into ``scratch/truth``).
 
     With ``record`` the stream is also written to ``scratch/run.mcap`` with the scenario,
     toolpath and calibration attached.
     """
-    writer = None
-    if record:
-        from dm2.io.recording_writer import RecordingWriter
+    messages = sim.messages(truth_dir=scratch / "truth", progress=progress)
+    if not record:
+        pipeline.run(messages)
+        return
+    from dm2.io.recording_writer import RecordingWriter
 
-        writer = RecordingWriter(scratch / "run.mcap", attachments=sim.attachments())
-        writer.write_static_tf(sim.calibration)
+    writer = RecordingWriter(scratch / "run.mcap", attachments=sim.attachments())
+    writer.write_static_tf(sim.calibration)
     try:
-        for msg in sim.messages(truth_dir=scratch / "truth", progress=progress):
-            if writer is not None:
-                writer.write(msg)
-            session.feed(msg)
-        session.finish()
+        pipeline.run(recorded(messages, writer))
     finally:
-        if writer is not None:
-            writer.close()
+        writer.close()
 
 
 def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path | None = None,
@@ -92,7 +95,7 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
                  on_stream_end: Callable[[], None] | None = None,
                  calibration=None, force: bool = False, on_layer: Callable | None = None,
                  report_stage: Callable[[str, int, int], None] | None = None,
-                 on_session: Callable | None = None,
+                 on_pipeline: Callable | None = None,
                  include: dict | None = None,
                  true_T_B_S: dict | None = None) -> ScenarioRun:
     """Simulate ``sc`` on the twin, monitor it and write the run folder ``run_dir``.
@@ -111,9 +114,9 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
     on_stream_end : called once the stream is consumed, before the report is written
     calibration : dm2.core.messages.Calibration the pipeline uses instead of the one the scenario
         hands it (e.g. a solved hand-eye calibration against a perturbed ``calibration_error``)
-    on_layer : called with each analysed layer's LayerResult (the session's ``on_layer``)
+    on_layer : called with each analysed layer's LayerResult (the pipeline's ``on_layer``)
     report_stage : called with (stage, done, total) while the report is written
-    on_session : called with the MonitoringSession once it exists (e.g. to attach a view)
+    on_pipeline : called with the Pipeline once it exists (e.g. to attach a view)
     include : name -> path of further files moved into the run folder (e.g. its log file)
     true_T_B_S : the twin's profilers as built (dict sensor id -> (4, 4)) instead of the
         scenario's nominal layout
@@ -124,52 +127,41 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
     ValueError : ``run_dir`` cannot be written (nothing written)
     """
     from dm2.core.toml_write import dump_toml
-    from dm2.pipeline.session import MonitoringSession
-    from dm2.report import check_output_dir, write_report
-    from dm2.report.report_json import build_report, write_tracks_csv
+    from dm2.pipeline.pipeline import Pipeline
+    from dm2.report import check_output_dir
     from twin.stream.simulate import Simulation
 
     t_start = time.perf_counter()
     run_dir = check_output_dir(run_dir, force=force)
     sim = Simulation(sc, true_T_B_S=true_T_B_S)
-    session = MonitoringSession(calibration or sim.calibration, sc.monitor, sc.process,
-                                plate_size_mm=sc.cell.plate_size_mm, toolpath=sim.toolpath,
-                                on_layer=on_layer)
-    if on_session is not None:
-        on_session(session)
+    pipeline = Pipeline(calibration or sim.calibration, sc.monitor, sc.process,
+                        plate_size_mm=sc.cell.plate_size_mm, toolpath=sim.toolpath,
+                        on_layer=on_layer)
+    if on_pipeline is not None:
+        on_pipeline(pipeline)
     run_dir.parent.mkdir(parents=True, exist_ok=True)
     scratch = Path(tempfile.mkdtemp(prefix=".dm2-run-", dir=run_dir.parent))
     try:
-        stream_session(sim, session, scratch, record, progress)
+        stream_to_pipeline(sim, pipeline, scratch, record, progress)
         if on_stream_end is not None:
             on_stream_end()
         truth = _read_json(scratch / "truth" / "faults.json") or {"faults": []}
-        recon = reconstruction_errors(session.results, scratch / "truth")
-        footprints = track_footprints(session.results)
-        timing = session.timing.to_dict()
+        recon = reconstruction_errors(pipeline.results, scratch / "truth")
+        footprints = track_footprints(pipeline.results)
+        timing = pipeline.timing()
         monitor_s = timing["fusion_s"] + timing["reference_s"] + timing["analysis_s"]
         timing.update(simulated_process_s=sim.end_s, monitor_s=monitor_s,
                       wall_s=time.perf_counter() - t_start)
         meta = {"scenario": sc.name, "scenario_file": str(scenario_file or ""), "seed": sc.seed,
-                "layers_simulated": len(session.results)}
-        config_toml = dump_toml(sc.to_toml_dict())
-        sections = {"realtime": session.realtime_summary(), "process": session.process_summary(),
-                    "reconstruction": {str(k): v for k, v in recon.items()}}
+                "layers_simulated": len(pipeline.results)}
         include = {**{name: scratch / name for name in ("truth", "run.mcap")
                       if (scratch / name).exists()}, **(include or {})}
-        if full_report:
-            report = write_report(run_dir, session.results, session.tracks,
-                                  config_toml=config_toml, dropped=session.dropped,
-                                  timing=timing, fault_truth=truth, expect=sc.expect, meta=meta,
-                                  sections=sections, force=force, include=include,
-                                  command="dm2 run", inputs=[scenario_file],
-                                  toolpath=sim.toolpath, stage=report_stage)
-        else:
-            report = build_report(session.results, session.tracks, dropped=session.dropped,
-                                  timing=timing, fault_truth=truth, expect=sc.expect, meta=meta,
-                                  sections=sections)
-            _write_lite_report(run_dir, report, session.tracks, config_toml, write_tracks_csv,
-                               include)
+        report = pipeline.write_outputs(
+            run_dir, full=full_report, config_toml=dump_toml(sc.to_toml_dict()),
+            timing=timing, fault_truth=truth, expect=sc.expect, meta=meta,
+            sections=pipeline.sections(reconstruction={str(k): v for k, v in recon.items()}),
+            force=force, include=include, command="dm2 run" if full_report else "dm2 bench",
+            inputs=[scenario_file], stage=report_stage)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     return ScenarioRun(scenario=sc, run_dir=run_dir, report=report, fault_truth=truth,
@@ -231,24 +223,6 @@ def reconstruction_errors(results, truth_dir: Path) -> dict[int, dict]:
                              "p95_mm": float(np.percentile(d, 95)),
                              "n_vertices": int(v.shape[0])}
     return out
-
-
-def _write_lite_report(run_dir: Path, report: dict, tracks, config_toml: str,
-                       write_tracks_csv, include: dict) -> None:
-    from dm2.report.outdir import files_below, install_folder, write_manifest
-
-    tmp = Path(tempfile.mkdtemp(prefix=f".{run_dir.name}.", dir=run_dir.parent))
-    try:
-        (tmp / "config.toml").write_text(config_toml, encoding="utf-8")
-        (tmp / "report.json").write_text(json.dumps(report, indent=1), encoding="utf-8")
-        write_tracks_csv(tmp / "tracks.csv", tracks)
-        for name, path in include.items():
-            shutil.move(str(path), str(tmp / name))
-        write_manifest(tmp, files_below(tmp), command="dm2 bench")
-        install_folder(tmp, run_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
 
 
 def _read_json(path: Path):

@@ -46,8 +46,8 @@ def run_live_monitor(cell_path: Path, out: Path, max_duration_s: float | None = 
     if view_port is not None:
         from dm2.cli.cmd_view import start_live_view
 
-        states = runner.analysis.session.states
-        view = start_live_view(runner.calibration, lambda: states.last_T_B_F, view_port)
+        pipeline = runner.analysis.pipeline
+        view = start_live_view(runner.calibration, lambda: pipeline.last_T_B_F, view_port)
         runner.analysis.layer_listeners.append(view.on_layer)
     stop = threading.Event()
     previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
@@ -66,7 +66,7 @@ def run_live_monitor(cell_path: Path, out: Path, max_duration_s: float | None = 
             view.stop_server()
     a = runner.analysis
     dropped = a.dropped
-    console.print(f"{runner.messages_in} messages, {a.monitor.profiles_fused} profiles fused, "
+    console.print(f"{runner.messages_in} messages, {a.fusion.profiles_fused} profiles fused, "
                   f"{len(a.results)} layers, {len(a.tracks)} tracks"
                   + ("" if dropped else "; nothing dropped"))
     for line in drop_lines(dropped):
@@ -76,7 +76,7 @@ def run_live_monitor(cell_path: Path, out: Path, max_duration_s: float | None = 
                       f"{step['at_s']:.3f} s and was re-synced", highlight=False)
     console.print(f"recording: {runner.recording_path}  report: {runner.report_dir}")
     transport = sum(v for k, v in runner.inbox.dropped.items())
-    code, verdict = run_verdict(profiles_fused=a.monitor.profiles_fused, dropped=dropped,
+    code, verdict = run_verdict(profiles_fused=a.fusion.profiles_fused, dropped=dropped,
                                 messages_in=runner.messages_in + transport,
                                 max_lost_share=cell.monitor.gates.max_lost_share)
     if verdict:

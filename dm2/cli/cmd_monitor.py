@@ -153,8 +153,7 @@ def monitor(
     from dm2.cli.outcome import damaged_input_sentence, drop_lines, exit_code, run_verdict
     from dm2.core.toml_write import dump_toml
     from dm2.fusion.gates import InputGates
-    from dm2.pipeline.session import MonitoringSession
-    from dm2.report import write_report
+    from dm2.pipeline.pipeline import Pipeline
     from dm2.report.outdir import add_to_manifest, check_output_dir, clear_outputs
 
     t_start = time.perf_counter()
@@ -170,23 +169,19 @@ def monitor(
         add_to_manifest(out, ["monitor.toml"], command="dm2 monitor")
     except OSError as exc:
         fail(f"--out {out}: cannot prepare the folder: {exc.strerror}")
-    (out / "monitor.toml").write_text(dump_toml({
+    config_toml = dump_toml({
         "recording": str(run),
         "monitor": monitor_cfg.model_dump(mode="json", exclude_none=True),
-        "process": process.model_dump(mode="json", exclude_none=True)}), encoding="utf-8")
+        "process": process.model_dump(mode="json", exclude_none=True)})
+    (out / "monitor.toml").write_text(config_toml, encoding="utf-8")
     written = []
 
     def save(result) -> None:  # each layer's surface is on disk as soon as it is analysed
-        ls = session.monitor.layer_done[-1]
-        path = out / f"layer_{ls.layer:04d}.ply"
-        ls.surface.write_ply(path)
-        add_to_manifest(out, [path.name])
-        written.append({"layer": ls.layer, "file": path.name, "stamp_s": ls.stamp_s,
-                        "vertices": ls.surface.n_vertices, "faces": ls.surface.n_faces,
-                        "area_mm2": round(ls.surface.area_mm2(), 3),
-                        "regions": len(result.regions)})
-        console.print(f"layer {ls.layer}: {ls.surface.n_vertices} vertices, "
-                      f"{len(result.regions)} region(s) -> {path}")
+        entry = pipeline.write_layer_surface(out)
+        add_to_manifest(out, [entry["file"]])
+        written.append({**entry, "regions": len(result.regions)})
+        console.print(f"layer {entry['layer']}: {entry['vertices']} vertices, "
+                      f"{len(result.regions)} region(s) -> {out / entry['file']}")
 
     live_view = None
 
@@ -195,49 +190,38 @@ def monitor(
         if live_view is not None:
             live_view.on_layer(result)
 
-    session = MonitoringSession(cal, monitor_cfg, process, plate_size_mm=plate_mm, toolpath=tp,
-                                on_layer=on_layer, gates=InputGates(monitor_cfg.gates))
+    gates = InputGates(monitor_cfg.gates)
+    pipeline = Pipeline(cal, monitor_cfg, process, plate_size_mm=plate_mm, toolpath=tp,
+                        on_layer=on_layer, gates=gates)
     if view:
         from dm2.cli.cmd_view import start_live_view
 
-        live_view = start_live_view(cal, lambda: session.states.last_T_B_F, view_port)
-    mon = session.monitor
-    n_msgs = 0
+        live_view = start_live_view(cal, lambda: pipeline.last_T_B_F, view_port)
+    mon = pipeline.fusion
     with console.status("fusing profiles"), log_file(out / "monitor.log"):
-        for msg in rec.messages():
-            session.feed(msg)
-            n_msgs += 1
-        session.finish()
+        pipeline.run(rec.messages())
+    n_msgs = pipeline.messages
     input_info = (rec.input_summary() if hasattr(rec, "input_summary")  # other readers:
                   else {"file": str(run), "complete": True})  # complete unless they say so
-    dropped = {**session.dropped, **{f"recording_{k}": int(v) for k, v in rec.skipped.items()}}
+    dropped = {**pipeline.dropped, **{f"recording_{k}": int(v) for k, v in rec.skipped.items()}}
     summary = {"schema": 1, "recording": str(run),
                **({"map": str(map_path)} if map_path is not None else {}), "messages": n_msgs,
                "profiles_fused": mon.profiles_fused, "points_fused": mon.points_fused,
-               "tsdf_blocks": mon.tsdf.n_blocks, "dropped": session.dropped,
+               "tsdf_blocks": mon.tsdf.n_blocks, "dropped": pipeline.dropped,
                "recording_skipped": {k: int(v) for k, v in rec.skipped.items()},
                "recording_problems": list(getattr(rec, "problems", [])),
-               "clock_steps": session.gates.steps, "input": input_info,
+               "clock_steps": gates.steps, "input": input_info,
                "layer_source": mon.layers.source, "layers": written}
     (out / "monitor.json").write_text(json.dumps(summary, indent=2), encoding="utf-8")
     add_to_manifest(out, ["monitor.json", "monitor.log"])
     if hasattr(rec, "close"):  # a rosbag2 recording holds its files open while read
         rec.close()
-    if analyse and session.results:
-        write_report(out / "report", session.results, session.tracks,
-                     config_toml=dump_toml({"recording": str(run),
-                                            "monitor": monitor_cfg.model_dump(mode="json",
-                                                                              exclude_none=True),
-                                            "process": process.model_dump(mode="json",
-                                                                          exclude_none=True)}),
-                     dropped=dropped,
-                     timing={**session.timing.to_dict(),
-                             "wall_s": time.perf_counter() - t_start},
-                     meta={"recording": str(run), "layers": len(session.results)},
-                     sections={"realtime": session.realtime_summary(),
-                               "process": session.process_summary(), "input": input_info},
-                     inputs=[run], command="dm2 monitor", force=force,
-                     toolpath=tp)
+    if analyse and pipeline.results:
+        pipeline.write_outputs(out / "report", config_toml=config_toml, dropped=dropped,
+                               timing=pipeline.timing(wall_s=time.perf_counter() - t_start),
+                               meta={"recording": str(run), "layers": len(pipeline.results)},
+                               sections=pipeline.sections(input=input_info), inputs=[run],
+                               command="dm2 monitor", force=force)
         add_to_manifest(out, ["report/"])
     table = Table(title=f"monitor: {run.name}")
     table.add_column("what")
@@ -245,7 +229,7 @@ def monitor(
     table.add_row("messages", str(n_msgs))
     table.add_row("points fused", str(mon.points_fused))
     table.add_row("layers", f"{len(written)} (from {mon.layers.source})")
-    table.add_row("defect tracks", str(len(session.tracks)))
+    table.add_row("defect tracks", str(len(pipeline.tracks)))
     console.print(table)
     from rich.markup import escape
 
@@ -253,7 +237,7 @@ def monitor(
         console.print(f"[bold yellow]warning:[/] {escape(problem)}", highlight=False)
     for line in drop_lines(dropped):
         console.print(line, highlight=False)
-    if analyse and session.results:
+    if analyse and pipeline.results:
         console.print(f"report: [bold]{out / 'report' / 'index.html'}[/]")
     code, verdict = run_verdict(profiles_fused=mon.profiles_fused, dropped=dropped,
                                 messages_in=n_msgs, max_lost_share=monitor_cfg.gates.max_lost_share)

@@ -156,13 +156,13 @@ def run(
             if view_handle is not None:
                 view_handle.on_layer(result)
 
-        def on_session(session):
+        def on_pipeline(pipeline):
             nonlocal view_handle
             if view:
                 from dm2.cli.cmd_view import start_live_view
 
-                view_handle = start_live_view(session.monitor.calibration,
-                                              lambda: session.states.last_T_B_F, view_port)
+                view_handle = start_live_view(pipeline.fusion.calibration,
+                                              lambda: pipeline.last_T_B_F, view_port)
 
         try:
             done = run_scenario(sc, run_dir, scenario_file=path, record=record,
@@ -170,7 +170,7 @@ def run(
                                 on_stream_end=lambda: bar.update(
                                     task, description="comparing with the twin's truth"),
                                 calibration=cal, on_layer=on_layer, report_stage=on_stage,
-                                on_session=on_session, force=force,
+                                on_pipeline=on_pipeline, force=force,
                                 include={"run.log": log_path})
         except (ReachError, ConfigError) as exc:
             log_path.unlink(missing_ok=True)

@@ -66,7 +66,7 @@ class LayerResult:
         return stats
 
 
-class DefectMonitor:
+class LayerAnalysis:
     """Analyse finished layers against their references and keep the tracks.
 
     Parameters

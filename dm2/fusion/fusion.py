@@ -1,6 +1,6 @@
 """The fusion pipeline: messages in, per-layer surfaces out (paper sections 4-5).
 
-``Monitor.feed(msg)`` takes :class:`~dm2.core.messages.Profile`,
+``TsdfFusion.feed(msg)`` takes :class:`~dm2.core.messages.Profile`,
 :class:`~dm2.core.messages.RobotState`
 and :class:`~dm2.core.messages.LayerMark` messages from any source (twin, recording, live drivers),
 in any order within the reorder window. Profiles are synchronised with interpolated poses
@@ -47,7 +47,7 @@ class LayerSurface:
     layer : int, the layer that finished
     stamp_s : float [s], stamp of the last profile fused into it (NaN if none)
     surface : SurfaceMesh in ``O``; when built from a :class:`~dm2.fusion.surface.PendingSurface`
-        (``Monitor(defer_meshing=True)``) it is meshed on first access, on that thread
+        (``TsdfFusion(defer_meshing=True)``) it is meshed on first access, on that thread
     """
 
     __slots__ = ("layer", "stamp_s", "_surface")
@@ -72,7 +72,7 @@ def default_active_radius_mm(process: ProcessConfig) -> float:
     return 2.0 * plume_sigma_mm(process)
 
 
-class Monitor:
+class TsdfFusion:
     """In-process reconstruction of the growing part from profiles and robot poses.
 
     Parameters
@@ -108,7 +108,7 @@ class Monitor:
                  bounds_O: tuple | None = None, batch_profiles: int = DEFAULT_BATCH_PROFILES,
                  max_delay_s: float = DEFAULT_MAX_DELAY_S, defer_meshing: bool = False):
         if not calibration.T_B_S:
-            raise ValueError("Monitor: the calibration holds no sensor pose (T_B_S is empty)")
+            raise ValueError("TsdfFusion: the calibration holds no sensor pose (T_B_S is empty)")
         self.calibration = calibration
         self.cfg = monitor_cfg
         self.process = process
@@ -169,7 +169,7 @@ class Monitor:
     def feed(self, msg) -> None:
         """Take one message of any kind; bad ones are counted in :attr:`dropped`, never raised."""
         if self._finished:
-            raise RuntimeError("Monitor.feed: the monitor was finished")
+            raise RuntimeError("TsdfFusion.feed: the fusion was finished")
         ready = self.sync.push(msg)
         if ready:
             self._handle(ready)
@@ -201,7 +201,7 @@ class Monitor:
             if ls.layer == layer:
                 return ls.surface
         done = [ls.layer for ls in self.layer_done]
-        raise KeyError(f"Monitor.surface: layer {layer} has not finished (finished: {done})")
+        raise KeyError(f"TsdfFusion.surface: layer {layer} has not finished (finished: {done})")
 
     # ------------------------------------------------------------------------------ internal
     def _handle(self, ready: list) -> None:

@@ -1,12 +1,12 @@
-"""A monitoring session with what a live run adds: per-layer reports, transport drop counts,
+"""The pipeline with what a live run adds: per-layer reports, transport drop counts,
 out-of-range points and sensor dropouts.
 
-:class:`LayerAnalysis` wraps :class:`~dm2.pipeline.session.MonitoringSession` (the same object
+:class:`LiveAnalysis` wraps :class:`~dm2.pipeline.pipeline.Pipeline` (the same object
 ``dm2 run`` drives in process, so a live run and an in-process run of the same stream give the
-same layers and tracks), gives the fusion monitor the plate's box so points far outside count
+same layers and tracks), gives the fusion stage the plate's box so points far outside count
 ``out_of_range``, notes sensors silent for longer than allowed (``sensor_dropout`` events) and,
 with an output folder, rewrites the report after every analysed layer. With ``live=True`` the
-session fuses first and catches up when asked (:meth:`LayerAnalysis.catch_up`, the live loop's
+pipeline fuses first and catches up when asked (:meth:`LiveAnalysis.catch_up`, the live loop's
 idle moments) and analyses finished layers on its worker thread. Interim reports are written
 from a snapshot of the results and tracks by a child process (:mod:`dm2.live.report_process`,
 fed by a background thread), so a slow report (plots) never holds up the fusion of the profiles
@@ -38,8 +38,8 @@ MAX_PART_HEIGHT_MM = 200.0
 LIVE_TSDF_THREADS = 1
 
 
-class LayerAnalysis:
-    """Monitoring session plus live bookkeeping for one message stream.
+class LiveAnalysis:
+    """The pipeline plus live bookkeeping for one message stream.
 
     Parameters
     ----------
@@ -60,17 +60,16 @@ class LayerAnalysis:
     def __init__(self, calibration, monitor_cfg, process, plate_size_mm, toolpath=None,
                  out_dir: str | Path | None = None, config_toml: str | None = None,
                  max_sensor_gap_s: float = 1.0, meta: dict | None = None, live: bool = False):
-        from dm2.pipeline.session import MonitoringSession
+        from dm2.pipeline.pipeline import Pipeline
 
         Lx, Ly, th = (float(v) for v in plate_size_mm)
         m = OUT_OF_RANGE_MARGIN_MM
-        self.session = MonitoringSession(calibration, monitor_cfg, process,
-                                         plate_size_mm=(Lx, Ly), toolpath=toolpath,
-                                         on_layer=self._on_layer, analysis_thread=live)
+        self.pipeline = Pipeline(calibration, monitor_cfg, process, plate_size_mm=(Lx, Ly),
+                                 toolpath=toolpath, on_layer=self._on_layer, live=live)
         self.live = bool(live)
         if self.live:
-            self.session.monitor.tsdf.threads = LIVE_TSDF_THREADS
-        self.session.monitor.bounds_O = (np.array([-m, -m, -th - m]),
+            self.pipeline.fusion.tsdf.threads = LIVE_TSDF_THREADS
+        self.pipeline.fusion.bounds_O = (np.array([-m, -m, -th - m]),
                                          np.array([Lx + m, Ly + m, MAX_PART_HEIGHT_MM]))
         self.out_dir = None if out_dir is None else Path(out_dir)
         self.config_toml = config_toml
@@ -91,26 +90,26 @@ class LayerAnalysis:
             self._start_report_process()
 
     @property
-    def monitor(self):
-        return self.session.monitor
+    def fusion(self):
+        return self.pipeline.fusion
 
     @property
     def results(self):
-        return self.session.results
+        return self.pipeline.results
 
     @property
     def tracks(self):
-        return self.session.tracks
+        return self.pipeline.tracks
 
     def feed(self, msg) -> None:
         """One message of any kind (bad ones are counted, never raised)."""
         if isinstance(msg, Profile):
             self._watch_dropout(msg)
-        self.session.feed(msg, defer=self.live)
+        self.pipeline.feed(msg)
 
     def catch_up(self, should_yield=None) -> bool:
-        """Deferred session work (see MonitoringSession.catch_up); True when none is left."""
-        return self.session.catch_up(should_yield)
+        """Deferred pipeline work (see Pipeline.catch_up); True when none is left."""
+        return self.pipeline.catch_up(should_yield)
 
     def _watch_dropout(self, p: Profile) -> None:
         last = self._last_profile_s.get(p.sensor_id)
@@ -175,10 +174,10 @@ class LayerAnalysis:
 
     def _take_snapshot(self):
         results = list(self.results)
-        mon = self.monitor
+        mon = self.fusion
         meta = {**self.meta, "events": dict(self.events), "profiles_fused": mon.profiles_fused,
                 "points_fused": mon.points_fused, "complete": self._finished}
-        timing = {**self.session.timing.to_dict(), "report_s": self.report_s}
+        timing = self.pipeline.timing(report_s=self.report_s)
         maps = None if self._finished else ([results[-1].layer] if results else [])
         return results, copy.deepcopy(self.tracks), self._dropped_now(), timing, meta, maps
 
@@ -193,8 +192,8 @@ class LayerAnalysis:
 
     @property
     def dropped(self) -> dict[str, int]:
-        """Drops by reason: the session's (sync stage) plus the transport's."""
-        out = Counter(self.session.dropped)
+        """Drops by reason: the pipeline's (sync stage) plus the transport's."""
+        out = Counter(self.pipeline.dropped)
         out.update(self.extra_dropped)
         for source in self.drop_sources:
             out.update(source())
@@ -205,11 +204,11 @@ class LayerAnalysis:
         return self._write(*self._take_snapshot())
 
     def _write(self, results, tracks, dropped, timing, meta, maps) -> dict:
-        from dm2.report import write_report
-
-        t0 = time.perf_counter()
-        report = write_report(self.out_dir, results, tracks, config_toml=self.config_toml,
-                              dropped=dropped, timing=timing, map_layers=maps, meta=meta)
+        t0 = time.perf_counter()  # the live report holds no realtime/process sections
+        report = self.pipeline.write_outputs(self.out_dir, results=results, tracks=tracks,
+                                             config_toml=self.config_toml, dropped=dropped,
+                                             sections={}, timing=timing, map_layers=maps,
+                                             meta=meta, toolpath=None)
         self.report_s += time.perf_counter() - t0
         return report
 
@@ -237,7 +236,7 @@ class LayerAnalysis:
         """End of stream: analyse the last layer, end the tracks, write the final report."""
         if self._finished:
             return None
-        self.session.finish()
+        self.pipeline.finish()
         self._finished = True
         self._stop_writer()
         if self.out_dir is not None:

@@ -6,7 +6,7 @@ scanCONTROL sensors), one bounded :class:`~dm2.live.inbox.Inbox` they all feed, 
 (``<out>/live.mcap``, the stream as the pipeline receives it, after the plausibility gates of
 :mod:`dm2.fusion.gates`, stamps on the robot's clock,
 written by a :class:`~dm2.live.recorder.RecorderThread` off the hot path) and
-a :class:`~dm2.live.analysis.LayerAnalysis` that rewrites ``<out>/report`` (report.json and the
+a :class:`~dm2.live.analysis.LiveAnalysis` that rewrites ``<out>/report`` (report.json and the
 rest, replaced atomically) after every layer. ``report.json``'s ``dropped`` merges the
 transport's drop counts with the pipeline's. Nothing here imports the twin: the same code
 runs against a real cell.
@@ -43,7 +43,7 @@ from pathlib import Path
 
 from dm2.core.messages import LayerMark, MessageError, Profile, RobotState
 from dm2.fusion.gates import InputGates
-from dm2.live.analysis import LayerAnalysis
+from dm2.live.analysis import LiveAnalysis
 from dm2.live.clock import ClockAligner
 from dm2.live.config import CellFile, parse_host_port
 from dm2.live.inbox import Inbox
@@ -86,7 +86,7 @@ class LiveRunner:
         self.inbox = Inbox(live.queue_size)
         self.gates = InputGates(cell.monitor.gates)
         self.aligner = ClockAligner(live.clock_tolerance_s)
-        self.analysis = LayerAnalysis(self.calibration, cell.monitor, cell.process,
+        self.analysis = LiveAnalysis(self.calibration, cell.monitor, cell.process,
                                       cell.plate_size_mm, toolpath=self.toolpath,
                                       out_dir=self.report_dir, config_toml=cell_toml,
                                       max_sensor_gap_s=live.max_sensor_gap_s,
@@ -110,7 +110,7 @@ class LiveRunner:
         self.fused_at_end = 0  # profiles fused only by finish()
         # (sensor_id, stamp_s) -> (arrival_s, released by the clock aligner [s, monotonic])
         self._arrivals: OrderedDict = OrderedDict()
-        self.analysis.monitor.fused_log = deque()
+        self.analysis.fusion.fused_log = deque()
         self.messages_in = 0
         self.busy_s = 0.0  # [s] the loop spent handling messages (vs waiting for them)
         self.max_step_s = 0.0  # [s] longest single message (a layer end, typically)
@@ -198,12 +198,12 @@ class LiveRunner:
                 self.analysis.extra_dropped["unrecordable_stamp"] += 1
                 return
         self.analysis.feed(msg)
-        if self.analysis.monitor.fused_log:
+        if self.analysis.fusion.fused_log:
             self._note_fused()
 
     def _note_fused(self) -> None:
         now = time.monotonic()
-        log_ = self.analysis.monitor.fused_log
+        log_ = self.analysis.fusion.fused_log
         while log_:
             times = self._arrivals.pop(log_.popleft(), None)
             if times is not None:
@@ -217,7 +217,7 @@ class LiveRunner:
         live = self.cell.live
         max_duration_s = live.max_duration_s if max_duration_s is None else max_duration_s
         idle_stop_s = live.idle_stop_s if idle_stop_s is None else idle_stop_s
-        monitor = self.analysis.monitor
+        monitor = self.analysis.fusion
         batch_delay_s, batch_profiles = monitor.max_delay_s, monitor.batch_profiles
         self._freeze_heap()
         t0 = time.monotonic()
@@ -290,11 +290,11 @@ class LiveRunner:
             self._aligned(m, arrival)
         for p in self.aligner.flush():
             self._deliver(p)
-        fused = self.analysis.monitor.profiles_fused
+        fused = self.analysis.fusion.profiles_fused
         try:
             report = self.analysis.finish()
-            self.fused_at_end = self.analysis.monitor.profiles_fused - fused
-            self.analysis.monitor.fused_log.clear()
+            self.fused_at_end = self.analysis.fusion.profiles_fused - fused
+            self.analysis.fusion.fused_log.clear()
         finally:
             self._thaw_heap()
             if self.recorder is not None:

@@ -1,10 +1,11 @@
-"""A monitoring session: the whole pipeline from messages to per-layer defect results.
+"""A monitoring session: the stages interleaved in stream order, messages to layer results.
 
+The drivers build a :class:`~dm2.pipeline.pipeline.Pipeline`, which runs this object.
 :class:`MonitoringSession` wires the stages of the paper's sections 5 and 6 for one build:
-every message goes to the fusion :class:`~dm2.fusion.fusion.Monitor`; robot states also grow the
-near-net :class:`~dm2.reference.model.NearNetReference` along the executed motion; when the monitor
-closes a layer, that layer's surface is compared with the reference of the same layer
-(:class:`~dm2.defects.layer_analysis.DefectMonitor`: deviation, classification, segmentation,
+every message goes to the fusion :class:`~dm2.fusion.fusion.TsdfFusion`; robot states also grow
+the near-net :class:`~dm2.reference.model.NearNetReference` along the executed motion; when the
+fusion closes a layer, that layer's surface is compared with the reference of the same layer
+(:class:`~dm2.defects.layer_analysis.LayerAnalysis`: deviation, classification, segmentation,
 tracking).
 
 The reference follows the executed path at the nominal process (:mod:`dm2.reference.feed`,
@@ -33,7 +34,7 @@ segmentation, tracking) on a worker thread, in layer order, off the fusion path.
 The same object serves the twin in process, recordings and live sources: it only sees
 messages. The reference of layer ``L`` is taken when the stream reports the start of layer
 ``L + 1`` (a ``LayerMark``), so it holds exactly the deposition of layers ``0..L``; streams
-without layer marks take it when the monitor closes the layer.
+without layer marks take it when the fusion closes the layer.
 """
 
 from __future__ import annotations
@@ -49,9 +50,9 @@ import numpy as np
 from dm2.core.config import MonitorConfig, ProcessConfig
 from dm2.core.messages import Calibration, LayerMark, RobotState, Toolpath
 from dm2.defects.footprint import PlannedOutline
-from dm2.defects.layer_analysis import DefectMonitor, LayerResult
+from dm2.defects.layer_analysis import LayerAnalysis, LayerResult
 from dm2.defects.realtime import RealtimeDeviation
-from dm2.fusion.fusion import LayerSurface, Monitor
+from dm2.fusion.fusion import LayerSurface, TsdfFusion
 from dm2.pipeline.layer_worker import LayerWorker
 from dm2.pipeline.process_fit import ProcessFit
 from dm2.reference.feed import ReferenceFeed
@@ -139,14 +140,14 @@ class MonitoringSession:
         outline = (PlannedOutline.from_toolpath(toolpath, tuple(plate_size_mm[:2]),
                                                 monitor_cfg.voxel_mm)
                    if toolpath is not None else None)
-        self.defects = DefectMonitor(monitor_cfg, outline=outline)
+        self.defects = LayerAnalysis(monitor_cfg, outline=outline)
         planned = (float(np.max(toolpath.position_O[:, 2])) if toolpath is not None
                    and len(toolpath.position_O) else None)
         self.process_fit = (ProcessFit(monitor_cfg.process_fit_rate_per_layer,
                                        monitor_cfg.process_fit_bound,
                                        monitor_cfg.process_finding_threshold, planned)
                             if _process_fit_on(monitor_cfg) else None)
-        self.monitor = Monitor(calibration, monitor_cfg, process, toolpath=toolpath,
+        self.fusion = TsdfFusion(calibration, monitor_cfg, process, toolpath=toolpath,
                                on_layer_done=self._layer_done, defer_meshing=analysis_thread)
         self.timing = SessionTiming()
         self.states = ReferenceFeed(self.reference, toolpath, monitor_cfg.reference_clock,
@@ -174,7 +175,7 @@ class MonitoringSession:
 
     @property
     def dropped(self) -> dict[str, int]:
-        out = dict(self.monitor.dropped)
+        out = dict(self.fusion.dropped)
         if self.gates is not None:
             out.update({k: int(v) for k, v in self.gates.dropped.items() if v})
         if self.reference.gaps_skipped:
@@ -203,11 +204,11 @@ class MonitoringSession:
             if not defer:
                 self._advance(upto_s=msg.stamp_s)
         t0 = time.perf_counter()
-        self.monitor.feed(msg)
+        self.fusion.feed(msg)
         self.timing.fusion_s += time.perf_counter() - t0
         if defer:
             return
-        if self.monitor.profiles_fused - self._rt_profiles >= FRAME_SET:
+        if self.fusion.profiles_fused - self._rt_profiles >= FRAME_SET:
             self._realtime()
         elif len(self.states) >= STATE_BACKLOG:  # a stream of poses without profiles
             self._advance()
@@ -215,7 +216,7 @@ class MonitoringSession:
     @property
     def behind(self) -> bool:
         """True while a deferred comparison or a backlog of robot states waits."""
-        return (self.monitor.profiles_fused - self._rt_profiles >= FRAME_SET
+        return (self.fusion.profiles_fused - self._rt_profiles >= FRAME_SET
                 or len(self.states) >= STATE_BACKLOG or bool(self._ops))
 
     def catch_up(self, should_yield: Callable[[], bool] | None = None) -> bool:
@@ -228,8 +229,8 @@ class MonitoringSession:
         def stop() -> bool:
             return should_yield is not None and should_yield()
 
-        if self.monitor.profiles_fused - self._rt_profiles >= FRAME_SET:
-            upto = self.monitor.last_fused_stamp_s
+        if self.fusion.profiles_fused - self._rt_profiles >= FRAME_SET:
+            upto = self.fusion.last_fused_stamp_s
             while not self._advance(upto_s=upto, max_states=STATE_SLICE):
                 if stop():
                     return False
@@ -245,7 +246,7 @@ class MonitoringSession:
         now = time.perf_counter()
         if now - self._last_premesh >= PREMESH_EVERY_S and not stop():
             t0 = time.perf_counter()
-            done = self.monitor.extractor.premesh(stop)
+            done = self.fusion.extractor.premesh(stop)
             self.timing.fusion_s += time.perf_counter() - t0
             if done:
                 self._last_premesh = now
@@ -264,7 +265,7 @@ class MonitoringSession:
                     self._feed(m, False)
             self._advance()
             t0 = time.perf_counter()
-            self.monitor.finish()
+            self.fusion.finish()
             self.timing.fusion_s += time.perf_counter() - t0
             self._advance()
             if self._worker is not None:
@@ -298,14 +299,14 @@ class MonitoringSession:
 
     def _realtime(self) -> None:
         """Compare the active region with the reference as of the newest fused profile."""
-        self._rt_profiles = self.monitor.profiles_fused
-        stamp = self.monitor.last_fused_stamp_s
+        self._rt_profiles = self.fusion.profiles_fused
+        stamp = self.fusion.last_fused_stamp_s
         self._advance(upto_s=stamp)
         if self.states.last_T_B_F is None:
             return
         t0 = time.perf_counter()
         spot_O, _ = self.reference.spot_O(self.states.last_T_B_F)
-        frame = self.realtime.update_from_tsdf(self.monitor.tsdf, spot_O, stamp,
+        frame = self.realtime.update_from_tsdf(self.fusion.tsdf, spot_O, stamp,
                                                self.reference)
         for alarm in frame.alarms:
             alarm_log.info("real-time: %s of %.1f mm2 at (%.1f, %.1f) mm, %.2f s after its first "
