@@ -130,6 +130,26 @@ def test_layers_follow_layer_marks(cal):
         mon.surface(7)
 
 
+def test_older_layer_meshes_wait_on_disk_and_read_back_the_same(cal):
+    from dm2.io.spill import Spilled
+
+    msgs0, msgs1 = _two_layers(cal)
+    stream = [LayerMark(0.0, 0)] + msgs0 + [LayerMark(msgs0[-1].stamp_s + 0.05, 1)] + msgs1
+    runs = {}
+    for keep in (None, 1):
+        mon = TsdfFusion(cal, MonitorConfig(layers_in_memory=keep), ProcessConfig())
+        mon.feed_all(stream)
+        mon.finish()
+        runs[keep] = mon
+    assert isinstance(runs[1].layer_done[0]._surface, Spilled)  # layer 0 is on disk
+    assert not isinstance(runs[None].layer_done[0]._surface, Spilled)
+    for layer in (0, 1):
+        a, b = runs[None].surface(layer), runs[1].surface(layer)
+        for name in ("vertices_O", "faces", "weight", "normals_O"):
+            assert np.array_equal(getattr(a, name), getattr(b, name)), (layer, name)
+    assert abs(_track_z(runs[1].surface(0))) < 0.05  # the bare plate layer, read back
+
+
 def test_layers_follow_the_toolpath_without_marks(cal):
     n = 12
     pos = np.array([[40 + 2 * i, 60, 0.0] for i in range(n)] +

@@ -1,4 +1,4 @@
-"""Finished layers' deviations on disk (dm2.defects.spill): the same results, bit for bit."""
+"""Finished layers' arrays on disk (dm2.io.spill): the same results, bit for bit."""
 
 import gc
 import pickle
@@ -7,7 +7,7 @@ import numpy as np
 from test_deviation import CELL, MON, gaussian, pad_heights, top_surface
 
 from dm2.defects.layer_analysis import LayerAnalysis
-from dm2.defects.spill import SpilledDeviation
+from dm2.io.spill import Spilled
 from dm2.reference.height_map import ReferenceMap
 from dm2.report import write_report
 
@@ -26,13 +26,13 @@ def _build(layers_in_memory):
 
 
 def _arrays(dev):
-    dev = dev.load() if isinstance(dev, SpilledDeviation) else dev
+    dev = dev.load() if isinstance(dev, Spilled) else dev
     return {k: v for k, v in vars(dev).items() if isinstance(v, np.ndarray)}
 
 
 def test_spilled_layers_read_back_bit_for_bit_and_hold_no_arrays():
     kept, spilled = _build(None), _build(1)
-    assert [type(r.deviation) for r in spilled.results] == [SpilledDeviation] * 5 + \
+    assert [type(r.deviation) for r in spilled.results] == [Spilled] * 5 + \
         [type(kept.results[-1].deviation)]
     for a, b in zip(kept.results, spilled.results, strict=True):
         assert (a.layer, a.track_ids) == (b.layer, b.track_ids)
@@ -49,7 +49,7 @@ def test_spilled_layers_read_back_bit_for_bit_and_hold_no_arrays():
     assert proxy.path.stat().st_size > 0
     # pickled (as to the live report's child process) it stays a path and reads the same
     again = pickle.loads(pickle.dumps(proxy))
-    assert isinstance(again, SpilledDeviation) and again.path == proxy.path
+    assert isinstance(again, Spilled) and again.path == proxy.path
     assert np.array_equal(again.signed_distance_mm, kept.results[0].deviation.signed_distance_mm)
 
 
@@ -73,7 +73,9 @@ def test_report_from_spilled_layers_is_the_same(tmp_path):
 def test_scratch_folder_goes_with_the_results():
     mon = _build(1)
     folder = mon.spill.folder
-    assert len(list(folder.glob("layer_*.pickle"))) == 5
+    # five deviations and five references
+    assert len(list(folder.glob("LayerDeviation_*.pickle"))) == 5
+    assert len(list(folder.glob("ReferenceMap_*.pickle"))) == 5
     del mon
     gc.collect()
     assert not folder.exists()

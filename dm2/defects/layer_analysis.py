@@ -18,8 +18,8 @@ import numpy as np
 from dm2.defects.classify import CLASS_NAMES
 from dm2.defects.deviation import LayerDeviation, layer_deviation
 from dm2.defects.segment import Region, segment_regions
-from dm2.defects.spill import LayerSpill
 from dm2.defects.track import RegionTracker
+from dm2.io.spill import SpillStore
 from dm2.reference.height_map import ReferenceMap
 
 log = logging.getLogger(__name__)
@@ -86,8 +86,9 @@ class LayerAnalysis:
     ``track_local_alone``) once in a global class; the layer results of the layers before its
     confirmation get its id then.
 
-    Only the newest ``monitor_cfg.layers_in_memory`` results keep their deviation in memory;
-    older ones are read back from a scratch folder when asked for (:mod:`dm2.defects.spill`).
+    Only the newest ``monitor_cfg.layers_in_memory`` results keep their deviation and reference
+    in memory; older ones are read back from a scratch folder when asked for
+    (:mod:`dm2.io.spill`).
     """
 
     def __init__(self, monitor_cfg, tracker: RegionTracker | None = None,
@@ -103,7 +104,7 @@ class LayerAnalysis:
             confirm_requires_global=not monitor_cfg.track_local_alone)
         self.results: list[LayerResult] = []
         keep = getattr(monitor_cfg, "layers_in_memory", None)
-        self.spill = LayerSpill(keep) if keep is not None else None
+        self.spill = SpillStore(keep) if keep is not None else None
 
     def analyse_layer(self, surface, reference: ReferenceMap, layer: int | None = None,
                       stamp_s: float | None = None) -> LayerResult:
@@ -125,7 +126,8 @@ class LayerAnalysis:
                           {"deviation": t1 - t0, "segment": t2 - t1, "track": t3 - t2})
         self.results.append(res)
         if self.spill is not None:
-            self.spill.spill_old(self.results)
+            self.spill.spill_old(self.results, "deviation")
+            self.spill.spill_old(self.results, "reference")
         by_layer = {r.layer: r for r in self.results}
         for track in self.tracker.newly_confirmed:  # earlier layers' regions get the id now
             for seen_layer, j in track.observations:

@@ -28,6 +28,7 @@ from dm2.fusion.registration import profile_frames, spot_B
 from dm2.fusion.surface import PendingSurface, SurfaceExtractor, SurfaceMesh
 from dm2.fusion.sync import StreamSync, SyncedProfile
 from dm2.fusion.tsdf.field import SparseTSDF
+from dm2.io.spill import SpillStore
 
 log = logging.getLogger(__name__)
 
@@ -96,7 +97,8 @@ class TsdfFusion:
 
     Attributes
     ----------
-    layer_done : list of LayerSurface, finished layers in order
+    layer_done : list of LayerSurface, finished layers in order (with
+        ``monitor_cfg.layers_in_memory``, older layers' meshes wait on disk: dm2.io.spill)
     fused_log : None, or a deque that receives ``(sensor_id, stamp_s)`` of every fused profile
         (a live run's latency accounting sets it)
     tsdf : the SparseTSDF being fused
@@ -125,6 +127,8 @@ class TsdfFusion:
         self.on_layer_done = on_layer_done
         self.batch_profiles = max(1, int(batch_profiles))
         self.layer_done: list[LayerSurface] = []
+        keep = getattr(monitor_cfg, "layers_in_memory", None)
+        self._spill = SpillStore(keep) if keep is not None else None
         self.bounds_O = None if bounds_O is None else (np.asarray(bounds_O[0], float),
                                                        np.asarray(bounds_O[1], float))
         self.points_fused = 0
@@ -254,6 +258,9 @@ class TsdfFusion:
         ls = LayerSurface(int(layer), self._last_stamp_s,
                           pending if self.defer_meshing else pending.result())
         self.layer_done.append(ls)
+        if self._spill is not None:  # older layers' meshes wait on disk (dm2.io.spill)
+            self._spill.spill_old(self.layer_done, "_surface",
+                                  ready=lambda s: isinstance(s, SurfaceMesh))
         if self.on_layer_done is not None:
             self.on_layer_done(ls)
 

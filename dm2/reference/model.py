@@ -53,6 +53,7 @@ from dm2.reference.height_map import ReferenceMap
 
 log = logging.getLogger(__name__)
 
+KEEP_LAYERS = 8  # finished layers' references kept in ``layers`` (a tall build: not all)
 FOOTPRINT_SIGMAS = 4.0  # footprint truncated at 4 sigma (0.03 % of the mass is left out)
 SLOPE_PROBE_MM = 0.5  # half span of the central difference giving the local surface normal
 MAX_INTEGRATION_GAP_S = 1.0  # longer gaps between robot states are not integrated
@@ -228,6 +229,8 @@ class NearNetReference:
         layer = self.layer if layer is None else int(layer)
         ref = self.snapshot(layer)
         self.layers[layer] = ref
+        for old in [k for k in self.layers if k < layer - KEEP_LAYERS]:
+            del self.layers[old]  # the analysis has long taken it (and keeps its own)
         log.debug("reference layer %d: %.1f mm^3 so far, max height %.3f mm", layer,
                   self._deposited_mm3, float(ref.heights_mm.max()))
         return ref
