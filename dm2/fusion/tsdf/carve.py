@@ -1,6 +1,6 @@
-"""Carving buried free space behind fresh deposition: the voxel step of the walk beyond a ray's
-band (:func:`dm2.fusion.tsdf.walk.walk_ray`), the one walk of the serial TSDF kernel and the
-two-thread one.
+"""Carving buried free space behind fresh deposition, shared (inlined) by the serial TSDF kernel
+(:func:`dm2.fusion.tsdf.kernels._fuse`) and the two-thread one
+(:func:`dm2.fusion.tsdf.owned_kernels.fuse_owned`).
 
 Why: deposition adds material on top of the surface the sensors saw before. When a spot rises
 by more than the band reaches behind the new surface between two observations (the band is

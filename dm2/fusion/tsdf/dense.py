@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from dm2.fusion.tsdf.block_hash import BLOCK, BLOCK_SHIFT, hash_find, pack_key
+from dm2.fusion.tsdf.kernels import BLOCK, BLOCK_SHIFT, hash_find, pack_key
 
 
 @njit(cache=True)

@@ -50,7 +50,6 @@ import os
 import numpy as np
 
 from dm2.fusion.tsdf import kernels as K
-from dm2.fusion.tsdf.bundles import block_store, fuse_params, profile_batch, ray_batch
 from dm2.fusion.tsdf.dense import gather_dense
 from dm2.fusion.tsdf.threads import SplitBuffers, fuse_split
 
@@ -163,13 +162,19 @@ class SparseTSDF:
             np.ascontiguousarray(active, dtype=np.bool_)
         if a.shape != (p.shape[0],):
             raise ValueError(f"SparseTSDF.integrate: active {a.shape} != ({p.shape[0]},)")
-        batch = ray_batch(o, p, a)
         if self.threads == 2 and p.shape[0] >= MIN_SPLIT_POINTS:
-            fuse_split(self, False, False, batch, np.zeros(2, dtype=np.int64))
+            off = np.array([0, p.shape[0]], dtype=np.int64)
+            none = np.zeros((0, 3))
+            fuse_split(self, False, o, p, a, p, off, np.zeros((0, 4, 4)), none, none, 0.0,
+                       _NO_BOUNDS, _NO_BOUNDS, False, np.zeros(2, dtype=np.int64),
+                       self.inactive_weight_cap)
             return
-        params, start = fuse_params(self), 0
+        start = 0
         while start < p.shape[0]:
-            start = K.integrate_rays(batch, start, params, block_store(self))
+            start = K.integrate_rays(o, p, a, self.voxel_mm, self.truncation_mm,
+                                     self.weight_cap, self.inactive_weight_cap, self._table_keys,
+                                     self._table_slots, self.block_keys, self.voxels,
+                                     self.touched, self._state, start)
             if start < p.shape[0]:
                 self._grow()
 
@@ -208,14 +213,19 @@ class SparseTSDF:
         lo, hi = (np.asarray(bounds_O[0], np.float64), np.asarray(bounds_O[1], np.float64)) \
             if use_bounds else (_NO_BOUNDS, _NO_BOUNDS)
         counts = np.zeros(2, dtype=np.int64)
-        batch = profile_batch(xz, off, T, spot, axis, float(active_radius_mm) ** 2, lo, hi)
+        r2 = float(active_radius_mm) ** 2
         start, n = 0, xz.shape[0]
         if self.threads == 2 and n >= MIN_SPLIT_POINTS:
-            fuse_split(self, True, use_bounds, batch, counts)
+            none = np.zeros((0, 3))
+            fuse_split(self, True, none, none, np.zeros(0, np.bool_), xz, off, T, spot, axis,
+                       r2, lo, hi, use_bounds, counts, self.inactive_weight_cap)
             start = n
-        params = fuse_params(self)
         while start < n:
-            start = K.fuse_profiles(batch, use_bounds, start, params, block_store(self), counts)
+            start = K.fuse_profiles(xz, off, T, spot, axis, r2, lo, hi, use_bounds, start,
+                                    self.voxel_mm, self.truncation_mm, self.weight_cap,
+                                    self.inactive_weight_cap, self._table_keys, self._table_slots,
+                                    self.block_keys, self.voxels, self.touched, self._state,
+                                    counts)
             if start < n:
                 self._grow()
         return int(counts[1]), int(counts[0])

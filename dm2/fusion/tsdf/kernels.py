@@ -1,19 +1,17 @@
-"""Numba kernels of the sparse TSDF: the serial integrator (the walk it shares with the
-two-thread update: :mod:`dm2.fusion.tsdf.walk`; block hash: :mod:`dm2.fusion.tsdf.block_hash`;
-dense gathering: :mod:`dm2.fusion.tsdf.dense`).
+"""Numba kernels of the sparse TSDF: block hash and ray integration (dense gathering:
+:mod:`dm2.fusion.tsdf.dense`).
 
-Storage layout (see :mod:`dm2.fusion.tsdf.field`): voxels live in blocks of ``BLOCK**3`` voxels,
-found through the block hash, in rows ("slots") of the preallocated ``voxels`` array of shape
-``(capacity, 512, 2)`` float32 that keeps each voxel's signed distance [mm] and weight side by
-side (one cache line per update).
+Storage layout (see :mod:`dm2.fusion.tsdf.field`): voxels live in blocks of ``BLOCK**3`` voxels. A
+block's
+integer coordinates ``(bx, by, bz)`` are packed into one non-negative int64 key and found through
+an open-addressing hash table (linear probing, ``EMPTY`` marks a free entry) that maps the key to
+a row ("slot") of the preallocated ``voxels`` array of shape ``(capacity, 512, 2)`` float32 that
+keeps each voxel's signed distance [mm] and weight side by side (one cache line per update).
 
-The integrator walks each sensor ray through the voxel grid from ``truncation`` in front of the
-measured point to ``truncation`` behind it and updates every voxel it crosses with the
-projective signed distance (eqs 2-3 of the paper). ``fuse_profiles`` also registers the
-profiles (eq 1) and decides each point's active region in the same pass.
-
-Arguments come bundled (:mod:`dm2.fusion.tsdf.bundles`): ``batch`` a ``RayBatch``, ``params``
-a ``FuseParams``, ``blocks`` the field's ``BlockStore`` (``blocks.state[0]``: allocated blocks).
+The integrator walks each sensor ray through the voxel grid with a 3-D DDA (Amanatides & Woo)
+from ``truncation`` in front of the measured point to ``truncation`` behind it and updates every
+voxel it crosses with the projective signed distance (eqs 2-3 of the paper). ``fuse_profiles``
+also registers the profiles (eq 1) and decides each point's active region in the same pass.
 """
 
 from __future__ import annotations
@@ -21,43 +19,206 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from dm2.fusion.tsdf.block_hash import (  # noqa: F401  (the field's names for them)
-    BLOCK,
-    BLOCK_SHIFT,
-    BLOCK_VOXELS,
-    EMPTY,
-    MAX_NEW_BLOCKS_PER_RAY,
-    hash_find,
-    pack_key,
-    rebuild_hash,
-    unpack_keys,
+from dm2.fusion.tsdf.carve import (
+    CARVE_RUN_VOXELS,
+    CARVE_TRUNCATIONS,
+    COL_SHIFT,
+    carve_visit,
 )
-from dm2.fusion.tsdf.bundles import StagedRows
-from dm2.fusion.tsdf.carve import COL_SHIFT
-from dm2.fusion.tsdf.walk import fuse_batch
+from dm2.fusion.tsdf.point_rays import NO_POSE, point_ray, profile_pose
+
+BLOCK = 8  # voxels per block edge
+BLOCK_SHIFT = 3
+BLOCK_VOXELS = BLOCK**3
+EMPTY = -1
+_OFFSET = 1 << 20  # block coordinates in [-2**20, 2**20) pack into 21 bits each
+_MASK21 = (1 << 21) - 1
+# Worst case of new blocks one ray can need: rays span at most 2 * truncation, a few blocks.
+MAX_NEW_BLOCKS_PER_RAY = 16
 
 
 @njit(cache=True, inline="always")
-def _no_staging(blocks):
-    """The serial walk's staging area: none, its ``base`` past the last row (every carved
-    block is marked touched)."""
-    return StagedRows(blocks.voxels.shape[0], np.zeros(0, np.int64), np.zeros(0, np.int64),
-                      np.zeros(0, np.int32), np.zeros(1, np.int64))
+def pack_key(bx, by, bz):
+    return ((bx + _OFFSET) << 42) | ((by + _OFFSET) << 21) | (bz + _OFFSET)
+
+
+@njit(cache=True)
+def unpack_keys(keys):
+    """Block coordinates ``(n, 3)`` int64 of packed keys ``(n,)``."""
+    out = np.empty((keys.shape[0], 3), dtype=np.int64)
+    for i in range(keys.shape[0]):
+        k = keys[i]
+        out[i, 0] = ((k >> 42) & _MASK21) - _OFFSET
+        out[i, 1] = ((k >> 21) & _MASK21) - _OFFSET
+        out[i, 2] = (k & _MASK21) - _OFFSET
+    return out
+
+
+@njit(cache=True, inline="always")
+def _hash(key, mask):
+    h = np.uint64(key) * np.uint64(0x9E3779B97F4A7C15)
+    return np.int64(h >> np.uint64(40)) & mask
+
+
+@njit(cache=True, inline="always")
+def hash_find(table_keys, table_slots, key):
+    """Slot of ``key`` or -1."""
+    mask = table_keys.shape[0] - 1
+    h = _hash(key, mask)
+    while True:
+        k = table_keys[h]
+        if k == key:
+            return table_slots[h]
+        if k == EMPTY:
+            return -1
+        h = (h + 1) & mask
+
+
+@njit(cache=True)
+def hash_insert(table_keys, table_slots, key, slot):
+    mask = table_keys.shape[0] - 1
+    h = _hash(key, mask)
+    while table_keys[h] != EMPTY:
+        h = (h + 1) & mask
+    table_keys[h] = key
+    table_slots[h] = slot
+
+
+@njit(cache=True)
+def rebuild_hash(block_keys, n_blocks, table_size):
+    """A fresh hash table of ``table_size`` (power of two) entries for the first blocks."""
+    table_keys = np.full(table_size, EMPTY, dtype=np.int64)
+    table_slots = np.full(table_size, -1, dtype=np.int32)
+    for s in range(n_blocks):
+        hash_insert(table_keys, table_slots, block_keys[s], s)
+    return table_keys, table_slots
+
+
+@njit(cache=True, inline="always")
+def hash_get_or_insert(key, table_keys, table_slots, block_keys, state):
+    """Slot of ``key``; a new block (slot ``state[0]``, counted up) when it has none yet."""
+    mask = table_keys.shape[0] - 1
+    h = _hash(key, mask)
+    while True:
+        k = table_keys[h]
+        if k == key:
+            return table_slots[h]
+        if k == EMPTY:
+            s = state[0]
+            state[0] += 1
+            table_keys[h] = key
+            table_slots[h] = s
+            block_keys[s] = key
+            return s
+        h = (h + 1) & mask
+
+
+@njit(cache=True, inline="always")
+def _get_or_alloc(bx, by, bz, table_keys, table_slots, block_keys, touched, state):
+    s = hash_get_or_insert(pack_key(bx, by, bz), table_keys, table_slots, block_keys, state)
+    touched[s] = True
+    return s
+
+
+@njit(cache=True, inline="always")
+def recent_slot(bx, by, bz, a, b):
+    """Slot of block ``(bx, by, bz)`` when it is one of the two blocks looked up last (``a``,
+    ``b``: ``(bx, by, bz, slot)``), else -1. Consecutive rays mostly cross the same two blocks,
+    so most hash lookups are saved."""
+    if bx == a[0] and by == a[1] and bz == a[2]:
+        return a[3]
+    if bx == b[0] and by == b[1] and bz == b[2]:
+        return b[3]
+    return -1
+
+
+@njit(cache=True, inline="always")
+def dda_start(ox, oy, oz, dx, dy, dz, r, truncation_mm, voxel_mm, inv_vox):
+    """First voxel and DDA state (Amanatides & Woo) of the band ``r +- truncation_mm``: voxel
+    ``vx, vy, vz``, the band's length ``span`` [voxels], steps ``st*``, crossing increments
+    ``td*`` and next crossings ``tm*`` [voxels], and the projective signed distance ``d`` [mm]
+    of the first voxel's centre (``r`` minus its distance from the origin along the ray) with
+    its change ``dd*`` [mm] per step along each axis."""
+    t0 = r - truncation_mm
+    t1 = r + truncation_mm
+    sx0, sy0, sz0 = (ox + dx * t0) * inv_vox, (oy + dy * t0) * inv_vox, \
+        (oz + dz * t0) * inv_vox
+    vx, vy, vz = int(np.floor(sx0)), int(np.floor(sy0)), int(np.floor(sz0))
+    span = (t1 - t0) * inv_vox
+    stx = 1 if dx > 0 else -1
+    sty = 1 if dy > 0 else -1
+    stz = 1 if dz > 0 else -1
+    big = 1e30
+    tdx = abs(1.0 / dx) if dx != 0 else big
+    tdy = abs(1.0 / dy) if dy != 0 else big
+    tdz = abs(1.0 / dz) if dz != 0 else big
+    tmx = ((vx + 1 - sx0) if dx > 0 else (sx0 - vx)) * tdx if dx != 0 else big
+    tmy = ((vy + 1 - sy0) if dy > 0 else (sy0 - vy)) * tdy if dy != 0 else big
+    tmz = ((vz + 1 - sz0) if dz > 0 else (sz0 - vz)) * tdz if dz != 0 else big
+    d = r - (((vx + 0.5) * voxel_mm - ox) * dx + ((vy + 0.5) * voxel_mm - oy) * dy
+             + ((vz + 0.5) * voxel_mm - oz) * dz)
+    return (vx, vy, vz, span, stx, sty, stz, tdx, tdy, tdz, tmx, tmy, tmz, d,
+            stx * voxel_mm * dx, sty * voxel_mm * dy, stz * voxel_mm * dz)
+
+
+@njit(cache=True, inline="always")
+def dda_step(vx, vy, vz, stx, sty, stz, tdx, tdy, tdz, tmx, tmy, tmz, d, ddx, ddy, ddz):
+    """Step to the next voxel along the axis whose boundary the ray crosses first; returns the
+    new ray parameter ``t`` (voxel units), voxel, crossing parameters and signed distance."""
+    if tmx < tmy:
+        if tmx < tmz:
+            return tmx, vx + stx, vy, vz, tmx + tdx, tmy, tmz, d - ddx
+        return tmz, vx, vy, vz + stz, tmx, tmy, tmz + tdz, d - ddz
+    if tmy < tmz:
+        return tmy, vx, vy + sty, vz, tmx, tmy + tdy, tmz, d - ddy
+    return tmz, vx, vy, vz + stz, tmx, tmy, tmz + tdz, d - ddz
+
+
+@njit(cache=True, inline="always")
+def update_voxel(voxels, slot, vx, vy, vz, d, truncation_mm, inv_trunc, act, active_weight_cap,
+                 max_weight):
+    """One voxel's update along a ray (paper eqs 2-5): projective signed distance ``d`` [mm]
+    clamped to +-truncation, weight ``w_A = 1`` in the active region and ``w_I`` (1 in front,
+    falling linearly behind the surface) elsewhere, the stored weight capped in the active
+    region."""
+    if d > truncation_mm:
+        d = truncation_mm
+    elif d < -truncation_mm:
+        d = -truncation_mm
+    w = 1.0 if (act or d >= 0.0) else 1.0 + d * inv_trunc
+    if w > 0.0:
+        li = (vx & 7) + 8 * ((vy & 7) + 8 * (vz & 7))
+        w_prev = voxels[slot, li, 1]
+        if act and w_prev > active_weight_cap:
+            w_prev = active_weight_cap
+        w_new = w_prev + w
+        voxels[slot, li, 0] = (w_prev * voxels[slot, li, 0] + w * d) / w_new
+        voxels[slot, li, 1] = min(w_new, max_weight)
 
 
 @njit(cache=True, error_model="numpy")
-def integrate_rays(batch, start, params, blocks):
-    """Fuse the rays ``batch.origins_O[i] -> batch.points_O[i]`` (active: ``batch.active[i]``)
-    into the sparse TSDF, from index ``start``. Returns the index of the first ray that was
+def integrate_rays(origins_O, points_O, active, voxel_mm, truncation_mm, active_weight_cap,
+                   max_weight, table_keys, table_slots, block_keys, voxels, touched, state,
+                   start):
+    """Fuse rays ``origins_O[i] -> points_O[i]`` into the sparse TSDF, from index ``start``.
+
+    ``state[0]`` is the number of allocated blocks. Returns the index of the first ray that was
     not integrated because the block arrays or the hash table need to grow (``n`` when done).
     """
+    n = points_O.shape[0]
+    offsets = np.array([0, n], dtype=np.int64)
+    none3 = np.zeros((0, 3))
     counts = np.zeros(2, dtype=np.int64)
-    return fuse_batch(False, False, False, 0, COL_SHIFT, start, batch, params, blocks,
-                      _no_staging(blocks), counts)
+    return _fuse(False, origins_O, points_O, active, points_O, offsets, np.zeros((0, 4, 4)),
+                 none3, none3, 0.0, none3[0:0, 0], none3[0:0, 0], False, start, voxel_mm,
+                 truncation_mm, active_weight_cap, max_weight, table_keys, table_slots,
+                 block_keys, voxels, touched, state, counts)
 
 
 @njit(cache=True, error_model="numpy")
-def fuse_profiles(batch, use_bounds, start, params, blocks, counts):
+def fuse_profiles(xz_S, offsets, T_O_S, spot_O, axis_O, active_r2_mm2, bounds_lo, bounds_hi,
+                  use_bounds, start, voxel_mm, truncation_mm, active_weight_cap, max_weight,
+                  table_keys, table_slots, block_keys, voxels, touched, state, counts):
     """Register and fuse a batch of profiles (paper eq 1, then eqs 2-5), from point ``start``.
 
     Profile ``k`` owns points ``xz_S[offsets[k]:offsets[k + 1]]``; its point ``(x, z)`` lies at
@@ -68,15 +229,95 @@ def fuse_profiles(batch, use_bounds, start, params, blocks, counts):
     ``[bounds_lo, bounds_hi]`` are skipped and counted in ``counts[0]``; fused points are
     counted in ``counts[1]``. Returns the index of the first point not handled because the
     block arrays or the hash table need to grow (``len(xz_S)`` when done).
-
-    Weights: ``w_A = 1`` over the whole band in the active region; ``w_I = 1`` in front and
-    ``1 - behind / truncation`` behind the point elsewhere (eqs 4-5). In the active region the
-    stored weight is first capped at ``active_weight_cap``, and the walk goes on beyond the
-    band, carving enclosed stale free space (:mod:`dm2.fusion.tsdf.carve`).
     """
-    staged = _no_staging(blocks)
+    none3 = np.zeros((0, 3))
     if use_bounds:  # literal flags: each variant is compiled without the other's tests
-        return fuse_batch(False, True, True, 0, COL_SHIFT, start, batch, params, blocks, staged,
-                          counts)
-    return fuse_batch(False, True, False, 0, COL_SHIFT, start, batch, params, blocks, staged,
-                      counts)
+        return _fuse(True, none3, none3, np.zeros(0, np.bool_), xz_S, offsets, T_O_S, spot_O,
+                     axis_O, active_r2_mm2, bounds_lo, bounds_hi, True, start, voxel_mm,
+                     truncation_mm, active_weight_cap, max_weight, table_keys, table_slots,
+                     block_keys, voxels, touched, state, counts)
+    return _fuse(True, none3, none3, np.zeros(0, np.bool_), xz_S, offsets, T_O_S, spot_O,
+                 axis_O, active_r2_mm2, bounds_lo, bounds_hi, False, start, voxel_mm,
+                 truncation_mm, active_weight_cap, max_weight, table_keys, table_slots,
+                 block_keys, voxels, touched, state, counts)
+
+
+@njit(cache=True, inline="always")
+def _fuse(register, origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, axis_O,
+          active_r2_mm2, bounds_lo, bounds_hi, use_bounds, start, voxel_mm, truncation_mm,
+          active_weight_cap, max_weight, table_keys, table_slots, block_keys, voxels, touched,
+          state, counts):
+    """The one integration loop behind :func:`integrate_rays` (``register=False``: rays given
+    in ``O``) and :func:`fuse_profiles` (``register=True``: profiles registered here), inlined
+    into each with ``register`` and ``use_bounds`` as constants.
+
+    Signed distance ``d`` [mm] is positive in front of the measured point (free space towards
+    the sensor) and negative behind it. Weights: ``w_A = 1`` over the whole band in the active
+    region; ``w_I = 1`` in front and ``1 - behind / truncation`` behind the point elsewhere
+    (eqs 4-5). In the active region the stored weight is first capped at ``active_weight_cap``,
+    and the walk goes on ``CARVE_TRUNCATIONS`` truncations beyond the band through allocated
+    blocks only, carving enclosed stale free space (:mod:`dm2.fusion.tsdf.carve`; a free run
+    ends where the walk enters another two-thread column, as the two-thread kernel sees it).
+    ``voxels[slot, li, 0]`` is the signed distance, ``voxels[slot, li, 1]`` the weight.
+    """
+    capacity = voxels.shape[0]
+    table_limit = table_keys.shape[0] // 2
+    inv_vox = 1.0 / voxel_mm
+    inv_trunc = 1.0 / truncation_mm
+    carve_vox = CARVE_TRUNCATIONS * truncation_mm * inv_vox
+    cs = BLOCK_SHIFT + COL_SHIFT
+    run = np.empty((CARVE_RUN_VOXELS, 2), dtype=np.int64)
+    pose = NO_POSE
+    ra = rb = (1 << 40, 0, 0, -1)  # the two blocks looked up last (bx, by, bz, slot)
+    for k in range(offsets.shape[0] - 1):
+        if offsets[k + 1] <= start:
+            continue
+        if register:
+            pose = profile_pose(T_O_S, spot_O, axis_O, k)
+        for i in range(max(offsets[k], start), offsets[k + 1]):
+            if state[0] + MAX_NEW_BLOCKS_PER_RAY > capacity or \
+                    state[0] + MAX_NEW_BLOCKS_PER_RAY > table_limit:
+                return i
+            ok, ox, oy, oz, dx, dy, dz, r, act = point_ray(
+                register, i, pose, xz_S, origins_O, points_O, active, active_r2_mm2, bounds_lo,
+                bounds_hi, use_bounds, truncation_mm, counts)
+            if not ok:
+                continue
+            vx, vy, vz, span, stx, sty, stz, tdx, tdy, tdz, tmx, tmy, tmz, d, ddx, ddy, ddz = \
+                dda_start(ox, oy, oz, dx, dy, dz, r, truncation_mm, voxel_mm, inv_vox)
+            last_bx, last_by, last_bz, slot = 1 << 40, 0, 0, -1
+            t = 0.0
+            while t <= span:
+                bx, by, bz = vx >> BLOCK_SHIFT, vy >> BLOCK_SHIFT, vz >> BLOCK_SHIFT
+                if bx != last_bx or by != last_by or bz != last_bz:
+                    slot = recent_slot(bx, by, bz, ra, rb)
+                    if slot < 0:
+                        slot = _get_or_alloc(bx, by, bz, table_keys, table_slots, block_keys,
+                                             touched, state)
+                        ra, rb = (bx, by, bz, slot), ra
+                    last_bx, last_by, last_bz = bx, by, bz
+                update_voxel(voxels, slot, vx, vy, vz, d, truncation_mm, inv_trunc, act,
+                             active_weight_cap, max_weight)
+                t, vx, vy, vz, tmx, tmy, tmz, d = dda_step(vx, vy, vz, stx, sty, stz, tdx, tdy,
+                                                           tdz, tmx, tmy, tmz, d, ddx, ddy, ddz)
+            if not act:
+                continue
+            # beyond the band: allocated blocks only; a free run ends at a column edge
+            end = span + carve_vox
+            n_run, run_cx, run_cy = 0, 1 << 40, 0
+            while t <= end:
+                if (vx >> cs) != run_cx or (vy >> cs) != run_cy:
+                    n_run, run_cx, run_cy = 0, vx >> cs, vy >> cs
+                bx, by, bz = vx >> BLOCK_SHIFT, vy >> BLOCK_SHIFT, vz >> BLOCK_SHIFT
+                if bx != last_bx or by != last_by or bz != last_bz:
+                    slot = recent_slot(bx, by, bz, ra, rb)
+                    if slot < 0:
+                        slot = hash_find(table_keys, table_slots, pack_key(bx, by, bz))
+                        if slot >= 0:
+                            ra, rb = (bx, by, bz, slot), ra
+                    last_bx, last_by, last_bz = bx, by, bz
+                n_run = carve_visit(voxels, slot, vx, vy, vz, truncation_mm, run, n_run,
+                                    touched, capacity)
+                t, vx, vy, vz, tmx, tmy, tmz, d = dda_step(vx, vy, vz, stx, sty, stz, tdx, tdy,
+                                                           tdz, tmx, tmy, tmz, d, ddx, ddy, ddz)
+    return offsets[offsets.shape[0] - 1]

@@ -3,10 +3,11 @@ threads.
 
 The voxels are dealt to the two threads by a checkerboard of block columns in ``x, y``
 (``2**col_shift`` blocks wide). :func:`fuse_owned` (``nogil``, one call per thread) walks every
-ray of the batch that reaches its thread's columns with the serial kernel's own walk
-(:func:`dm2.fusion.tsdf.walk.fuse_batch`, ``owned``) and updates only that thread's voxels. So
-every voxel is updated by exactly one thread, in ray order, as the serial kernel updates it: the
-fused field is the serial one bit for bit, whatever the thread timing.
+ray of the batch that reaches its thread's columns, with the serial kernel's DDA and arithmetic,
+and updates only that thread's voxels. So every voxel is updated by exactly one thread, in ray
+order, as the serial kernel (:func:`dm2.fusion.tsdf.kernels._fuse`) updates it: the fused field is
+the
+serial one bit for bit, whatever the thread timing.
 
 The field's block table is only read while the threads run. A block a thread needs that is not
 allocated yet goes into that thread's own staging area (keys and a small hash table) and its
@@ -21,9 +22,19 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from dm2.fusion.tsdf.block_hash import hash_get_or_insert
-from dm2.fusion.tsdf.bundles import StagedRows
-from dm2.fusion.tsdf.walk import fuse_batch
+from dm2.fusion.tsdf.carve import CARVE_RUN_VOXELS, CARVE_TRUNCATIONS, carve_visit, walk_columns
+from dm2.fusion.tsdf.kernels import (
+    BLOCK_SHIFT,
+    MAX_NEW_BLOCKS_PER_RAY,
+    dda_start,
+    dda_step,
+    hash_find,
+    hash_get_or_insert,
+    pack_key,
+    recent_slot,
+    update_voxel,
+)
+from dm2.fusion.tsdf.point_rays import NO_POSE, point_ray, profile_pose
 
 
 class Staging:
@@ -39,42 +50,148 @@ class Staging:
         self.table_slots = np.full(2 * capacity, -1, dtype=np.int32)
         self.state = np.zeros(1, dtype=np.int64)
 
-    def rows(self, base: int) -> StagedRows:
-        """The staging area with its reserved rows from ``base``, as the kernels take it."""
-        return StagedRows(int(base), self.keys, self.table_keys, self.table_slots, self.state)
+
+@njit(cache=True, nogil=True)
+def _staged_slot(key, base, st_keys, st_table_keys, st_table_slots, st_state):
+    """Field row of a block the field lacks: its row in the thread's reserved rows (staged
+    now when new). Not inlined: the fusion loop stays small, and this path is rare."""
+    return base + hash_get_or_insert(key, st_table_keys, st_table_slots, st_keys, st_state)
+
+
+@njit(cache=True, nogil=True)
+def _found_slot(key, table_keys, table_slots, base, st_table_keys, st_table_slots):
+    """Field row of an allocated or staged block, -1 for neither (the carve beyond a ray's
+    band allocates nothing)."""
+    s = hash_find(table_keys, table_slots, key)
+    if s >= 0:
+        return s
+    s = hash_find(st_table_keys, st_table_slots, key)
+    return base + s if s >= 0 else -1
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def fuse_owned(tid, col_shift, start, register, use_bounds, batch, params, blocks, counts,
-               staged):
+def fuse_owned(tid, col_shift, start, register, origins_O, points_O, active, xz_S, offsets,
+               T_O_S, spot_O, axis_O, active_r2_mm2, bounds_lo, bounds_hi, use_bounds, voxel_mm,
+               truncation_mm, active_weight_cap, max_weight, table_keys, table_slots, voxels,
+               touched, counts, base, st_keys, st_table_keys, st_table_slots, st_state):
     """Thread ``tid`` (0 or 1): fuse its own voxels of the points from ``start`` on (arguments
-    as in :func:`dm2.fusion.tsdf.kernels.fuse_profiles`; ``counts`` as the serial kernel counts
-    the points walked). Blocks the field lacks are staged in rows ``staged.base:staged.base +
-    len(staged.keys)`` of ``blocks.voxels`` (zero). Returns the index of the first point not
-    handled because the staging area is full (the batch's length when done)."""
+    as in :func:`dm2.fusion.tsdf.kernels._fuse`; ``counts`` as the serial kernel counts the points
+    walked). Blocks the field lacks are staged in rows ``base:base + len(st_keys)`` of
+    ``voxels`` (zero). Returns the index of the first point not handled because the staging
+    area is full (``len(xz_S)`` when done)."""
     if not register:  # literal flags: each variant is compiled without the other's tests
-        return fuse_batch(True, False, False, tid, col_shift, start, batch, params, blocks,
-                          staged, counts)
+        return _owned(tid, col_shift, start, False, origins_O, points_O, active, xz_S, offsets,
+                      T_O_S, spot_O, axis_O, active_r2_mm2, bounds_lo, bounds_hi, False, voxel_mm,
+                      truncation_mm, active_weight_cap, max_weight, table_keys, table_slots,
+                      voxels, touched, counts, base, st_keys, st_table_keys, st_table_slots,
+                      st_state)
     if use_bounds:
-        return fuse_batch(True, True, True, tid, col_shift, start, batch, params, blocks,
-                          staged, counts)
-    return fuse_batch(True, True, False, tid, col_shift, start, batch, params, blocks, staged,
-                      counts)
+        return _owned(tid, col_shift, start, True, origins_O, points_O, active, xz_S, offsets,
+                      T_O_S, spot_O, axis_O, active_r2_mm2, bounds_lo, bounds_hi, True, voxel_mm,
+                      truncation_mm, active_weight_cap, max_weight, table_keys, table_slots,
+                      voxels, touched, counts, base, st_keys, st_table_keys, st_table_slots,
+                      st_state)
+    return _owned(tid, col_shift, start, True, origins_O, points_O, active, xz_S, offsets, T_O_S,
+                  spot_O, axis_O, active_r2_mm2, bounds_lo, bounds_hi, False, voxel_mm,
+                  truncation_mm, active_weight_cap, max_weight, table_keys, table_slots, voxels,
+                  touched, counts, base, st_keys, st_table_keys, st_table_slots, st_state)
+
+
+@njit(cache=True, inline="always")
+def _owned(tid, col_shift, start, register, origins_O, points_O, active, xz_S, offsets,
+           T_O_S, spot_O, axis_O, active_r2_mm2, bounds_lo, bounds_hi, use_bounds, voxel_mm,
+           truncation_mm, active_weight_cap, max_weight, table_keys, table_slots, voxels,
+           touched, counts, base, st_keys, st_table_keys, st_table_slots, st_state):
+    """The loop of :func:`fuse_owned`, inlined with ``register`` and ``use_bounds`` as
+    constants."""
+    inv_vox = 1.0 / voxel_mm
+    inv_trunc = 1.0 / truncation_mm
+    carve_mm = CARVE_TRUNCATIONS * truncation_mm
+    carve_vox = carve_mm * inv_vox
+    cs = BLOCK_SHIFT + col_shift
+    run = np.empty((CARVE_RUN_VOXELS, 2), dtype=np.int64)
+    st_capacity = st_keys.shape[0]
+    pose = NO_POSE
+    ra = rb = (1 << 40, 0, 0, -1)  # the two blocks looked up last (bx, by, bz, slot)
+    for k in range(offsets.shape[0] - 1):
+        if offsets[k + 1] <= start:
+            continue
+        if register:
+            pose = profile_pose(T_O_S, spot_O, axis_O, k)
+        for i in range(max(offsets[k], start), offsets[k + 1]):
+            if st_state[0] + MAX_NEW_BLOCKS_PER_RAY > st_capacity:
+                return i
+            ok, ox, oy, oz, dx, dy, dz, r, act = point_ray(
+                register, i, pose, xz_S, origins_O, points_O, active, active_r2_mm2, bounds_lo,
+                bounds_hi, use_bounds, truncation_mm, counts)
+            if not ok:
+                continue
+            # the columns of the ray's walk (an active ray walks on beyond its band, carving)
+            cx0, cx1, cy0, cy1 = walk_columns(ox, oy, dx, dy, r, truncation_mm,
+                                              carve_mm if act else 0.0, inv_vox, cs)
+            mine = cx0 == cx1 and cy0 == cy1
+            if mine and ((cx0 + cy0) & 1) != tid:
+                continue  # the other thread's column
+            vx, vy, vz, span, stx, sty, stz, tdx, tdy, tdz, tmx, tmy, tmz, d, ddx, ddy, ddz = \
+                dda_start(ox, oy, oz, dx, dy, dz, r, truncation_mm, voxel_mm, inv_vox)
+            last_bx, last_by, last_bz, slot = 1 << 40, 0, 0, -1
+            t = 0.0
+            while t <= span:
+                if mine or ((vx >> cs) + (vy >> cs)) & 1 == tid:
+                    bx, by, bz = vx >> BLOCK_SHIFT, vy >> BLOCK_SHIFT, vz >> BLOCK_SHIFT
+                    if bx != last_bx or by != last_by or bz != last_bz:
+                        slot = recent_slot(bx, by, bz, ra, rb)
+                        if slot < 0:
+                            key = pack_key(bx, by, bz)
+                            slot = hash_find(table_keys, table_slots, key)
+                            if slot >= 0:
+                                touched[slot] = True
+                            else:
+                                slot = _staged_slot(key, base, st_keys, st_table_keys,
+                                                    st_table_slots, st_state)
+                            ra, rb = (bx, by, bz, slot), ra
+                        last_bx, last_by, last_bz = bx, by, bz
+                    update_voxel(voxels, slot, vx, vy, vz, d, truncation_mm, inv_trunc, act,
+                                 active_weight_cap, max_weight)
+                t, vx, vy, vz, tmx, tmy, tmz, d = dda_step(vx, vy, vz, stx, sty, stz, tdx, tdy,
+                                                           tdz, tmx, tmy, tmz, d, ddx, ddy, ddz)
+            if not act:
+                continue
+            # beyond the band: runs end at column edges, as in the serial walk
+            end = span + carve_vox
+            n_run, run_cx, run_cy = 0, 1 << 40, 0
+            while t <= end:
+                if mine or ((vx >> cs) + (vy >> cs)) & 1 == tid:
+                    if (vx >> cs) != run_cx or (vy >> cs) != run_cy:
+                        n_run, run_cx, run_cy = 0, vx >> cs, vy >> cs
+                    bx, by, bz = vx >> BLOCK_SHIFT, vy >> BLOCK_SHIFT, vz >> BLOCK_SHIFT
+                    if bx != last_bx or by != last_by or bz != last_bz:
+                        slot = recent_slot(bx, by, bz, ra, rb)
+                        if slot < 0:
+                            slot = _found_slot(pack_key(bx, by, bz), table_keys, table_slots,
+                                               base, st_table_keys, st_table_slots)
+                            if slot >= 0:
+                                ra, rb = (bx, by, bz, slot), ra
+                        last_bx, last_by, last_bz = bx, by, bz
+                    n_run = carve_visit(voxels, slot, vx, vy, vz, truncation_mm, run, n_run,
+                                        touched, base)
+                t, vx, vy, vz, tmx, tmy, tmz, d = dda_step(vx, vy, vz, stx, sty, stz, tdx, tdy,
+                                                           tdz, tmx, tmy, tmz, d, ddx, ddy, ddz)
+    return offsets[offsets.shape[0] - 1]
 
 
 @njit(cache=True)
-def commit_staged(staged, blocks):
+def commit_staged(st_keys, st_state, base, table_keys, table_slots, block_keys, voxels, touched,
+                  state, st_table_keys, st_table_slots):
     """Serial: give a thread's staged blocks the next field slots in staging order (their
     voxels move down from the thread's reserved rows, which are zeroed again), mark them
     touched, and empty the staging area. The caller makes room first."""
-    base, voxels = staged.base, blocks.voxels
-    for j in range(staged.state[0]):
-        s = hash_get_or_insert(staged.keys[j], blocks.table_keys, blocks.table_slots,
-                               blocks.block_keys, blocks.state)
+    for j in range(st_state[0]):
+        s = hash_get_or_insert(st_keys[j], table_keys, table_slots, block_keys, state)
         if s != base + j:
             voxels[s, :, :] = voxels[base + j, :, :]
             voxels[base + j, :, :] = 0.0
-        blocks.touched[s] = True
-        staged.keys[j] = -1
-    staged.table_keys[:] = -1
-    staged.state[0] = 0
+        touched[s] = True
+        st_keys[j] = -1
+    st_table_keys[:] = -1
+    st_state[0] = 0

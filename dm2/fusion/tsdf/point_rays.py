@@ -1,6 +1,6 @@
 """Per-point rays of the TSDF kernels: profile registration (paper eq 1) and the active-region
-test, shared by the serial integrator and the two-thread kernel through their one loop
-(:func:`dm2.fusion.tsdf.walk.fuse_batch`), so both count and skip points identically.
+test, shared by the serial integrator (:func:`dm2.fusion.tsdf.kernels._fuse`) and the two-thread
+kernel (:func:`dm2.fusion.tsdf.owned_kernels.fuse_owned`) so both count and skip points identically.
 
 Both helpers are inlined into their callers (``inline="always"``): the arithmetic is the same
 operations in the same order wherever it runs, which keeps the two-thread fusion bit-identical
@@ -29,9 +29,9 @@ def profile_pose(T_O_S, spot_O, axis_O, k):
 
 
 @njit(cache=True, inline="always")
-def point_ray(register, use_bounds, i, pose, batch, truncation_mm, counts):
-    """The ray of point ``i`` of ``batch`` (:class:`~dm2.fusion.tsdf.bundles.RayBatch`):
-    ``ok, ox, oy, oz, dx, dy, dz, r, act``.
+def point_ray(register, i, pose, xz_S, origins_O, points_O, active, active_r2_mm2, bounds_lo,
+              bounds_hi, use_bounds, truncation_mm, counts):
+    """The ray of point ``i``: ``ok, ox, oy, oz, dx, dy, dz, r, act``.
 
     ``register``: point ``xz_S[i]`` of the profile whose :func:`profile_pose` is ``pose``
     (skipped behind the sensor, ``z <= 0``, or with ``use_bounds`` outside
@@ -43,7 +43,6 @@ def point_ray(register, use_bounds, i, pose, batch, truncation_mm, counts):
     """
     r00, r10, r20, r02, r12, r22, ox, oy, oz, sx, sy, sz, ax, ay, az = pose
     if register:
-        xz_S, bounds_lo, bounds_hi = batch.xz_S, batch.bounds_lo, batch.bounds_hi
         x, z = xz_S[i, 0], xz_S[i, 1]
         if not z > 0.0:  # behind the sensor
             counts[0] += 1
@@ -58,12 +57,11 @@ def point_ray(register, use_bounds, i, pose, batch, truncation_mm, counts):
             return False, ox, oy, oz, 0.0, 0.0, 0.0, 0.0, False
         qx, qy, qz = px - sx, py - sy, pz - sz
         along = qx * ax + qy * ay + qz * az
-        act = (qx * qx + qy * qy + qz * qz) - along * along <= batch.active_r2_mm2
+        act = (qx * qx + qy * qy + qz * qz) - along * along <= active_r2_mm2
     else:
-        origins_O, points_O = batch.origins_O, batch.points_O
         ox, oy, oz = origins_O[i, 0], origins_O[i, 1], origins_O[i, 2]
         px, py, pz = points_O[i, 0], points_O[i, 1], points_O[i, 2]
-        act = batch.active[i]
+        act = active[i]
     counts[1] += 1
     dx, dy, dz = px - ox, py - oy, pz - oz
     r = np.sqrt(dx * dx + dy * dy + dz * dz)

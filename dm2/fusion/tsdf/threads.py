@@ -1,15 +1,16 @@
 """Two-thread fusion of a batch into a :class:`~dm2.fusion.tsdf.field.SparseTSDF`; every voxel
-bit-identical to the serial kernel (:func:`dm2.fusion.tsdf.kernels.fuse_profiles` /
-``integrate_rays``).
+bit-identical
+to the serial kernel (:func:`dm2.fusion.tsdf.kernels.fuse_profiles` / ``integrate_rays``).
 
-The calling thread and one pool thread each run
-:func:`dm2.fusion.tsdf.owned_kernels.fuse_owned` over the whole batch: each registers every
-point, skips the rays that lie in the other thread's block columns and updates its own voxels.
-Blocks that are not allocated yet are staged per thread (in rows of the voxel array reserved
-for it) and committed serially after the run
-(:func:`dm2.fusion.tsdf.owned_kernels.commit_staged`); should a staging area fill up, its
-thread stops at a ray, the staged blocks are committed and that thread goes on from there. The
-kernels release the GIL, so the two threads run on two cores at once.
+The calling thread and one pool thread each run :func:`dm2.fusion.tsdf.owned_kernels.fuse_owned`
+over
+the whole batch: each registers every point, skips the rays that lie in the other thread's block
+columns and updates its own voxels. Blocks that are not allocated yet are staged per thread (in
+rows of the voxel array reserved for it) and committed serially after the run
+(:func:`dm2.fusion.tsdf.owned_kernels.commit_staged`); should a staging area fill up, its thread
+stops
+at a ray, the staged blocks are committed and that thread goes on from there. The kernels release
+the GIL, so the two threads run on two cores at once.
 """
 
 from __future__ import annotations
@@ -20,7 +21,6 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from dm2.fusion.tsdf import owned_kernels as OK
-from dm2.fusion.tsdf.bundles import block_store, fuse_params
 from dm2.fusion.tsdf.carve import COL_SHIFT  # the checkerboard of block columns in x, y
 
 STAGING_BLOCKS = 1024  # blocks a thread may stage per run before its staged blocks are committed
@@ -41,13 +41,13 @@ class SplitBuffers:
         self.staging = (OK.Staging(capacity), OK.Staging(capacity))
 
 
-def fuse_split(field, register: bool, use_bounds: bool, batch, counts) -> None:
-    """Fuse one batch (a :class:`~dm2.fusion.tsdf.bundles.RayBatch`: profiles with
-    ``register``, else rays in ``O``) into ``field`` with two threads; ``counts`` (skipped,
-    fused) is added to and ``field.split_cpu_s`` receives the phases' CPU seconds."""
-    n = batch.xz_S.shape[0]
+def fuse_split(field, register, o, p, a, xz, off, T, spot, axis, r2, lo, hi, use_bounds,
+               counts, max_weight: float) -> None:
+    """Fuse one batch into ``field`` with two threads (arguments as in
+    :func:`dm2.fusion.tsdf.kernels._fuse`); ``counts`` (skipped, fused) is added to and
+    ``field.split_cpu_s`` receives the phases' CPU seconds."""
+    n = xz.shape[0]
     staging = field._split_buffers.staging
-    params = fuse_params(field)
     starts = [0, 0]
     # each thread counts into its own cache line (a shared line would bounce between the
     # cores at every point); thread 0's counts are the batch's, as the serial kernel counts
@@ -55,26 +55,31 @@ def fuse_split(field, register: bool, use_bounds: bool, batch, counts) -> None:
     while starts[0] < n or starts[1] < n:
         # rows for the blocks each thread may stage, beyond the allocated ones
         field._grow(sum(st.capacity for st in staging))
-        rows = (staging[0].rows(field.n_blocks),
-                staging[1].rows(field.n_blocks + staging[0].capacity))
-        blocks = block_store(field)
-        args = (register, use_bounds, batch, params, blocks)
-        other = _pool().submit(_timed_run, 1, starts[1], n, args, lines[1], rows[1])
-        stop0, cpu0 = _timed_run(0, starts[0], n, args, lines[0], rows[0])
+        bases = (field.n_blocks, field.n_blocks + staging[0].capacity)
+        args = (register, o, p, a, xz, off, T, spot, axis, r2, lo, hi, use_bounds,
+                field.voxel_mm, field.truncation_mm, field.weight_cap, max_weight,
+                field._table_keys, field._table_slots, field.voxels, field.touched)
+        other = _pool().submit(_timed_run, 1, starts[1], n, args, lines[1], bases[1],
+                               staging[1])
+        stop0, cpu0 = _timed_run(0, starts[0], n, args, lines[0], bases[0], staging[0])
         stop1, cpu1 = other.result()
         c0 = time.thread_time()
-        for staged in rows:  # thread 0's first: fixed slots
-            OK.commit_staged(staged, blocks)
+        for st, base in zip(staging, bases, strict=True):  # thread 0's first: fixed slots
+            OK.commit_staged(st.keys, st.state, base, field._table_keys, field._table_slots,
+                             field.block_keys, field.voxels, field.touched, field._state,
+                             st.table_keys, st.table_slots)
         starts = [stop0, stop1]
         field.split_cpu_s += (time.thread_time() - c0, cpu0, cpu1, max(cpu0, cpu1))
     counts += lines[0, :2]
 
 
-def _timed_run(tid: int, start: int, n: int, args: tuple, counts, staged) -> tuple[int, float]:
+def _timed_run(tid: int, start: int, n: int, args: tuple, counts, base: int,
+               st) -> tuple[int, float]:
     """``fuse_owned`` of thread ``tid`` from point ``start``: where it stopped and the CPU
     seconds it took on its thread."""
     if start >= n:
         return n, 0.0
     c = time.thread_time()
-    stop = OK.fuse_owned(tid, COL_SHIFT, start, *args, counts, staged)
+    stop = OK.fuse_owned(tid, COL_SHIFT, start, *args, counts, base, st.keys, st.table_keys,
+                         st.table_slots, st.state)
     return stop, time.thread_time() - c
