@@ -23,12 +23,13 @@ sys.path.insert(0, str(_HERE.parent))
 
 import numpy as np  # noqa: E402
 
-from dm2.core.config import CellConfig, NoiseConfig, PartConfig, SensorConfig  # noqa: E402
+from dm2.core.config import PartConfig, SensorConfig  # noqa: E402
 from dm2.core.messages import SENSOR_IDS  # noqa: E402
 from scenarios.parts import build_part  # noqa: E402
 from twin.cell.cell import CellModel  # noqa: E402
 from twin.profiler.occluders import nozzle_occluder  # noqa: E402
 from twin.profiler.sensor import VirtualProfiler  # noqa: E402
+from twin.schema import CellConfig, NoiseConfig  # noqa: E402
 from twin.world import heightfield  # noqa: E402
 from twin.world.heightfield import HeightField  # noqa: E402
 

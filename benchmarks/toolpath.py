@@ -12,6 +12,7 @@ from dm2.core.config import load_scenario
 from dm2.toolpath import generate_toolpath
 from scenarios import resolve_scenario
 from scenarios.parts import build_part
+from twin import schema as _twin_schema  # noqa: F401  types the [cell] table read below
 
 
 def main(runs: int = 3) -> None:

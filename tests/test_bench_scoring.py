@@ -191,8 +191,9 @@ def test_overrides_and_suites(tmp_path):
 
 def test_shipped_regression_suite_is_realistic():
     from dm2.bench.suites import load_suite_scenario
-    from dm2.core.config import FaultConfig, MonitorConfig, ToolpathConfig, read_toml
+    from dm2.core.config import MonitorConfig, ToolpathConfig, read_toml
     from scenarios import scenario_dir
+    from twin.schema import FaultConfig
 
     spec, files = resolve_suite("regression", scenario_dir() / "suites")
     assert len(files) >= 12

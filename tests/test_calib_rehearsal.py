@@ -10,13 +10,14 @@ from calib.artifact import load_artifact
 from calib.scan_model import FanModel
 from calib.touch_off import nozzle_exit_from_touches, touch_off_from_toml, touch_off_to_toml
 from dm2.core.calibration_io import calibration_from_toml, calibration_to_toml
-from dm2.core.config import ConfigError, NoiseConfig, load_scenario
+from dm2.core.config import ConfigError, load_scenario
 from dm2.core.frames import apply, from_rotvec, invert, pose_error
 from dm2.core.messages import Profile, RobotState
 from scenarios import resolve_scenario, scenario_dir
 from twin.cell.cell import CellModel
 from twin.profiler.intrinsics import IntrinsicError
 from twin.profiler.sensor import fan_directions_S
+from twin.schema import NoiseConfig
 from twin.stream.rehearsal import RehearsalConfig, rehearse_calibration
 from twin.stream.touch_off import touch_off_poses
 

@@ -17,10 +17,11 @@ from calib.solver import (
     _Problem,
     solve_calibration,
 )
-from dm2.core.config import ConfigError, NoiseConfig, load_scenario
+from dm2.core.config import ConfigError, load_scenario
 from dm2.core.frames import apply, from_rotvec, pose_error
 from dm2.core.messages import Profile, RobotState
 from scenarios import resolve_scenario, scenario_dir
+from twin.schema import NoiseConfig
 from twin.stream.rehearsal import RehearsalConfig, rehearse_calibration
 
 ARTIFACT = scenario_dir() / "artifacts" / "four_spheres.toml"

@@ -4,9 +4,10 @@ import numpy as np
 import pytest
 
 from dm2.core import frames
-from dm2.core.config import CellConfig, ConfigError, parse_scenario
+from dm2.core.config import ConfigError, parse_scenario
 from twin.cell import kinematics as kin
 from twin.cell.cell import CellModel
+from twin.schema import CellConfig
 
 STANDOFF = 30.0
 

@@ -2,9 +2,10 @@
 
 import pytest
 
-from dm2.core.config import ConfigError, load_scenario, parse_scenario
+from dm2.core.config import ConfigError, Scenario, load_scenario, parse_scenario, scenario_model
 from dm2.core.toml_write import dump_toml
 from scenarios import list_scenarios, resolve_scenario
+from twin.schema import CellConfig, FaultConfig, TwinScenario
 
 
 def write(tmp_path, text):
@@ -34,6 +35,34 @@ def test_bad_scenarios_name_file_and_field(tmp_path, text, field):
     with pytest.raises(ConfigError) as err:
         load_scenario(p)
     assert str(p) in str(err.value) and f"'{field}'" in str(err.value)
+
+
+def test_bad_twin_sections_name_field_value_and_nearest_key(tmp_path):
+    """The twin's sections, typed in twin.schema, fail as clearly as the monitor's."""
+    p = write(tmp_path, 'name = "x"\n[part]\ngenerator = "pad"\n[cell]\nplate_sise_mm = [1, 2, 3]\n'
+                        '[twin_process]\nporosity = 0.9\n[[faults]]\nkind = "meteor"\n')
+    with pytest.raises(ConfigError) as err:
+        load_scenario(p)
+    text = str(err.value)
+    assert str(p) in text
+    assert "field 'cell.plate_sise_mm': unknown key (did you mean 'plate_size_mm'?)" in text
+    assert "field 'twin_process.porosity'" in text and "(got 0.9)" in text
+    assert "field 'faults.0.kind'" in text and "'meteor'" in text
+
+
+def test_twin_registers_its_scenario_model():
+    """Importing the twin makes every scenario a TwinScenario (the twin's sections typed);
+    dm2's own Scenario keeps them as plain tables and still rejects unknown top-level keys."""
+    assert scenario_model() is TwinScenario and issubclass(TwinScenario, Scenario)
+    s = parse_scenario({"name": "x", "part": {"generator": "pad"},
+                        "faults": [{"kind": "bump", "layers": [3, 3], "height_mm": 1.0}]})
+    assert isinstance(s, TwinScenario) and s.cell == CellConfig()
+    assert s.faults == (FaultConfig(kind="bump", layers=(3, 3), height_mm=1.0),)
+    plain = Scenario.model_validate({"name": "x", "part": {"generator": "pad"},
+                                     "cell": {"plate_size_mm": [50, 60, 4]}})
+    assert plain.cell == {"plate_size_mm": [50, 60, 4]}
+    with pytest.raises(ValueError, match="bogus"):
+        Scenario.model_validate({"name": "x", "part": {"generator": "pad"}, "bogus": 1})
 
 
 def test_unreadable_and_invalid_toml(tmp_path):

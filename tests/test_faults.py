@@ -7,9 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from dm2.core.config import CalibrationPerturbation, FaultConfig, ProcessConfig
+from dm2.core.config import ProcessConfig
 from dm2.core.frames import from_euler_deg, invert
 from dm2.core.messages import Calibration, Toolpath
+from twin.schema import CalibrationPerturbation, FaultConfig
 from twin.world.deposition import SprayModel
 from twin.world.faults import FaultSchedule, find_corners, perturbed_calibration
 from twin.world.heightfield import HeightField

@@ -9,7 +9,7 @@ import pytest
 import trimesh
 from test_faults import _build_pad, _polygon_path
 
-from dm2.core.config import FaultConfig
+from twin.schema import FaultConfig
 from twin.world.heightfield import HeightField
 from twin.world.truth import fault_truth, write_fault_truth, write_layer_surface
 

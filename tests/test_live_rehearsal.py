@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from dm2.core.config import FaultConfig, load_scenario
+from dm2.core.config import load_scenario
 from dm2.core.messages import LayerMark, Profile, RobotState
 from dm2.live.config import load_cell_file
 from dm2.live.egm_source import encode_egm_robot
@@ -18,6 +18,7 @@ from dm2.live.tcp_frames import encode_frame
 from dm2.live.tcp_profiles import ProfileClient
 from dm2.pipeline.session import MonitoringSession
 from scenarios import resolve_scenario
+from twin.schema import FaultConfig
 
 
 def pad_with_bump(duration_s: float):

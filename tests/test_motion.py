@@ -3,12 +3,12 @@
 import numpy as np
 import pytest
 
-from dm2.core.config import CellConfig
 from dm2.core.messages import Toolpath
 from twin.cell import kinematics as kin
 from twin.cell.cell import CellModel
 from twin.cell.motion import execute_toolpath, plan_toolpath
 from twin.cell.trajectory import sample_path
+from twin.schema import CellConfig
 
 ACCEL = 500.0
 V = 30.0

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dm2.core.config import CellConfig, NoiseConfig, SensorConfig
+from dm2.core.config import SensorConfig
 from dm2.core.frames import apply, from_euler_deg, invert, make_T
 from twin.profiler.model import (
     CAMERA_BLOCKED,
@@ -17,6 +17,7 @@ from twin.profiler.model import (
 )
 from twin.profiler.occluders import CylinderOccluder, nozzle_occluder
 from twin.profiler.sensor import VirtualProfiler
+from twin.schema import CellConfig, NoiseConfig
 from twin.world.heightfield import HeightField
 
 SENSORS = SensorConfig()

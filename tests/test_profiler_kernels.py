@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dm2.core.config import NoiseConfig, SensorConfig
+from dm2.core.config import SensorConfig
 from dm2.core.frames import from_euler_deg, make_T
 from twin.profiler.model import (
     BACK_FACING,
@@ -20,6 +20,7 @@ from twin.profiler.model import (
 )
 from twin.profiler.occluders import CylinderOccluder
 from twin.profiler.sensor import VirtualProfiler
+from twin.schema import NoiseConfig
 from twin.world.heightfield import HeightField
 
 T_B_O = from_euler_deg([1250.0, -40.0, 820.0], [30.0, 4.0, -3.0])

@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from dm2.core.config import NoiseConfig, SensorConfig
+from dm2.core.config import SensorConfig
 from dm2.core.frames import from_euler_deg, look_at
 from twin.profiler.model import DROPOUT, VALID
 from twin.profiler.sensor import VirtualProfiler
+from twin.schema import NoiseConfig
 from twin.world.heightfield import HeightField
 
 SENSORS = SensorConfig()

@@ -7,7 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from dm2.core.config import ConfigError, ProcessConfig, TwinProcessConfig, parse_scenario
+from dm2.core.config import ConfigError, ProcessConfig, parse_scenario
+from twin.schema import TwinProcessConfig
 from twin.world.deposition import SprayModel, plume_sigma_mm, twin_process
 from twin.world.heightfield import HeightField
 from twin.world.twin_physics import NOMINAL, TwinPhysics

@@ -3,3 +3,5 @@
 The twin emits exactly what the real cell emits (profiles and robot states); ``dm2`` never
 imports it.
 """
+
+from twin import schema as _schema  # noqa: F401  registers the twin's scenario sections

@@ -36,9 +36,10 @@ def _load_inputs(run: Path, calibration: Path | None, toolpath: Path | None,
                  map_path: Path | None = None):
     """Open the recording and resolve calibration, toolpath and configuration."""
     from dm2.core.calibration_io import read_calibration_toml
-    from dm2.core.config import CellConfig, MonitorConfig, ProcessConfig, parse_scenario
+    from dm2.core.config import MonitorConfig, ProcessConfig, parse_scenario
     from dm2.io.bag_recording import open_recording
     from dm2.io.recording_map import read_map
+    from twin.schema import CellConfig
 
     rmap = read_map(map_path) if map_path is not None else None
     rec = open_recording(run, rmap)

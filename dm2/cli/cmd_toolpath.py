@@ -13,9 +13,10 @@ from dm2.cli.common import app, bad_input_exits, console
 
 def _load_part(part_or_scenario: str):
     """(mesh_O, ToolpathConfig, label) from an STL path or a scenario name/file."""
-    from dm2.core.config import CellConfig, ConfigError, PartConfig, ToolpathConfig, load_scenario
+    from dm2.core.config import ConfigError, PartConfig, ToolpathConfig, load_scenario
     from scenarios import resolve_scenario
     from scenarios.parts import build_part
+    from twin.schema import CellConfig
 
     if part_or_scenario.lower().endswith(".stl"):
         if not Path(part_or_scenario).is_file():

@@ -1,7 +1,10 @@
-"""Scenario and cell configuration: TOML parsed into typed, versioned models.
+"""Scenario and monitor configuration: TOML parsed into typed, versioned models.
 
-Every model rejects unknown keys. Defaults live here and nowhere else. Load with
-:func:`load_scenario`; errors are :class:`ConfigError` naming the file and the field.
+Every model rejects unknown keys. The monitor's defaults live here and nowhere else; the
+twin's sections (``[twin_process]``, ``[cell]``, ``[noise]``, ``[[faults]]``,
+``[calibration_error]``) are typed in ``twin.schema``, which registers its whole-file model
+(:func:`register_scenario_model`). Load with :func:`load_scenario`; errors are
+:class:`ConfigError` naming the file and the field.
 Angles are degrees in files (``*_deg``) and converted to radians at use.
 """
 
@@ -76,77 +79,6 @@ class ProcessConfig(_Model):
     packets_per_s: float = Field(20000.0, gt=0)  # particle packets drawn per second at full feed
 
 
-class TwinProcessConfig(_Model):
-    """``[twin_process]``: the twin's own physics (the monitor keeps the nominal ``[process]``).
-
-    Every ``[process]`` key may be given here; it overrides the nominal value for the twin
-    only. The keys below are physics the monitor's near-net model does not have. Their
-    defaults make every shipped run carry a modest, plausible model error; set
-    ``plume_sigma_factor = 1``, ``efficiency_factor = 1``, ``efficiency_curve = "cos2"``,
-    ``plume_exponent = 2``, ``porosity = 0`` and ``standoff_efficiency_per_mm = 0`` for a twin
-    that deposits exactly with the nominal model (see ``twin.world.twin_physics``).
-    """
-
-    feed_g_min: float | None = Field(None, gt=0)
-    standoff_mm: float | None = Field(None, gt=0)
-    nozzle_exit_mm: float | None = Field(None, gt=0)
-    powder_density_g_cm3: float | None = Field(None, gt=0)
-    deposition_efficiency: float | None = Field(None, gt=0, le=1)
-    plume_sigma_mm: float | None = Field(None, gt=0)
-    critical_angle_deg: float | None = Field(None, gt=0, le=90)
-    plume_half_angle_deg: float | None = Field(None, ge=0, lt=45)
-    packets_per_s: float | None = Field(None, gt=0)
-    # sigma multiplier on the (overridden) plume sigma: +8 %, what a divergence half-angle of
-    # 6 instead of 5 deg gives at 30 mm standoff (+9 %); the half-angle is rarely known better
-    plume_sigma_factor: float = Field(1.08, gt=0)
-    # normal-impact efficiency multiplier: -7 %, a powder-lot / gas-temperature difference of
-    # the size cold-spray deposition efficiencies scatter by between nominally equal runs
-    efficiency_factor: float = Field(0.93, gt=0)
-    # efficiency against impact angle: "cos2" (the nominal cos^2(pi/2 (theta/theta_c)^2)),
-    # "cos" (cos theta up to theta_c), "linear" (1 - theta/theta_c) or "plateau" (flat to
-    # plateau_angle_deg, then linear to 0 at theta_c). Default "plateau": the shape measured
-    # against spray angle in cold-spray impact-angle studies (e.g. Binder et al. 2011,
-    # J. Therm. Spray Technol., CP-Ti): nearly constant to about 30 deg off normal, then falling
-    efficiency_curve: Literal["cos2", "cos", "linear", "plateau"] = "plateau"
-    plateau_angle_deg: float = Field(30.0, ge=0, lt=90)
-    # radial plume density exp(-(r/a)^p / 2) at equal rms width; 2 = Gaussian. Default 2.4: a
-    # slightly flat-topped jet, as single cold-spray tracks are flatter on top than a Gaussian
-    plume_exponent: float = Field(2.4, ge=1, le=8)
-    # volume fraction of pores in the deposit (it stands taller than its mass at full density):
-    # 2 %, within the 0.5-5 % reported for nitrogen-sprayed CP-Ti (e.g. Marrocco et al. 2006)
-    porosity: float = Field(0.02, ge=0, lt=0.5)
-    # relative efficiency change per mm that the nozzle-to-surface distance exceeds the
-    # standoff: -0.3 %/mm, the slow fall of efficiency with spray distance as particles slow
-    # past the jet's core (the trend of standoff studies, e.g. Li et al. 2008, Mater. Des.)
-    standoff_efficiency_per_mm: float = Field(-0.003, ge=-0.05, le=0.05)
-
-    def overrides(self) -> dict[str, float]:
-        """The ``[process]`` keys this section overrides, with their twin values."""
-        return {k: v for k, v in self.model_dump().items()
-                if k in ProcessConfig.model_fields and v is not None}
-
-
-class CellConfig(_Model):
-    robot: Literal["irb4600"] = "irb4600"
-    nozzle_exit_B_mm: tuple[float, float, float] = (1700.0, 0.0, 1300.0)
-    nozzle_length_mm: float = Field(268.0, gt=0)
-    nozzle_body_diameter_mm: float = Field(40.0, gt=0)
-    plate_size_mm: tuple[float, float, float] = (120.0, 120.0, 6.0)
-    # plate corner on the flange; the 50 degree bracket puts the plate centre 150 mm out on
-    # the flange axis and keeps axis 5 near -64 deg, clear of its limit and singularity
-    plate_on_flange_mm: tuple[float, float, float] = (-38.567, -60.0, 104.037)
-    plate_on_flange_rpy_deg: tuple[float, float, float] = (0.0, -50.0, 0.0)
-    sensor_distance_mm: float = Field(95.0, gt=0)
-    sensor_elevation_deg: float = Field(55.0, gt=0, lt=90)
-    sensor_azimuth_deg: tuple[float, float, float] = (90.0, 210.0, 330.0)
-    robot_state_hz: float = Field(250.0, gt=0)
-    accel_mm_s2: float = Field(500.0, gt=0)
-    home_joints_deg: tuple[float, float, float, float, float, float] = (0, 24, 1, 0, -64, 0)
-    work_yaw_deg: float = 0.0  # plate x axis about z_B when the plate is level
-    max_reorient_deg_s: float = Field(90.0, gt=0)  # spray-axis reorientation rate limit
-    wrist_singularity_deg: float = Field(5.0, ge=0, lt=90)  # smallest allowed |axis 5|
-
-
 class SensorConfig(_Model):
     model: str = "scanCONTROL 29xx-50"
     points: int = Field(640, gt=1)
@@ -163,57 +95,6 @@ class SensorConfig(_Model):
         if self.z_end_mm <= self.z_start_mm:
             raise ValueError("z_end_mm must exceed z_start_mm")
         return self
-
-
-class NoiseConfig(_Model):
-    range_sigma_mm: float = Field(0.05, ge=0)
-    speckle_sigma_mm: float = Field(0.0, ge=0)
-    dropout_prob: float = Field(0.0, ge=0, le=1)
-    outlier_prob: float = Field(0.0, ge=0, le=1)
-    speckle_length_points: float = Field(4.0, gt=0)  # speckle correlation length along the line
-    outlier_offset_mm: tuple[float, float] = (0.5, 5.0)  # ghost lies this far beyond, along ray
-    min_intensity: float = Field(0.02, ge=0, lt=1)  # weaker returns (grazing incidence) dropped
-    robot_repeatability_mm: float = Field(0.0, ge=0)
-
-    @model_validator(mode="after")
-    def _outlier_offsets(self):
-        lo, hi = self.outlier_offset_mm
-        if not 0 <= lo <= hi:
-            raise ValueError("outlier_offset_mm must be [min, max] with 0 <= min <= max")
-        return self
-
-
-class FaultConfig(_Model):
-    """One injected fault. Which fields apply depends on ``kind`` (see twin.world.faults)."""
-
-    kind: Literal["feed_step", "feed_drift", "feed_drop", "clog", "efficiency_drift",
-                  "standoff_change", "bump", "dent", "corner_dwell"]
-    layers: tuple[int, int] | None = None  # inclusive layer window
-    time_s: tuple[float, float] | None = None  # process-time window
-    factor: float | None = None  # feed or efficiency multiplier at full effect
-    per_layer: float | None = None  # efficiency drift per layer (fraction)
-    delta_mm: float | None = None  # standoff change
-    center_O_mm: tuple[float, float] | None = None  # bump / dent
-    height_mm: float | None = Field(None, gt=0)
-    width_mm: float | None = Field(None, gt=0)
-    corner_angle_deg: float | None = None
-    extra_dwell_s: float | None = Field(None, gt=0)
-
-    @model_validator(mode="after")
-    def _window(self):
-        if self.layers is not None and self.layers[1] < self.layers[0]:
-            raise ValueError("layers window [first, last] is reversed")
-        if self.time_s is not None and self.time_s[1] < self.time_s[0]:
-            raise ValueError("time_s window [start, end] is reversed")
-        return self
-
-
-class CalibrationPerturbation(_Model):
-    """Error added to the calibration handed to the pipeline (rehearses miscalibration)."""
-
-    translation_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    rotation_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    sensors: tuple[str, ...] = ("S1", "S2", "S3")
 
 
 class InputGateConfig(_Model):
@@ -303,7 +184,15 @@ class ExpectConfig(_Model):
 
 
 class Scenario(_Model):
-    """A whole scenario file."""
+    """A whole scenario file.
+
+    The monitor's sections are typed here. The twin's sections (``[twin_process]``,
+    ``[cell]``, ``[noise]``, ``[[faults]]``, ``[calibration_error]``) belong to the twin: here
+    they are plain tables, and the twin's subclass (``twin.schema.TwinScenario``, registered
+    with :func:`register_scenario_model` when ``twin`` is imported, as every ``dm2`` command
+    does) types and validates them. :func:`parse_scenario` and :func:`load_scenario` use the
+    registered model, so their errors name the twin's fields as they name the monitor's.
+    """
 
     schema_: int = Field(SCHEMA_VERSION, alias="schema")
     name: str
@@ -313,12 +202,12 @@ class Scenario(_Model):
     part: PartConfig
     toolpath: ToolpathConfig = ToolpathConfig()
     process: ProcessConfig = ProcessConfig()
-    twin_process: TwinProcessConfig = TwinProcessConfig()
-    cell: CellConfig = CellConfig()
+    twin_process: dict[str, Any] = Field(default_factory=dict)
+    cell: dict[str, Any] = Field(default_factory=dict)
     sensors: SensorConfig = SensorConfig()
-    noise: NoiseConfig = NoiseConfig()
-    faults: tuple[FaultConfig, ...] = ()
-    calibration_error: CalibrationPerturbation | None = None
+    noise: dict[str, Any] = Field(default_factory=dict)
+    faults: tuple[dict[str, Any], ...] = ()
+    calibration_error: dict[str, Any] | None = None
     monitor: MonitorConfig = MonitorConfig()
     expect: ExpectConfig = ExpectConfig()
 
@@ -329,18 +218,26 @@ class Scenario(_Model):
     def _schema(cls, v: int) -> int:
         return check_schema_version(v)
 
-    @model_validator(mode="after")
-    def _twin_plateau(self):
-        tp = self.twin_process
-        tc = tp.critical_angle_deg or self.process.critical_angle_deg
-        if tp.efficiency_curve == "plateau" and tp.plateau_angle_deg >= tc:
-            raise ValueError(f"twin_process.plateau_angle_deg {tp.plateau_angle_deg} must be "
-                             f"below the twin's critical_angle_deg {tc}")
-        return self
-
     def to_toml_dict(self) -> dict[str, Any]:
         """The resolved configuration as a TOML-ready dict (None values dropped)."""
         return _drop_none(self.model_dump(by_alias=True, mode="json"))
+
+
+_scenario_model: type[Scenario] = Scenario
+
+
+def register_scenario_model(model: type[Scenario]) -> None:
+    """Validate every scenario with ``model``, a subclass of :class:`Scenario` that types the
+    sections ``dm2`` leaves as plain tables (the twin registers its own at import)."""
+    global _scenario_model
+    if not (isinstance(model, type) and issubclass(model, Scenario)):
+        raise TypeError(f"{model!r} is not a subclass of Scenario")
+    _scenario_model = model
+
+
+def scenario_model() -> type[Scenario]:
+    """The model :func:`parse_scenario` validates with (see :func:`register_scenario_model`)."""
+    return _scenario_model
 
 
 def _drop_none(obj):
@@ -362,10 +259,11 @@ def format_validation_error(source: str, exc: ValidationError, model=None) -> st
 
 def parse_scenario(data: dict[str, Any], source: str = "<scenario>") -> Scenario:
     """Validate a parsed TOML dict; ``source`` names it in errors."""
+    model = _scenario_model
     try:
-        return Scenario.model_validate(data)
+        return model.model_validate(data)
     except ValidationError as exc:
-        raise ConfigError(format_validation_error(source, exc)) from None
+        raise ConfigError(format_validation_error(source, exc, model)) from None
 
 
 def read_toml(path: str | Path, what: str = "file") -> dict[str, Any]:

@@ -119,7 +119,7 @@ class CellModel:
 
     @classmethod
     def from_config(cls, cell, standoff_mm: float) -> CellModel:
-        """Build from a ``dm2.core.config.CellConfig`` and the spray standoff [mm].
+        """Build from a ``twin.schema.CellConfig`` and the spray standoff [mm].
 
         Raises
         ------

@@ -13,9 +13,9 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from dm2.core.config import CellConfig
 from dm2.core.frames import invert
 from dm2.core.tolerances import NEAR_ZERO
+from twin.schema import CellConfig
 
 
 @dataclass(frozen=True)

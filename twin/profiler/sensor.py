@@ -22,12 +22,13 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from dm2.core.config import NoiseConfig, SensorConfig
+from dm2.core.config import SensorConfig
 from dm2.core.messages import COUNTER_MODULO, SENSOR_IDS, Profile
 from twin.profiler import noise_kernels as PN
 from twin.profiler import scan_kernels as PS
 from twin.profiler.model import _FACE_TOL_MM, _LIFT_MM, ProfileTrace, first_occluder_hit
 from twin.profiler.occluders import CylinderOccluder
+from twin.schema import NoiseConfig
 from twin.world.heightfield import HeightField
 
 log = logging.getLogger(__name__)

@@ -42,7 +42,6 @@ from calib.artifact import Artifact
 from calib.planning import PlanOptions, PosePlan, plan_poses
 from calib.scan_model import FanModel
 from calib.solver import ISO9283_RP_PER_SIGMA
-from dm2.core.config import NoiseConfig
 from dm2.core.frames import make_T
 from dm2.core.messages import Calibration, RobotState
 from twin.cell.cell import CellModel
@@ -51,6 +50,7 @@ from twin.profiler.artifact_surface import SphereArtifactSurface
 from twin.profiler.intrinsics import seeded_intrinsic_errors
 from twin.profiler.occluders import nozzle_occluder
 from twin.profiler.sensor import VirtualProfiler
+from twin.schema import NoiseConfig
 from twin.stream.touch_off import touch_off_poses
 
 log = logging.getLogger(__name__)

@@ -20,9 +20,9 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from dm2.core.config import Scenario
 from dm2.core.messages import LayerMark, Profile, RobotState
 from dm2.core.toml_write import dump_toml
+from twin.schema import TwinScenario
 
 log = logging.getLogger(__name__)
 
@@ -86,7 +86,7 @@ def write_cell_files(simulation, folder: str | Path, egm: str = "127.0.0.1:6510"
     return path
 
 
-def serve_twin(scenario: Scenario, egm: tuple[str, int], profiles: tuple[str, int],
+def serve_twin(scenario: TwinScenario, egm: tuple[str, int], profiles: tuple[str, int],
                speed: float = 1.0, *, simulation=None, stop: threading.Event | None = None,
                connect_timeout_s: float = 10.0) -> ServeResult:
     """Play ``scenario`` to a live monitor listening at ``egm`` (UDP) and ``profiles`` (TCP).

@@ -22,10 +22,11 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2.core.config import ConfigError, Scenario
+from dm2.core.config import ConfigError
 from dm2.core.frames import PoseInterpolator
 from dm2.core.messages import SENSOR_IDS, Calibration, LayerMark, Profile, RobotState
 from dm2.core.toml_write import dump_toml
+from twin.schema import TwinScenario
 from twin.stream.threads import ChunkWorker, FanSplit, chunk_runs
 from twin.world.heightfield import HEIGHTFIELD_CELL_MM
 
@@ -75,7 +76,7 @@ class Simulation:
         without ``scan_thread``), and the share of each fan the worker cast at the end
     """
 
-    def __init__(self, scenario: Scenario, true_T_B_S: dict | None = None):
+    def __init__(self, scenario: TwinScenario, true_T_B_S: dict | None = None):
         from dm2.toolpath import generate_toolpath
         from scenarios.parts import build_part
         from twin.cell.cell import CellModel
@@ -259,13 +260,13 @@ class Simulation:
         self.worker_fan_share = split.rays / max(split.n_rays, 1)
 
 
-def iter_messages(scenario: Scenario, truth_dir: str | Path | None = None,
+def iter_messages(scenario: TwinScenario, truth_dir: str | Path | None = None,
                   progress: Progress | None = None) -> Iterator[Profile | RobotState | LayerMark]:
     """The scenario's message stream, generated in process (same seed, same messages)."""
     yield from Simulation(scenario).messages(truth_dir, progress)
 
 
-def simulate(scenario: Scenario, out_path: str | Path, truth_dir: str | Path | None = None,
+def simulate(scenario: TwinScenario, out_path: str | Path, truth_dir: str | Path | None = None,
              progress: Progress | None = None, *, simulation: Simulation | None = None,
              on_message: Callable[[object], None] | None = None) -> SimulationResult:
     """Run the twin and record it to MCAP at ``out_path`` (written as ``.part``, then renamed).

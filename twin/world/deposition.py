@@ -52,7 +52,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dm2.core.config import ProcessConfig, Scenario
+from dm2.core.config import ProcessConfig
+from twin.schema import TwinScenario
 from twin.world import deposition_kernels as DK
 from twin.world.heightfield import HeightField
 from twin.world.twin_physics import NOMINAL, TwinPhysics
@@ -236,7 +237,7 @@ class SamplePlan:
     zeta0: np.ndarray
 
 
-def twin_process(scenario: Scenario) -> tuple[ProcessConfig, TwinPhysics]:
+def twin_process(scenario: TwinScenario) -> tuple[ProcessConfig, TwinPhysics]:
     """The twin's process (``[process]`` with ``[twin_process]`` applied, sigma and efficiency
     scaled) and its extra physics."""
     tp = scenario.twin_process
@@ -252,7 +253,7 @@ def twin_process(scenario: Scenario) -> tuple[ProcessConfig, TwinPhysics]:
     return proc, physics
 
 
-def twin_spray_model(scenario: Scenario):
+def twin_spray_model(scenario: TwinScenario):
     """The :class:`twin.world.deposition.SprayModel` of the scenario's twin (its seed)."""
     proc, physics = twin_process(scenario)
     return SprayModel(proc, seed=scenario.seed, physics=physics)

@@ -35,10 +35,10 @@ from collections.abc import Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from dm2.core.config import CalibrationPerturbation, FaultConfig
 from dm2.core.frames import make_T
 from dm2.core.messages import Calibration, Toolpath
 from dm2.core.tolerances import DIVISOR_FLOOR, SAME_POINT_MM
+from twin.schema import CalibrationPerturbation, FaultConfig
 
 log = logging.getLogger(__name__)
 

@@ -31,9 +31,9 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2.core.config import FaultConfig
 from dm2.core.messages import Toolpath
 from dm2.core.tolerances import BUILT_HEIGHT_MM
+from twin.schema import FaultConfig
 from twin.world.faults import find_corners
 from twin.world.heightfield import HeightField
 
