@@ -1,112 +1,53 @@
-"""CDR (XCDR1, little endian) primitives for the ROS 2 messages of dm2 recordings.
+"""CDR (ROS 2 serialization, XCDR1 little endian) of dm2 recordings, through ``rosbags``.
 
-:class:`CdrWriter` appends and :class:`CdrReader` reads the fields of one payload with CDR's
-alignment (relative to the payload start, after the 4-byte encapsulation header); the message
-layouts built from them are in :mod:`dm2.io.ros_messages`.
+:func:`typestore` is ``rosbags``' ROS 2 Humble type store with the project's own message types
+registered from their ``.msg`` definitions (``dm2_msgs/msg/LayerMark``); :func:`serialize` and
+:func:`deserialize` encode and decode any of its types, a payload that does not match its type
+raising :class:`CdrError`. The message layouts and units are in :mod:`dm2.io.ros_messages`.
 """
 
 from __future__ import annotations
 
-import struct
+from functools import cache
 
-import numpy as np
-
-ENCAPSULATION = b"\x00\x01\x00\x00"  # CDR, little endian
+LAYERMARK = "dm2_msgs/msg/LayerMark"
+LAYERMARK_DEF = "builtin_interfaces/Time stamp\nint32 layer\n"
+OWN_TYPES = {LAYERMARK: LAYERMARK_DEF}
 
 
 class CdrError(ValueError):
     """A CDR payload does not match the expected layout."""
 
 
-class CdrWriter:
-    """Append-only little-endian CDR buffer (alignment relative to the payload start)."""
+@cache
+def typestore():
+    """``rosbags``' ROS 2 Humble type store plus the project's own message types."""
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-    __slots__ = ("buf",)
-
-    def __init__(self):
-        self.buf = bytearray(ENCAPSULATION)
-
-    def align(self, n: int) -> None:
-        pad = (-(len(self.buf) - 4)) % n
-        if pad:
-            self.buf += b"\x00" * pad
-
-    def u32(self, v: int) -> None:
-        self.align(4)
-        self.buf += struct.pack("<I", v)
-
-    def i32(self, v: int) -> None:
-        self.align(4)
-        self.buf += struct.pack("<i", v)
-
-    def u8(self, v: int) -> None:
-        self.buf.append(v)
-
-    def string(self, s: str) -> None:
-        b = s.encode()
-        self.u32(len(b) + 1)
-        self.buf += b + b"\x00"
-
-    def f64s(self, values) -> None:
-        self.align(8)
-        self.buf += struct.pack(f"<{len(values)}d", *values)
-
-    def time(self, stamp_ns: int) -> None:
-        self.align(4)
-        self.buf += struct.pack("<iI", *split_ns(stamp_ns))
-
-    def header(self, stamp_ns: int, frame_id: str) -> None:
-        self.time(stamp_ns)
-        self.string(frame_id)
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    for name, text in OWN_TYPES.items():
+        store.register(get_types_from_msg(text, name))
+    return store
 
 
-class CdrReader:
-    """Sequential little-endian CDR reader (alignment relative to the payload start); a
-    payload that ends early raises :class:`CdrError`."""
+def msg_class(typename: str):
+    """The ``rosbags`` message class of ``typename`` (e.g. ``sensor_msgs/msg/PointCloud2``)."""
+    return typestore().types[typename]
 
-    __slots__ = ("data", "pos")
 
-    def __init__(self, data: bytes):
-        if len(data) < 4 or data[1] != 1:
-            raise CdrError("not a little-endian CDR payload")
-        self.data = memoryview(data)
-        self.pos = 4
+def serialize(msg, typename: str) -> bytes:
+    """CDR payload (encapsulation header included) of a ``rosbags`` message."""
+    return bytes(typestore().serialize_cdr(msg, typename))
 
-    def align(self, n: int) -> None:
-        self.pos += (-(self.pos - 4)) % n
 
-    def _take(self, n: int) -> memoryview:
-        if self.pos + n > len(self.data):
-            raise CdrError("payload ends early")
-        out = self.data[self.pos:self.pos + n]
-        self.pos += n
-        return out
+def deserialize(data: bytes, typename: str):
+    """The ``rosbags`` message of a CDR payload; :class:`CdrError` if it does not parse."""
+    from rosbags.serde import SerdeError
 
-    def u32(self) -> int:
-        self.align(4)
-        return struct.unpack("<I", self._take(4))[0]
-
-    def i32(self) -> int:
-        self.align(4)
-        return struct.unpack("<i", self._take(4))[0]
-
-    def u8(self) -> int:
-        return self._take(1)[0]
-
-    def string(self) -> str:
-        n = self.u32()
-        return bytes(self._take(n)[:-1]).decode() if n else ""
-
-    def f64s(self, n: int) -> np.ndarray:
-        if n == 0:
-            return np.zeros(0)
-        self.align(8)
-        return np.frombuffer(self._take(8 * n), dtype="<f8").astype(np.float64)
-
-    def time_ns(self) -> int:
-        self.align(4)
-        sec, nsec = struct.unpack("<iI", self._take(8))
-        return sec * 1_000_000_000 + nsec
+    try:
+        return typestore().deserialize_cdr(data, typename)
+    except (SerdeError, ValueError, IndexError) as exc:
+        raise CdrError(f"{typename}: {exc}") from None
 
 
 def split_ns(stamp_ns: int) -> tuple[int, int]:
@@ -115,3 +56,19 @@ def split_ns(stamp_ns: int) -> tuple[int, int]:
     if not -(1 << 31) <= sec < (1 << 31):
         raise ValueError(f"stamp {stamp_ns} ns does not fit ROS Time")
     return sec, nsec
+
+
+def ros_time(stamp_ns: int):
+    """``builtin_interfaces/msg/Time`` of a nanosecond stamp."""
+    sec, nsec = split_ns(stamp_ns)
+    return msg_class("builtin_interfaces/msg/Time")(sec=sec, nanosec=nsec)
+
+
+def header(stamp_ns: int, frame_id: str):
+    """``std_msgs/msg/Header`` of a stamp and a frame."""
+    return msg_class("std_msgs/msg/Header")(stamp=ros_time(stamp_ns), frame_id=frame_id)
+
+
+def stamp_ns(time) -> int:
+    """Nanosecond stamp of a ``builtin_interfaces/msg/Time``."""
+    return time.sec * 1_000_000_000 + time.nanosec
