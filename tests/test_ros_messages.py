@@ -31,6 +31,18 @@ def test_cloud_template_is_rosbags_serialization(frame_id, n):
     np.testing.assert_array_equal(inten_back, inten)
 
 
+@pytest.mark.parametrize("seed", range(5))
+def test_joint_state_template_is_rosbags_serialization(seed):
+    rng = np.random.default_rng(seed)
+    stamp = int(rng.integers(0, 2**31 * 10**9))
+    joints = rng.uniform(-3.2, 3.2, 6)
+    data = ros.encode_joint_state(stamp, joints)
+    assert data == serialize(ros._joint_state_msg(stamp, joints), ros.JOINTSTATE)
+    ns, names, pos = ros.decode_joint_state(data)
+    assert ns == stamp and names == list(ros.JOINT_NAMES)
+    np.testing.assert_array_equal(pos, joints)
+
+
 def test_cloud_point_in_metres_in_the_laser_plane():
     data = ros.encode_cloud(0, "S1", np.array([[12.5, 140.0]]), np.array([True]),
                             np.array([0.25], np.float32))

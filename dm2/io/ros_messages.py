@@ -15,10 +15,12 @@ PointCloud2 encoder, kept hand-written because ``benchmarks/cdr.py`` (1280 point
 measures it at about half rosbags' time on the hot path, one message per profile at the
 scanners' rate: 0.52x for the former CDR writer (36 against 69 µs a profile), 0.46x for this
 template (41 against 90 µs). It fills a per-frame template that rosbags serialized, so the bytes
-are rosbags' own. The former hand-written JointState, TFMessage and LayerMark encoders were
-faster too (0.14x, 0.62x, 0.45x) but saved about 32 µs a robot state, 0.8 % of a core at the
-controller's 250 Hz, and the former decoders were no faster than rosbags (0.83x to 0.97x: the
-conversion to numpy costs the same either way), so all of them were replaced.
+are rosbags' own. The JointState encoder of six joints fills a template the same way: at the
+controller's 250 Hz it is on the recording's hot path too (``benchmarks/twin.py``: the recorded
+twin stream ran at 14-15x real time with rosbags' encoder against 19-21x before). The former
+hand-written TFMessage and LayerMark encoders were faster as well (0.62x, 0.45x) but saved a few
+µs a message, and the former decoders were no faster than rosbags (0.83x to 0.97x: the
+conversion to numpy costs the same either way), so those were replaced.
 """
 
 from __future__ import annotations
@@ -153,13 +155,32 @@ def decode_cloud(data: bytes) -> tuple[int, str, np.ndarray, np.ndarray, np.ndar
             column("intensity").astype(np.float32))
 
 
-def encode_joint_state(stamp_ns_: int, joints_rad: np.ndarray) -> bytes:
-    """JointState with ``joint_1..joint_6`` positions [rad] (empty velocity and effort)."""
-    msg = msg_class(JOINTSTATE)(
+def _joint_state_msg(stamp_ns_: int, joints_rad) -> object:
+    return msg_class(JOINTSTATE)(
         header=header(stamp_ns_, ""), name=list(JOINT_NAMES),
         position=np.asarray(joints_rad, dtype=np.float64), velocity=np.zeros(0),
         effort=np.zeros(0))
-    return serialize(msg, JOINTSTATE)
+
+
+@cache
+def _joint_template() -> tuple[bytes, int]:
+    """rosbags' JointState of the six joints, and the offset of its positions."""
+    probe = np.arange(1.0, len(JOINT_NAMES) + 1.0) / 7.0
+    data = serialize(_joint_state_msg(0, probe), JOINTSTATE)
+    return data, data.index(probe.astype("<f8").tobytes())
+
+
+def encode_joint_state(stamp_ns_: int, joints_rad: np.ndarray) -> bytes:
+    """JointState with ``joint_1..joint_6`` positions [rad] (empty velocity and effort;
+    rosbags' bytes, from a template: the hot path)."""
+    q = np.asarray(joints_rad, dtype="<f8")
+    if q.shape != (len(JOINT_NAMES),):
+        return serialize(_joint_state_msg(stamp_ns_, q), JOINTSTATE)
+    template, at = _joint_template()
+    buf = bytearray(template)
+    struct.pack_into("<iI", buf, 4, *split_ns(stamp_ns_))
+    buf[at:at + q.nbytes] = q.tobytes()
+    return bytes(buf)
 
 
 def decode_joint_state(data: bytes) -> tuple[int, list[str], np.ndarray]:
