@@ -26,7 +26,7 @@ a column is judged again only when its measured crossing changed, never because 
 reference grew over a surface measured earlier; and the TSDF's running average lags a surface
 under deposition, so a column's measurement is held against the interval from the reference at
 its previous observation to the reference now (overbuild above it, underbuild below it). As in
-the layer analysis, the bound holds the reference's edge term
+the layer analysis, the bound holds the reference's edge and plume terms
 (:mod:`dm2.defects.realtime_curvature`), and columns ``overspray_margin_mm`` or more outside
 the planned outline (overspray on the plate) raise no alarm of their own.
 """

@@ -29,7 +29,7 @@ SCRATCH_PREFIX = "dm2-layers-"
 
 
 _cache_lock = threading.Lock()
-_cache: list = [None, None]  # [path, LayerDeviation] of the layer read most recently
+_cache: list = [None, None]  # [path, object] of the object read most recently
 
 
 def _read(path: Path):
@@ -37,10 +37,10 @@ def _read(path: Path):
         if _cache[0] == path:
             return _cache[1]
     with open(path, "rb") as fh:
-        deviation = pickle.load(fh)
+        obj = pickle.load(fh)
     with _cache_lock:
-        _cache[0], _cache[1] = path, deviation
-    return deviation
+        _cache[0], _cache[1] = path, obj
+    return obj
 
 
 class Spilled:
@@ -57,7 +57,7 @@ class Spilled:
         self.path = Path(path)
         self.layer = int(layer)
         self.n_vertices = int(n_vertices)
-        self._owner = owner  # the LayerSpill: its folder lives as long as a proxy does
+        self._owner = owner  # the SpillStore: its folder lives as long as a proxy does
 
     def load(self):
         """The object itself (read from disk unless it was the last one read)."""

@@ -67,14 +67,23 @@ class ReferenceMap:
         n = np.column_stack([-g[:, 0], -g[:, 1], np.ones(len(g))])
         return n / np.linalg.norm(n, axis=1, keepdims=True)
 
+    def smoothed_heights(self, smooth_mm: float = 0.75) -> np.ndarray:
+        """The height map after a Gaussian smoothing of ``smooth_mm`` [mm] (ny, nx), computed
+        once per width: the layer analysis takes curvature and plume sensitivity from it."""
+        from scipy.ndimage import gaussian_filter
+
+        cache = self.__dict__.setdefault("_smoothed", {})  # frozen: filled in place
+        if smooth_mm not in cache:
+            cache[smooth_mm] = gaussian_filter(self.heights_mm, smooth_mm / self.cell_mm,
+                                               mode="nearest")
+        return cache[smooth_mm]
+
     def mean_curvature_at(self, xy_O, smooth_mm: float = 0.75) -> np.ndarray:
         """Mean curvature [1/mm] (n,) of the reference surface at ``xy_O``, + where convex.
 
         From the height map's derivatives after a Gaussian smoothing of ``smooth_mm``.
         """
-        from scipy.ndimage import gaussian_filter
-
-        h = gaussian_filter(self.heights_mm, smooth_mm / self.cell_mm, mode="nearest")
+        h = self.smoothed_heights(smooth_mm)
         hy, hx = np.gradient(h, self.cell_mm)
         hxy, hxx = np.gradient(hx, self.cell_mm)
         hyy, _ = np.gradient(hy, self.cell_mm)
@@ -92,11 +101,11 @@ class ReferenceMap:
         walls and concave corners by ``r sigma^2 laplacian(h)``, and leaves flat tops alone.
         Zero where the plume width is not known.
         """
-        from scipy.ndimage import gaussian_filter, laplace
+        from scipy.ndimage import laplace
 
         if not self.plume_sigma_mm > 0:
             return np.zeros(len(np.asarray(xy_O).reshape(-1, 2)))
-        h = gaussian_filter(self.heights_mm, smooth_mm / self.cell_mm, mode="nearest")
+        h = self.smoothed_heights(smooth_mm)
         lap = laplace(h, mode="nearest") / (self.cell_mm * self.cell_mm)
         return self.plume_sigma_mm ** 2 * bilinear_height(lap, self.cell_mm, xy_O)
 
