@@ -1,5 +1,6 @@
-"""The reference follows the process: a bounded, rate-limited deposition scale, and what it
-absorbs is reported as a process finding."""
+"""The reference follows the process: the first layer calibrates the deposition scale (the
+reference deposited so far is rescaled), a bounded, rate-limited fit follows it from there, and
+what it absorbs is reported as a process finding."""
 
 from types import SimpleNamespace
 
@@ -29,42 +30,52 @@ def build(true_scale_of_layer, layers=8):
     for k in range(layers):
         meas += LAYER_MM * true_scale_of_layer(k)
         ref += LAYER_MM * fit.scale
-        fit.update(layer(k, meas, ref))
         devs.append(meas - ref)
+        scale, rescale = fit.update(layer(k, meas, ref))
+        assert scale == fit.scale
+        ref *= rescale  # the reference deposited so far follows the calibration
     return fit, np.array(devs)
 
 
-def test_systematic_offset_is_absorbed_at_the_documented_rate_and_reported():
+def test_systematic_offset_is_calibrated_on_the_first_layer_and_reported():
     fit, devs = build(lambda k: 0.92)
     scales = [e["next_scale"] for e in fit.layers]
-    assert np.all(np.abs(np.diff([1.0, *scales])) <= fit.rate_per_layer + 1e-12)
-    assert scales[-1] == pytest.approx(0.92, abs=0.005)
-    assert devs.min() > -0.4  # never an underbuild beyond delta_global_mm
+    assert scales == pytest.approx([0.92] * 8)  # calibrated at once, then nothing to follow
+    assert np.abs(devs[1:]).max() < 1e-9  # no under/overbuild after the calibration layer
     (finding,) = fit.findings()
-    # the first layer (on the bare plate) is not an estimate: the finding starts at layer 1
-    assert finding.startswith("deposition efficiency 8 % below nominal since layer 1")
+    assert finding.startswith("deposition efficiency 8 % below nominal since layer 0")
     assert "ends 0.5 mm short" in finding
+    (detail,) = fit.finding_details()
+    assert detail["sign"] == -1 and detail["since_layer"] == 0
+    assert detail["estimate"] == pytest.approx(0.92)
     layers = fit.summary()["layers"]
-    assert layers[0]["estimate"] is None and layers[1]["estimate"] == pytest.approx(0.92)
+    assert layers[0]["calibration"] and layers[0]["estimate"] == pytest.approx(0.92)
+
+
+def test_calibration_is_bounded():
+    fit, devs = build(lambda k: 0.5)
+    assert fit.layers[0]["next_scale"] == pytest.approx(1 - fit.bound)
+    assert np.all(devs[1:] < -0.1)  # what the bound leaves stays a visible underbuild
+
+
+def test_later_change_is_followed_at_the_documented_rate_only():
+    # a feed step of +40 % from layer 1: the fit moves 2 % per layer, the overbuild grows
+    fit, devs = build(lambda k: 1.0 if k == 0 else 1.4)
+    scales = np.array([e["next_scale"] for e in fit.layers])
+    assert scales[0] == pytest.approx(1.0)
+    assert np.allclose(np.diff(scales), fit.rate_per_layer)
+    assert devs[1] == pytest.approx(0.4 * LAYER_MM) and np.all(np.diff(devs[1:]) > 0)
 
 
 def test_fast_drift_is_not_absorbed_beyond_the_bound():
     fit, devs = build(lambda k: max(1.0 - 0.3 * k, 0.1))
-    assert min(e["next_scale"] for e in fit.layers) == pytest.approx(1 - fit.bound)
+    assert min(e["next_scale"] for e in fit.layers) >= 1 - fit.bound
     assert devs[2] < -0.4 and np.all(np.diff(devs[1:]) < 0)  # the defect keeps growing
 
 
 def test_nominal_process_gives_no_finding():
     fit, devs = build(lambda k: 1.0 + 0.02 * (-1) ** k)  # +-2 % noise per layer
     assert fit.findings() == [] and np.abs(devs).max() < 0.1
-
-
-def test_first_layer_shortfall_alone_is_no_finding():
-    fit, devs = build(lambda k: 0.87 if k == 0 else 1.0)
-    assert fit.findings() == []  # the process estimate leaves the first layer out
-    assert [e["estimate"] for e in fit.layers[1:]] == pytest.approx([1.0] * 7)
-    assert [e["next_scale"] for e in fit.layers] == pytest.approx([1.0] * 8)
-    assert np.allclose(devs, -0.8 * 0.13)  # the first layer's shortfall stays as it was
 
 
 def test_process_finding_is_in_the_verdict_not_a_defect():
@@ -76,4 +87,4 @@ def test_process_finding_is_in_the_verdict_not_a_defect():
     v = verdict(report)
     assert v["headline"].startswith("No defect found in 8 layers") and v["defects"] == 0
     assert v["sentences"] == [f"Process finding: {fit.findings()[0]}."]
-    assert "8 % below nominal since layer 1" in v["sentences"][0]
+    assert "8 % below nominal since layer 0" in v["sentences"][0]

@@ -39,8 +39,15 @@ real-time false alarm
     a real-time alarm whose centroid lies outside the truth area of its sign at 0.2 mm of its
     layer and of the layer before (the layer is the first whose closing stamp is at or after
     the alarm). Reported per hour of process time.
+process finding
+    the run's report states the deposition scale off nominal (report.json ``process``
+    ``finding_details``: estimate, sign, first layer). It **detects** a global fault (not a
+    bump, dent or corner dwell) of its sign whose onset is within one layer of the finding's;
+    it is **correct** when its estimate is within :data:`FINDING_TOLERANCE` (3 %) of the
+    scale the twin's ``[twin_process]`` deposits at (``expected_process_scale``); otherwise it is
+    a **false finding**, counted with the false tracks.
 control
-    a run without faults: any track on it is a false track.
+    a run without faults: any track or false finding on it is false.
 """
 
 from __future__ import annotations
@@ -55,6 +62,7 @@ EXPLAIN_FRACTION = 0.5
 LOCAL_SUPPORT_MM = 10.0
 GLOBAL_KINDS = ("overbuild", "underbuild")
 LOCAL_FAULTS = ("bump", "dent", "corner_dwell")
+FINDING_TOLERANCE = 0.03
 
 Footprints = dict  # track id -> {layer: (xy_O (k, 2) [mm], area (k,) [mm^2])}
 
@@ -127,7 +135,8 @@ def _fault_population(fault: dict, maps: dict, n_faults: int) -> dict:
 def score_run(report: dict, fault_truth: dict | None, *, truth_maps: dict,
               footprints: Footprints | None = None, reconstruction: dict | None = None,
               process_s: float | None = None, monitor_s: float | None = None,
-              wall_s: float | None = None) -> dict:
+              wall_s: float | None = None,
+              expected_process_scale: float | None = None) -> dict:
     """Score one run strictly (see the module's definitions).
 
     Parameters
@@ -138,6 +147,8 @@ def score_run(report: dict, fault_truth: dict | None, *, truth_maps: dict,
     footprints : track id -> {layer: (xy_O, area)}; default: from the regions' boxes
     reconstruction : per layer ``{"rms_mm": ...}`` (measured against the true surface)
     process_s, monitor_s, wall_s : process seconds simulated, pipeline and total wall seconds
+    expected_process_scale : the deposition scale (efficiency x feed / (1 - porosity) against
+        nominal) the twin's ``[twin_process]`` deposits at, or None (unknown)
     """
     faults = list((fault_truth or {}).get("faults", []))
     foot = footprints_from_regions(report) if footprints is None else footprints
@@ -189,6 +200,7 @@ def score_run(report: dict, fault_truth: dict | None, *, truth_maps: dict,
             elif verdict[tid]["verdict"] is None:
                 verdict[tid]["verdict"] = "fragment"
         scores.append(_fault_score(f, pop, ex, report, foot, truth_maps))
+    findings = _score_findings(report, faults, scores, expected_process_scale)
     for v in verdict.values():
         if v["verdict"] is None:
             v["verdict"] = ("neutral" if faults and v["neutral_share"] >= EXPLAIN_FRACTION
@@ -203,6 +215,8 @@ def score_run(report: dict, fault_truth: dict | None, *, truth_maps: dict,
             "true_tracks": by["true"], "fragments": by["fragment"],
             "neutral_tracks": by["neutral"], "false_tracks": by["false"],
             "false_area_mm2": float(sum(verdict[t]["area_mm2"] for t in by["false"])),
+            "findings": findings,
+            "false_findings": sum(1 for f in findings if f["verdict"] == "false"),
             "control": not faults, "realtime_alarms": alarms["alarms"],
             "realtime_false_alarms": alarms["false"],
             "realtime_false_alarms_per_hour": alarms["false"] / hours if hours else None,
@@ -214,6 +228,31 @@ def score_run(report: dict, fault_truth: dict | None, *, truth_maps: dict,
             "process_s": process_s, "monitor_s": monitor_s, "wall_s": wall_s,
             "realtime_factor": process_s / monitor_s if process_s and monitor_s else None,
             "realtime_factor_with_twin": process_s / wall_s if process_s and wall_s else None}
+
+
+def _score_findings(report, faults, scores, expected_scale) -> list[dict]:
+    """Each process finding's verdict (see the definitions); a finding that detects an
+    undetected fault marks the fault's score ``detected`` (``detected_by`` "process finding",
+    onset delay from the finding's first layer)."""
+    out = []
+    for fd in ((report.get("process") or {}).get("finding_details") or []):
+        since, sign = int(fd["since_layer"]), int(fd["sign"])
+        verdict = None
+        for f, sc in zip(faults, scores, strict=True):
+            if f["kind"] in LOCAL_FAULTS or sc["onset_layer"] is None:
+                continue
+            if int(f.get("sign") or 1) == sign and abs(since - sc["onset_layer"]) <= 1:
+                verdict = "true"
+                if not sc["detected"]:
+                    sc.update(detected=True, detected_by="process finding", sign_ok=True,
+                              detected_global=True, first_layer_detected=since,
+                              onset_delay_layers=since - sc["onset_layer"])
+        if verdict is None:
+            ok = expected_scale is not None and \
+                abs(float(fd["estimate"]) - expected_scale) <= FINDING_TOLERANCE
+            verdict = "correct" if ok else "false"
+        out.append({**fd, "verdict": verdict, "expected_scale": expected_scale})
+    return out
 
 
 def _fault_score(fault, pop, explained, report, foot, maps) -> dict:
@@ -287,16 +326,18 @@ def summarize(runs: dict[str, dict], targets: dict | None = None) -> dict:
     qual = [f for r in runs.values() for f in r["faults"] if f["qualifies"]]
     detected = sum(1 for f in qual if f["detected"])
     true_t = sum(len(r["true_tracks"]) for r in runs.values())
-    false_t = sum(len(r["false_tracks"]) for r in runs.values())
+    false_t = sum(len(r["false_tracks"]) + r.get("false_findings", 0) for r in runs.values())
     precision = true_t / (true_t + false_t) if true_t + false_t else 1.0
     recall = detected / len(qual) if qual else 1.0
     f1 = 2 * precision * recall / (precision + recall) if precision + recall else 0.0
     delays = [f["onset_delay_layers"] for f in qual if f["onset_delay_layers"] is not None]
     hours = sum(r["process_s"] or 0.0 for r in runs.values()) / 3600.0
     rt_false = sum(r["realtime_false_alarms"] for r in runs.values())
-    controls = {name: len(r["false_tracks"]) for name, r in runs.items() if r["control"]}
+    controls = {name: len(r["false_tracks"]) + r.get("false_findings", 0)
+                for name, r in runs.items() if r["control"]}
     out = {"qualifying_faults": len(qual), "detected_faults": detected,
            "missed_faults": len(qual) - detected, "true_tracks": true_t, "false_tracks": false_t,
+           "false_findings": sum(r.get("false_findings", 0) for r in runs.values()),
            "fragments": sum(len(r["fragments"]) for r in runs.values()),
            "neutral_tracks": sum(len(r["neutral_tracks"]) for r in runs.values()),
            "false_area_mm2": float(sum(r["false_area_mm2"] for r in runs.values())),

@@ -237,7 +237,21 @@ def score_scenario_run(run: ScenarioRun) -> dict:
     return score_run(run.report, run.fault_truth,
                      truth_maps=load_truth_maps(run.run_dir / "truth"),
                      footprints=run.footprints, reconstruction=run.reconstruction,
-                     process_s=run.process_s, monitor_s=run.monitor_s, wall_s=run.wall_s)
+                     process_s=run.process_s, monitor_s=run.monitor_s, wall_s=run.wall_s,
+                     expected_process_scale=twin_process_scale(run.scenario))
+
+
+def twin_process_scale(sc: Scenario) -> float:
+    """The deposition scale the twin deposits at against the nominal ``[process]``: feed x
+    efficiency over nominal, over ``1 - porosity`` (the deposit stands taller by its pores)."""
+    from twin.world.deposition import twin_process
+
+    proc, physics = twin_process(sc)
+    nominal = sc.process
+    return float(proc.feed_g_min * proc.deposition_efficiency
+                 / (nominal.feed_g_min * nominal.deposition_efficiency)
+                 / (1.0 - physics.porosity) * nominal.powder_density_g_cm3
+                 / proc.powder_density_g_cm3)
 
 
 def sweep_case(scenario_dict: dict, source: str) -> dict:

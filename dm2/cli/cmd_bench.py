@@ -61,7 +61,8 @@ def bench_table(runs: dict[str, dict]) -> Table:
 
 
 def score_line(summary: dict) -> str:
-    """The strict score in one line (F1, its parts, false tracks and alarms)."""
+    """The strict score in one line (F1, its parts, false tracks and alarms; false process
+    findings count as false tracks, bench.json ``false_findings`` says how many)."""
     per_h = summary["realtime_false_alarms_per_hour"]
     controls = summary["false_tracks_per_control"]
     return (f"F1 {summary['f1']:.3f} (precision {summary['precision']:.3f} over "

@@ -134,16 +134,19 @@ class MonitorConfig(_Model):
     truncation_voxels: float = Field(3.0, gt=0)
     active_radius_mm: float | None = Field(None, gt=0)  # default: two plume sigmas
     weight_cap: float = Field(8.0, gt=0)
+    # where the spray spot passes, earlier observations are buried: their weight is capped at
+    # this many observations (dm2.fusion.tsdf.deposit); None keeps averaging them
+    deposit_weight_cap: float | None = Field(1.0, gt=0)
     max_pose_gap_s: float = Field(0.05, gt=0)
     reorder_window_s: float = Field(0.5, ge=0)
     delta_global_mm: float = Field(0.4, gt=0)
     delta_local: float = Field(0.5, gt=0)
     min_weight: float = Field(1.0, ge=0)
     min_region_area_mm2: float = Field(4.0, ge=0)
-    # reference clock (dm2.reference.path_clock): "programmed" = path length over programmed
-    # speeds (every robot slowdown shows as overbuild); "executed" = controller time while the
-    # spot progresses (dwells deposit nothing), as the shipped scenarios set it; see README
-    reference_clock: Literal["executed", "programmed"] = "programmed"
+    # reference clock (dm2.reference.path_clock): "executed" = controller time while the spot
+    # progresses (dwells deposit nothing; the robot's slowdowns build the reference too);
+    # "programmed" = path length over programmed speeds (every slowdown shows as overbuild)
+    reference_clock: Literal["executed", "programmed"] = "executed"
     dwell_speed_mm_s: float = Field(1.0, gt=0)
     uncertainty: UncertaintyConfig = UncertaintyConfig()
     # evidence (dm2.defects.track): a track once seen in track_min_observations layers within
@@ -160,11 +163,12 @@ class MonitorConfig(_Model):
     # the newest layers whose whole deviation stays in memory; older ones wait on disk for the
     # report (dm2.defects.spill), so a tall build's memory does not grow with its layers
     layers_in_memory: int | None = Field(2, ge=1)
-    # the reference follows the process (dm2.pipeline.process_fit); None: on with the
-    # executed clock only (on the programmed one it would fit the slowdowns' overbuild)
+    # the reference follows the process (dm2.pipeline.process_fit: the first layer calibrates
+    # within 1 +- bound, then rate-limited); None: on with the executed clock only (on the
+    # programmed one it would fit the slowdowns' overbuild)
     process_fit: bool | None = None
     process_fit_rate_per_layer: float = Field(0.02, ge=0, le=0.2)
-    process_fit_bound: float = Field(0.10, ge=0, lt=0.5)
+    process_fit_bound: float = Field(0.25, ge=0, lt=0.5)
     process_finding_threshold: float = Field(0.05, gt=0)
     gates: InputGateConfig = InputGateConfig()
 

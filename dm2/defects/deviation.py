@@ -188,6 +188,9 @@ class LayerDeviation:
         (dm2.defects.uncertainty)
     outside_mm : (n,) float64 [mm] or None, distance outside the planned outline
     normals_O : (n, 3) float64 or None, unit vertex normals used for the classification
+    unseen_mm : (n,) float64 [mm] or None, the reference's growth at each vertex since the
+        profilers last saw it (dm2.pipeline.seen_reference): an underbuild that small is not
+        measured, only not yet seen
     """
 
     layer: int
@@ -204,6 +207,7 @@ class LayerDeviation:
     sigma_mm: np.ndarray | None = None
     outside_mm: np.ndarray | None = None
     normals_O: np.ndarray | None = None
+    unseen_mm: np.ndarray | None = None
 
     @property
     def n_vertices(self) -> int:
@@ -216,16 +220,22 @@ class LayerDeviation:
 
 def layer_deviation(surface, reference: ReferenceMap, monitor_cfg, layer: int | None = None,
                     stamp_s: float | None = None, outline=None,
-                    uncertainty: bool = True) -> LayerDeviation:
+                    uncertainty: bool = True, unseen=None) -> LayerDeviation:
     """Signed deviation, uncertainty and classification of a measured surface.
 
     ``monitor_cfg`` supplies ``delta_global_mm``, ``delta_local``, ``min_weight``,
     ``uncertainty`` and ``overspray_margin_mm``; ``outline`` (a
     dm2.defects.footprint.PlannedOutline) enables the overspray class; ``uncertainty=False``
-    classifies on the deviation alone (the paper's rule).
+    classifies on the deviation alone (the paper's rule). ``unseen`` (a ReferenceMap of the
+    reference's growth since each column was last observed, or None) shrinks an underbuild by
+    that growth: the measurement there predates the last deposit.
     """
     v, f, w = _surface_arrays(surface)
     d, foot = closest_on_reference(v, reference)
+    unseen_mm = None
+    if unseen is not None:
+        unseen_mm = np.maximum(unseen.height_at(v[:, :2]), 0.0)
+        d = np.where(d < 0.0, np.minimum(d + unseen_mm, 0.0), d)
     normals = getattr(surface, "normals_O", None)
     curv = curvature_and_areas(v, f, normals, return_normals=True)
     ref_curv = reference.mean_curvature_at(foot[:, :2])
@@ -246,4 +256,4 @@ def layer_deviation(surface, reference: ReferenceMap, monitor_cfg, layer: int | 
     return LayerDeviation(layer, v, f, w, d, foot, code, classes.local_metric,
                           classes.mean_curvature, classes.vertex_area_mm2,
                           float(reference.stamp_s if stamp_s is None else stamp_s), sigma,
-                          outside, curv[2])
+                          outside, curv[2], unseen_mm)

@@ -17,7 +17,7 @@ this order (:data:`STAGES`, :meth:`Pipeline.stages` names the object doing each)
    the same layer (:class:`~dm2.defects.layer_analysis.LayerAnalysis`).
 
 The stages run interleaved in stream order inside :class:`~dm2.pipeline.session.MonitoringSession`
-(its typed events ``LayerStarted`` and ``LayerClosed`` order the reference steps). A live source
+(its typed events in dm2.pipeline.events order the reference steps). A live source
 feeds messages one at a time instead: :meth:`Pipeline.feed` (with ``live=True`` it fuses only),
 :meth:`Pipeline.catch_up` in the idle moments, :meth:`Pipeline.finish` at the end;
 :meth:`Pipeline.run` is the loop over :meth:`feed` for finite sources. :meth:`write_outputs`

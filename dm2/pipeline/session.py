@@ -43,7 +43,6 @@ import logging
 import time
 from collections import deque
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -53,9 +52,12 @@ from dm2.defects.footprint import PlannedOutline
 from dm2.defects.layer_analysis import LayerAnalysis, LayerResult
 from dm2.defects.realtime import RealtimeDeviation
 from dm2.fusion.fusion import LayerSurface, TsdfFusion
+from dm2.pipeline.events import LayerClosed, LayerStarted, Observed, SessionTiming
 from dm2.pipeline.layer_worker import LayerWorker
 from dm2.pipeline.process_fit import ProcessFit
+from dm2.pipeline.seen_reference import SeenReference
 from dm2.reference.feed import ReferenceFeed
+from dm2.reference.height_map import ReferenceMap
 from dm2.reference.model import NearNetReference
 
 log = logging.getLogger(__name__)
@@ -65,41 +67,6 @@ FRAME_SET = 3  # profiles per real-time comparison (the three cascaded profilers
 STATE_BACKLOG = 2500  # states buffered at most while no profile is fused (10 s at 250 Hz)
 STATE_SLICE = 25  # robot states per reference update while catching up (0.1 s at 250 Hz)
 PREMESH_EVERY_S = 0.25  # [s] wall, pre-meshing of touched surface chunks at most this often
-
-
-@dataclass(frozen=True)
-class LayerStarted:
-    """The stream's mark that layer ``layer`` starts at ``stamp_s``: the reference of
-    ``layer - 1`` is complete once the robot states up to the mark are integrated."""
-
-    stamp_s: float
-    layer: int
-
-
-@dataclass(frozen=True)
-class LayerClosed:
-    """The fusion closed a layer (its last profile at ``stamp_s``; inf: at the end of the
-    stream): take that layer's reference and hand the layer to the analysis."""
-
-    stamp_s: float
-    layer_surface: LayerSurface
-
-
-@dataclass
-class SessionTiming:
-    """Wall seconds spent per stage, summed over the run."""
-
-    fusion_s: float = 0.0
-    reference_s: float = 0.0
-    analysis_s: float = 0.0
-    realtime_s: float = 0.0
-    messages: int = 0
-    extra: dict = field(default_factory=dict)
-
-    def to_dict(self) -> dict:
-        return {"fusion_s": self.fusion_s, "reference_s": self.reference_s,
-                "analysis_s": self.analysis_s, "realtime_s": self.realtime_s,
-                "messages": self.messages, **self.extra}
 
 
 def _process_fit_on(monitor_cfg) -> bool:
@@ -155,6 +122,11 @@ class MonitoringSession:
         self.realtime = RealtimeDeviation(monitor_cfg, size_mm=tuple(plate_size_mm[:2]),
                                           outline=outline)
         self._rt_profiles = 0
+        self.fusion.observed_xy = []
+        self.seen = SeenReference(self.reference.heights_mm.shape, self.reference.cell_mm,
+                                  0.5 * monitor_cfg.voxel_mm)
+        self._last_close_s = -np.inf
+        self._pending_fit: tuple[float, float] | None = None
         self._rt_latency_s: list[float] = []
         self._finished = False
         self._last_premesh = 0.0
@@ -205,6 +177,7 @@ class MonitoringSession:
                 self._advance(upto_s=msg.stamp_s)
         t0 = time.perf_counter()
         self.fusion.feed(msg)
+        self._queue_observed()
         self.timing.fusion_s += time.perf_counter() - t0
         if defer:
             return
@@ -266,6 +239,7 @@ class MonitoringSession:
             self._advance()
             t0 = time.perf_counter()
             self.fusion.finish()
+            self._queue_observed()
             self.timing.fusion_s += time.perf_counter() - t0
             self._advance()
             if self._worker is not None:
@@ -278,24 +252,39 @@ class MonitoringSession:
         """Integrate the robot states up to ``upto_s``, running the reference steps due on the
         way in order; with ``max_states`` it returns False after that many states or after one
         step (call again). True when nothing stamped up to ``upto_s`` is left."""
+        budget = max_states  # states left for this call (Observed steps are not slices)
         while self._ops and self._ops[0].stamp_s <= upto_s:
-            if not self._flush_states(upto_s=self._ops[0].stamp_s, max_states=max_states):
+            before = len(self.states)
+            if not self._flush_states(upto_s=self._ops[0].stamp_s, max_states=budget):
                 return False
+            if budget is not None:
+                budget -= before - len(self.states)
+                if budget <= 0:
+                    return False
             step = self._ops.popleft()
-            if isinstance(step, LayerStarted):
+            if isinstance(step, Observed):
+                self.seen.observe(step.xy_O, step.stamp_s, self.reference.heights_mm)
+            elif isinstance(step, LayerStarted):
                 self.reference.end_layer(step.layer - 1)
                 self.reference.layer = step.layer
             else:
                 self._take_layer(step.layer_surface)
-            if max_states is not None:
+            if max_states is not None and not isinstance(step, Observed):
                 return False
-        return self._flush_states(upto_s=upto_s, max_states=max_states)
+        return self._flush_states(upto_s=upto_s, max_states=budget)
 
     def _flush_states(self, upto_s: float = np.inf, max_states: int | None = None) -> bool:
         t0 = time.perf_counter()
         done = self.states.flush(upto_s, max_states)
         self.timing.reference_s += time.perf_counter() - t0
         return done
+
+    def _queue_observed(self) -> None:
+        """Queue where the profiles fused since the last call saw the surface (in stream order
+        with the layer steps, so the seen reference does not depend on the slicing)."""
+        for xy, stamp in self.fusion.observed_xy:
+            self._ops.append(Observed(float(stamp), xy))
+        self.fusion.observed_xy.clear()
 
     def _realtime(self) -> None:
         """Compare the active region with the reference as of the newest fused profile."""
@@ -336,6 +325,7 @@ class MonitoringSession:
         }
 
     def _layer_done(self, done: LayerSurface) -> None:
+        self._queue_observed()  # what the layer's own profiles saw comes first
         if self._worker is None and done.surface.vertices_O.shape[0] == 0:
             log.warning("layer %d: no surface was reconstructed; skipped", done.layer)
             return
@@ -350,20 +340,41 @@ class MonitoringSession:
         if ref is None:  # no layer marks in the stream: take the reference now
             ref = self.reference.end_layer(done.layer)
         stamp = None if not np.isfinite(done.stamp_s) else done.stamp_s
+        ref = self._apply_fit(ref)
+        unseen = SeenReference.unseen(self.seen.snapshot(), ref, self._last_close_s)
+        self._last_close_s = done.stamp_s
         if self._worker is None:
-            self._analyse(done, ref, stamp)
+            self._analyse(done, ref, stamp, unseen)
         else:  # meshed (done.surface) and analysed on the worker
-            self._worker.submit(done, ref, stamp)
+            self._worker.submit(done, ref, stamp, unseen)
 
-    def _analyse(self, done: LayerSurface, ref, stamp) -> None:
+    def _apply_fit(self, ref: ReferenceMap) -> ReferenceMap:
+        """Apply the process fit of the layer analysed last, at a fixed point of the stream (this
+        layer's close, whether the analysis ran inline or on the worker): the reference deposits
+        at the fitted scale from here and, at the calibration, what it holds, this layer's
+        ``ref`` and the seen reference are scaled; returns ``ref`` as scaled."""
+        if self._worker is not None:
+            self._worker.join()  # the previous layer's analysis (it had a layer's time)
+        pending, self._pending_fit = self._pending_fit, None
+        if pending is None:
+            return ref
+        scale, rescale = pending
+        self.reference.set_process_scale(scale, rescale)
+        self.seen.rescale(rescale)
+        if rescale == 1.0:
+            return ref
+        return ReferenceMap(ref.heights_mm * rescale, ref.cell_mm, ref.layer, ref.stamp_s,
+                            ref.plume_sigma_mm)
+
+    def _analyse(self, done: LayerSurface, ref, stamp, unseen=None) -> None:
         t0 = time.perf_counter()
         surface = done.surface
         if surface.vertices_O.shape[0] == 0:
             log.warning("layer %d: no surface was reconstructed; skipped", done.layer)
             return
-        result = self.defects.analyse_layer(surface, ref, done.layer, stamp)
-        if self.process_fit is not None:  # the reference deposits at the fitted scale next
-            self.reference.set_process_scale(self.process_fit.update(result))
+        result = self.defects.analyse_layer(surface, ref, done.layer, stamp, unseen)
+        if self.process_fit is not None:  # applied at the next layer's close (_apply_fit)
+            self._pending_fit = self.process_fit.update(result)
         self.timing.analysis_s += time.perf_counter() - t0
         if self.on_layer is not None:
             self.on_layer(result)

@@ -126,13 +126,20 @@ class NearNetReference:
         self._slope_cells = (max(int(round(self.slope_probe_mm / self.cell_mm)), 1)
                              if self.angle_from_surface else 0)
 
-    def set_process_scale(self, scale: float) -> None:
+    def set_process_scale(self, scale: float, rescale_deposited: float = 1.0) -> None:
         """Deposit at ``scale`` times the nominal volume rate from now on (efficiency x feed
-        against nominal; dm2.pipeline.process_fit)."""
-        if not 0 < scale < 10:
-            raise ValueError(f"NearNetReference: process scale must be in (0, 10), got {scale}")
+        against nominal; dm2.pipeline.process_fit), and scale what was deposited so far by
+        ``rescale_deposited`` (the first layer's calibration). Finished layers' maps in
+        ``layers`` keep the heights they were analysed against."""
+        if not 0 < scale < 10 or not 0 < rescale_deposited < 10:
+            raise ValueError(f"NearNetReference: process scale {scale} and rescale "
+                             f"{rescale_deposited} must be in (0, 10)")
         self.process_scale = float(scale)
         self.v_dot_mm3_s = self._v_dot_nominal_mm3_s * self.process_scale
+        if rescale_deposited != 1.0:
+            self.heights_mm *= rescale_deposited
+            self._zmax *= rescale_deposited
+            self._deposited_mm3 *= rescale_deposited
 
     def spot_O(self, T_B_F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Deposition spot and spray axis in ``O`` for flange poses ``T_B_F`` (..., 4, 4)."""

@@ -51,6 +51,7 @@ import numpy as np
 
 from dm2.fusion.tsdf import kernels as K
 from dm2.fusion.tsdf.dense import gather_dense
+from dm2.fusion.tsdf.deposit import cap_near_axis
 from dm2.fusion.tsdf.threads import SplitBuffers, fuse_split
 
 log = logging.getLogger(__name__)
@@ -229,6 +230,14 @@ class SparseTSDF:
             if start < n:
                 self._grow()
         return int(counts[1]), int(counts[0])
+
+    def cap_weights_near_axis(self, spot_O, axis_O, radius_mm: float, half_length_mm: float,
+                              weight_cap: float) -> int:
+        """Cap the weights around a spray axis (dm2.fusion.tsdf.deposit); returns how many
+        voxels were capped. Signed distances are kept."""
+        return int(cap_near_axis(self._table_keys, self._table_slots, self.voxels, self.voxel_mm,
+                                 np.asarray(spot_O, np.float64), np.asarray(axis_O, np.float64),
+                                 float(radius_mm), float(half_length_mm), float(weight_cap)))
 
     def _grow(self, extra: int = 0) -> None:
         """Room for ``extra`` more blocks plus one ray's worth: the block arrays and the hash

@@ -1,0 +1,69 @@
+"""The reference as the profilers last saw it: its height at each column when last observed.
+
+Three 10 Hz profilers see a column a few times per pass, some of them while the plume is still
+depositing there, and the layer ends before the last passes are seen again. The fused surface
+of such a column is the surface of its last observation, so comparing it with the reference at
+the layer's end calls the deposit that came after an underbuild (on the twin's parts the first
+layer read 5-20 % short that way).
+
+:class:`SeenReference` keeps, per reference cell, the reference height when a profile point
+last fell within ``radius_mm`` of it, and when. At a layer's end, the growth of the reference
+since then (``unseen_mm``, over the columns observed since the previous layer's end) goes to
+the layer analysis, which does not call an underbuild of that size (dm2.defects.deviation), and
+to the process fit, which measures the deposition scale against what was seen.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from dm2.reference.height_map import ReferenceMap
+
+
+class SeenReference:
+    """Reference height per cell at its last observation.
+
+    Parameters
+    ----------
+    shape : (ny, nx) of the reference height map
+    cell_mm : float [mm], its cell
+    radius_mm : float [mm], a profile point observes the cells this close (a voxel's reach)
+    """
+
+    def __init__(self, shape, cell_mm: float, radius_mm: float):
+        self.cell_mm = float(cell_mm)
+        self.heights_mm = np.full(shape, np.nan)
+        self.stamp_s = np.full(shape, -np.inf)
+        r = max(int(round(radius_mm / self.cell_mm)), 0)
+        self._offsets = np.arange(-r, r + 1)
+
+    def observe(self, xy_O: np.ndarray, stamp_s: float, reference_heights_mm: np.ndarray):
+        """Profile points ``xy_O (n, 2)`` [mm] seen up to ``stamp_s`` against the reference's
+        live height map (same grid)."""
+        if xy_O.shape[0] == 0:
+            return
+        ny, nx = self.heights_mm.shape
+        ij = np.floor(np.asarray(xy_O) / self.cell_mm).astype(np.int64)
+        ij = np.unique(ij[(ij[:, 0] >= 0) & (ij[:, 0] < nx) & (ij[:, 1] >= 0)
+                          & (ij[:, 1] < ny)], axis=0)
+        di, dj = np.meshgrid(self._offsets, self._offsets)
+        cols = np.clip((ij[:, 0:1] + di.reshape(1, -1)).reshape(-1), 0, nx - 1)
+        rows = np.clip((ij[:, 1:2] + dj.reshape(1, -1)).reshape(-1), 0, ny - 1)
+        self.heights_mm[rows, cols] = reference_heights_mm[rows, cols]
+        self.stamp_s[rows, cols] = stamp_s
+
+    def rescale(self, factor: float) -> None:
+        """The reference deposited so far was scaled by ``factor`` (the process calibration)."""
+        self.heights_mm *= factor
+
+    def snapshot(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.heights_mm.copy(), self.stamp_s.copy()
+
+    @staticmethod
+    def unseen(snapshot, reference: ReferenceMap, since_s: float) -> ReferenceMap:
+        """The reference's growth since each column's last observation, over the columns seen
+        after ``since_s`` (0 elsewhere), as a map on the reference's grid."""
+        seen, stamp = snapshot
+        grown = np.where(stamp > since_s, reference.heights_mm - seen, 0.0)
+        return ReferenceMap(np.maximum(np.nan_to_num(grown), 0.0), reference.cell_mm,
+                            reference.layer, reference.stamp_s)
