@@ -95,7 +95,9 @@ def _fill_normal(state, out):
 @njit(cache=True, nogil=True)
 def noise_draws(stream, counter, draws):
     """Fill ``draws`` (:class:`Draws`, each ``(n,)``) of profile ``counter`` of the
-    :class:`DrawStream` ``stream`` (see the module docstring for their order)."""
+    :class:`DrawStream` ``stream`` (see the module docstring for their order; either may be a
+    plain tuple of its fields, as Python passes them: see :mod:`twin.profiler.scan_kernels`)."""
+    stream, draws = DrawStream(*stream), Draws(*draws)
     gauss, speckle, u_drop, u_ghost, ghost_mm = draws
     kernel, lo, hi = stream.kernel, stream.ghost_lo, stream.ghost_hi
     n = gauss.shape[0]
@@ -158,7 +160,10 @@ def apply_noise(model, draws, range_mm, reason, cos_inc, out_xz, out_valid, out_
 def measure_pass(stream, model, counter, range_mm, reason, cos_inc, out_xz, out_valid,
                  out_intensity):
     """:func:`noise_draws` of profile ``counter`` of ``stream`` then :func:`apply_noise` with
-    ``model``: one profile from its trace in one call."""
+    ``model`` (:class:`SensorModel`; either may be a plain tuple of its fields, as Python
+    passes them: see :mod:`twin.profiler.scan_kernels`): one profile from its trace in one
+    call."""
+    stream, model = DrawStream(*stream), SensorModel(*model)
     n = range_mm.shape[0]
     draws = Draws(np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty(n))
     noise_draws(stream, counter, draws)

@@ -85,12 +85,14 @@ class VirtualProfiler:
         kernel = np.exp(-0.5 * (np.arange(-half, half + 1) / noise.speckle_length_points) ** 2)
         self._speckle_kernel = kernel / np.sqrt(np.sum(kernel * kernel))
         lo, hi = noise.outlier_offset_mm
-        self._stream = PN.DrawStream(self.seed, self.sensor_index, self._speckle_kernel,
-                                     float(lo), float(hi))
-        self._model = PN.SensorModel(float(noise.range_sigma_mm), float(noise.speckle_sigma_mm),
-                                     float(noise.outlier_prob), float(noise.dropout_prob),
-                                     self._dir_x, self._dir_z, float(sensors.z_start_mm),
-                                     float(sensors.z_end_mm))
+        # the kernels' bundles as plain tuples of their fields (see twin.profiler.scan_kernels)
+        self._stream = tuple(PN.DrawStream(self.seed, self.sensor_index, self._speckle_kernel,
+                                           float(lo), float(hi)))
+        self._model = tuple(PN.SensorModel(float(noise.range_sigma_mm),
+                                           float(noise.speckle_sigma_mm),
+                                           float(noise.outlier_prob), float(noise.dropout_prob),
+                                           self._dir_x, self._dir_z, float(sensors.z_start_mm),
+                                           float(sensors.z_end_mm)))
 
     # ------------------------------------------------------------------ geometry
     def trace(self, hf, T_B_O: np.ndarray, occluders: Sequence | None = None) -> ProfileTrace:
@@ -129,7 +131,8 @@ class VirtualProfiler:
 
     def _kernel_setup(self, occluders: tuple):
         """The constant inputs of :mod:`twin.profiler.scan_kernels` for this occluder set (a
-        :class:`twin.profiler.scan_kernels.Scanner`); None when an occluder is not a
+        :class:`twin.profiler.scan_kernels.Scanner` as a plain tuple of its fields, as the
+        kernels take it from Python); None when an occluder is not a
         :class:`~twin.profiler.occluders.CylinderOccluder`. Made once per occluder set."""
         key = tuple(id(o) for o in occluders)
         cached = self._kernel_cache
@@ -145,12 +148,12 @@ class VirtualProfiler:
                 T_C_B[i] = o._T_C_B
                 r2[i], length[i] = o.radius_mm ** 2, o.length_mm
             f64 = np.float64
-            setup = PS.Scanner(
+            setup = tuple(PS.Scanner(
                 np.array(self.dirs_S, dtype=f64), np.array(self._t_min, dtype=f64),
                 np.array(self._t_max, dtype=f64), np.array(t_occ, dtype=f64), self.T_B_S,
                 self.camera_S, T_C_B, r2, length, bool(occluders), self._max_range_mm,
                 float(_FACE_TOL_MM), float(_LIFT_MM), self._camera_reach_mm,
-                float(self.noise.min_intensity))
+                float(self.noise.min_intensity)))
         # the occluders are held so that their ids stay theirs while cached
         self._kernel_cache = (key, occluders, setup)
         return setup
@@ -231,7 +234,7 @@ class VirtualProfiler:
         (:func:`twin.profiler.noise_kernels.noise_draws`), in order: range noise, speckle,
         dropout and ghost uniforms, ghost offsets [mm], each ``(n,)``."""
         draws = PN.Draws(*(np.empty(n) for _ in range(5)))
-        PN.noise_draws(self._stream, int(counter), draws)
+        PN.noise_draws(self._stream, int(counter), tuple(draws))
         return tuple(draws)
 
     def measure_numpy(self, trace: ProfileTrace, stamp_s: float, counter: int) -> Profile:
@@ -247,7 +250,8 @@ class VirtualProfiler:
         return _noise(self, trace, counter)
 
 
-def _plate_field(hf: HeightField) -> PlateField:
-    """``hf``'s arrays and plate as the profiler kernels take them (no copies)."""
-    return PlateField(hf._h, hf._bmax, hf._zmax, float(hf.cell_mm), float(hf.thickness_mm),
-                      float(hf.size_mm[0]), float(hf.size_mm[1]))
+def _plate_field(hf: HeightField) -> tuple:
+    """``hf``'s arrays and plate as the profiler kernels take them from Python (no copies): the
+    fields of a :class:`twin.profiler.kernels.PlateField`, as a plain tuple."""
+    return tuple(PlateField(hf._h, hf._bmax, hf._zmax, float(hf.cell_mm), float(hf.thickness_mm),
+                            float(hf.size_mm[0]), float(hf.size_mm[1])))
