@@ -11,6 +11,7 @@ BLAS.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -29,16 +30,65 @@ BACK_FACING = 5
 TOO_DARK = 6
 
 
-@njit(cache=True, nogil=True)
-def laser_pass(H, bmax, cell, thickness, zmax, lx, ly, face_tol, origin, dirs, t_min, t_max,
-               max_range, t_occ, has_occ, out_t, out_reason, out_points, out_normals):
-    """Cast the laser fan from ``origin (3,)`` along ``dirs (n, 3)`` (all in O).
-
-    Fills the hit distance (inf: none), the reason (VALID, NO_SURFACE or LASER_BLOCKED where
-    ``has_occ`` and ``t_occ`` is nearer), the lit point (NaN: none) and the solid's outward
-    normal there (top surface: bilinear patch normal; below it: the plate face nearest to the
-    point; zeros where nothing is hit). Returns the number of VALID rays.
+class PlateField(NamedTuple):
+    """The plate-and-deposit solid the fan is cast on: a
+    :class:`twin.world.heightfield.HeightField`'s arrays and the plate around them, all in O
+    (z_O = 0 is the bare plate's top, the plate spans ``[0, lx] x [0, ly] x [-thickness, 0]``).
     """
+
+    H: np.ndarray  # (ny, nx) float64 node heights z_O [mm]
+    bmax: np.ndarray  # (nby, nbx) float64 per-block upper bound of H [mm]
+    zmax: np.ndarray  # (1,) float64 upper bound of the whole field [mm]
+    cell: float  # node spacing [mm]
+    thickness: float  # plate thickness [mm]
+    lx: float  # plate size along x_O [mm]
+    ly: float  # plate size along y_O [mm]
+
+
+class LaserFan(NamedTuple):
+    """The laser rays of one pass, in O."""
+
+    origin: np.ndarray  # (3,) float64 the laser's origin (the S origin) in O [mm]
+    dirs: np.ndarray  # (n, 3) float64 unit ray directions in O
+    t_min: np.ndarray  # (n,) float64 [mm] start of the measuring range along each ray
+    t_max: np.ndarray  # (n,) float64 [mm] end of the measuring range along each ray
+    t_occ: np.ndarray  # (n,) float64 [mm] distance to the first occluder (inf: none)
+    max_range: float  # [mm] longest ray cast on the field
+    has_occ: bool  # whether ``t_occ`` applies (an occluder set is given)
+    face_tol: float  # [mm] hits this far below the top surface lie on a plate face
+
+
+class CameraView(NamedTuple):
+    """The triangulation camera of one pass, in O."""
+
+    centre: np.ndarray  # (3,) float64 the camera centre in O [mm]
+    lift: float  # [mm] camera rays start this far off the surface, along its normal
+    reach: float  # [mm] at least the distance from the camera to any lifted lit point
+
+
+class Cylinders(NamedTuple):
+    """Capped-cylinder occluders of the camera rays (k of them; k = 0: none)."""
+
+    T_C_O: np.ndarray  # (k, 4, 4) float64 O into each cylinder's frame C (axis +z_C) [mm]
+    r2: np.ndarray  # (k,) float64 squared radius [mm^2]
+    length: np.ndarray  # (k,) float64 length along +z_C [mm]
+
+
+@njit(cache=True, nogil=True)
+def laser_pass(field, fan, out_t, out_reason, out_points, out_normals):
+    """Cast the laser fan ``fan`` (:class:`LaserFan`) on ``field`` (:class:`PlateField`).
+
+    Fills the ``(n,)`` hit distance [mm] (inf: none), the reason (VALID, NO_SURFACE or
+    LASER_BLOCKED where ``fan.has_occ`` and ``fan.t_occ`` is nearer), the ``(n, 3)`` lit point
+    in O [mm] (NaN: none) and the solid's outward normal there (top surface: bilinear patch
+    normal; below it: the plate face nearest to the point; zeros where nothing is hit).
+    Returns the number of VALID rays.
+    """
+    H, bmax, cell, thickness, zmax = field.H, field.bmax, field.cell, field.thickness, \
+        field.zmax[0]
+    lx, ly, face_tol = field.lx, field.ly, fan.face_tol
+    origin, dirs, t_min, t_max, t_occ = fan.origin, fan.dirs, fan.t_min, fan.t_max, fan.t_occ
+    max_range, has_occ = fan.max_range, fan.has_occ
     n = dirs.shape[0]
     n_valid = 0
     for k in range(n):
@@ -103,13 +153,16 @@ def laser_pass(H, bmax, cell, thickness, zmax, lx, ly, face_tol, origin, dirs, t
 
 
 @njit(cache=True, nogil=True)
-def camera_pass(H, bmax, cell, thickness, zmax, camera, lift, reach, hits, normals, out_u_cam,
-                out_starts, out_u, out_remaining, out_t):
-    """Rays from the lit points ``hits (m, 3)`` (lifted by ``lift`` along ``normals``) to the
-    camera at ``camera (3,)``, cast on the height field up to ``reach`` [mm] (at least every
-    ray's distance to the camera): fills the unit direction to the camera from the unlifted
-    point, the lifted starts, their unit directions and distances to the camera, and the
-    distance to the first surface hit (inf: clear)."""
+def camera_pass(field, view, hits, normals, out_u_cam, out_starts, out_u, out_remaining, out_t):
+    """Rays from the lit points ``hits (m, 3)`` in O (lifted by ``view.lift`` along
+    ``normals``) to the camera at ``view.centre`` (:class:`CameraView`), cast on ``field``
+    (:class:`PlateField`) up to ``view.reach`` [mm] (at least every ray's distance to the
+    camera): fills the unit direction to the camera from the unlifted point, the lifted starts
+    [mm], their unit directions and distances to the camera [mm], and the distance to the
+    first surface hit [mm] (inf: clear)."""
+    H, bmax, cell, thickness, zmax = field.H, field.bmax, field.cell, field.thickness, \
+        field.zmax[0]
+    camera, lift, reach = view.centre, view.lift, view.reach
     m = hits.shape[0]
     for k in range(m):
         a0 = camera[0] - hits[k, 0]
@@ -138,20 +191,18 @@ def camera_pass(H, bmax, cell, thickness, zmax, camera, lift, reach, hits, norma
 
 
 @njit(cache=True, nogil=True)
-def trace_pass(H, bmax, cell, thickness, zmax, lx, ly, face_tol, origin, dirs, t_min, t_max,
-               max_range, t_occ, has_occ, camera, lift, camera_reach, occ_T_C_O, occ_r2,
-               occ_length, min_intensity, out_t, out_reason, out_cos, out_points):
+def trace_pass(field, fan, view, cylinders, min_intensity, out_t, out_reason, out_cos,
+               out_points):
     """A noise-free scan (or a part of its fan) in one call: :func:`laser_pass`, the cosine of
-    incidence, :func:`camera_pass` for the lit points (up to ``camera_reach`` [mm]), their
-    camera verdicts (BACK_FACING, CAMERA_SHADOW, CAMERA_BLOCKED by the capped cylinders
-    ``occ_T_C_O (k, 4, 4)`` (O into each cylinder's frame), ``occ_r2 (k,)`` [mm^2],
-    ``occ_length (k,)`` [mm]) and TOO_DARK below ``min_intensity``, in the order and operations
-    of the numpy path."""
+    incidence, :func:`camera_pass` for the lit points, their camera verdicts (BACK_FACING,
+    CAMERA_SHADOW, CAMERA_BLOCKED by ``cylinders``, a :class:`Cylinders`) and TOO_DARK below
+    the cosine ``min_intensity``, in the order and operations of the numpy path. Fills the
+    ``(n,)`` hit distance [mm], reason, cosine of incidence and ``(n, 3)`` lit point in O [mm]."""
+    dirs = fan.dirs
+    occ_T_C_O, occ_r2, occ_length = cylinders.T_C_O, cylinders.r2, cylinders.length
     n = dirs.shape[0]
     normals = np.empty((n, 3))
-    n_cand = laser_pass(H, bmax, cell, thickness, zmax, lx, ly, face_tol, origin, dirs, t_min,
-                        t_max, max_range, t_occ, has_occ, out_t, out_reason, out_points,
-                        normals)
+    n_cand = laser_pass(field, fan, out_t, out_reason, out_points, normals)
     for k in range(n):
         c = -(normals[k, 0] * dirs[k, 0] + normals[k, 1] * dirs[k, 1]
               + normals[k, 2] * dirs[k, 2])
@@ -171,8 +222,7 @@ def trace_pass(H, bmax, cell, thickness, zmax, lx, ly, face_tol, origin, dirs, t
                 nrm[q, c] = normals[cand[q], c]
         u_cam, starts = np.empty((m, 3)), np.empty((m, 3))
         u, remaining, t_cam = np.empty((m, 3)), np.empty(m), np.empty(m)
-        camera_pass(H, bmax, cell, thickness, zmax, camera, lift, camera_reach, hits, nrm, u_cam,
-                    starts, u, remaining, t_cam)
+        camera_pass(field, view, hits, nrm, u_cam, starts, u, remaining, t_cam)
         for q in range(m):
             facing = (nrm[q, 0] * u_cam[q, 0] + nrm[q, 1] * u_cam[q, 1]
                       + nrm[q, 2] * u_cam[q, 2]) > FACING_COS

@@ -15,6 +15,7 @@ uniforms, ``n`` ghost offsets uniform in ``[lo, hi)`` [mm].
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -25,6 +26,39 @@ from twin.world.deposition_kernels import next_u64, uniform
 VALID = 0
 NO_SURFACE = 1
 DROPOUT = 7
+
+
+class DrawStream(NamedTuple):
+    """What fixes a profiler's random draws but the profile counter."""
+
+    seed: int  # the scenario seed, a non-negative integer below 2**64
+    sensor: int  # the profiler's index in SENSOR_IDS
+    kernel: np.ndarray  # (2 * half + 1,) float64 unit-energy speckle kernel [-]
+    ghost_lo: float  # [mm] ghost offsets along the ray are uniform in [ghost_lo, ghost_hi)
+    ghost_hi: float  # [mm]
+
+
+class Draws(NamedTuple):
+    """One profile's random draws, each ``(n,)`` float64, in the order they are drawn."""
+
+    gauss: np.ndarray  # standard normals of the range noise [-]
+    speckle: np.ndarray  # unit-variance correlated normals of the speckle [-]
+    u_drop: np.ndarray  # uniforms in [0, 1) deciding the dropouts
+    u_ghost: np.ndarray  # uniforms in [0, 1) deciding the ghosts
+    ghost_mm: np.ndarray  # ghost offsets along the ray [mm]
+
+
+class SensorModel(NamedTuple):
+    """A profiler's noise and output format: its ``[noise]`` and measuring range in S."""
+
+    range_sigma: float  # [mm] Gaussian range noise along each ray
+    speckle_sigma: float  # [mm] correlated speckle along each ray
+    outlier_prob: float  # probability of a ghost beyond the surface [-]
+    dropout_prob: float  # probability of a lost point [-]
+    dir_x: np.ndarray  # (n,) float64 x_S of each unit ray direction in S
+    dir_z: np.ndarray  # (n,) float64 z_S of each unit ray direction in S
+    z_start: float  # [mm] measuring range along z_S, from
+    z_end: float  # [mm] to
 
 
 @njit(cache=True)
@@ -59,14 +93,16 @@ def _fill_normal(state, out):
 
 
 @njit(cache=True, nogil=True)
-def noise_draws(seed, sensor, counter, kernel, lo, hi, gauss, speckle, u_drop, u_ghost,
-                ghost_mm):
-    """Fill the ``(n,)`` draws of one profile (see the module docstring for their order);
-    ``kernel (2 * half + 1,)`` is the unit-energy speckle kernel, ``[lo, hi)`` [mm] the ghost
-    offsets."""
+def noise_draws(stream, counter, draws):
+    """Fill ``draws`` (:class:`Draws`, each ``(n,)``) of profile ``counter`` of the
+    :class:`DrawStream` ``stream`` (see the module docstring for their order; either may be a
+    plain tuple of its fields, as Python passes them: see :mod:`twin.profiler.scan_kernels`)."""
+    stream, draws = DrawStream(*stream), Draws(*draws)
+    gauss, speckle, u_drop, u_ghost, ghost_mm = draws
+    kernel, lo, hi = stream.kernel, stream.ghost_lo, stream.ghost_hi
     n = gauss.shape[0]
     m = kernel.shape[0]
-    state = stream_state(seed, sensor, counter)
+    state = stream_state(stream.seed, stream.sensor, counter)
     _fill_normal(state, gauss)
     white = np.empty(n + m - 1)
     _fill_normal(state, white)
@@ -84,12 +120,17 @@ def noise_draws(seed, sensor, counter, kernel, lo, hi, gauss, speckle, u_drop, u
 
 
 @njit(cache=True, nogil=True)
-def apply_noise(range_mm, reason, cos_inc, gauss, speckle, u_drop, u_ghost, ghost_mm,
-                range_sigma, speckle_sigma, outlier_prob, dropout_prob, dir_x, dir_z,
-                z_start, z_end, out_xz, out_valid, out_intensity):
-    """The sensor's noise and output format, from the profile's random draws: range noise and
-    speckle along each ray, ghosts beyond the surface at half intensity, dropouts, the
-    measuring range; invalid points get NaN coordinates and zero intensity."""
+def apply_noise(model, draws, range_mm, reason, cos_inc, out_xz, out_valid, out_intensity):
+    """The sensor's noise and output format (:class:`SensorModel`) on the ``(n,)`` trace
+    ``range_mm`` [mm], ``reason``, ``cos_inc``, from the profile's random ``draws``
+    (:class:`Draws`): range noise and speckle along each ray, ghosts beyond the surface at half
+    intensity, dropouts, the measuring range. Fills ``out_xz (n, 2)`` in S [mm],
+    ``out_valid (n,)`` and ``out_intensity (n,) float32``; invalid points get NaN coordinates
+    and zero intensity."""
+    gauss, speckle, u_drop, u_ghost, ghost_mm = draws
+    range_sigma, speckle_sigma = model.range_sigma, model.speckle_sigma
+    outlier_prob, dropout_prob = model.outlier_prob, model.dropout_prob
+    dir_x, dir_z, z_start, z_end = model.dir_x, model.dir_z, model.z_start, model.z_end
     for k in range(range_mm.shape[0]):
         r = range_mm[k] + range_sigma * gauss[k] + speckle_sigma * speckle[k]
         why = reason[k]
@@ -116,15 +157,14 @@ def apply_noise(range_mm, reason, cos_inc, gauss, speckle, u_drop, u_ghost, ghos
 
 
 @njit(cache=True, nogil=True)
-def measure_pass(seed, sensor, counter, kernel, lo, hi, range_mm, reason, cos_inc,
-                 range_sigma, speckle_sigma, outlier_prob, dropout_prob, dir_x, dir_z,
-                 z_start, z_end, out_xz, out_valid, out_intensity):
-    """:func:`noise_draws` then :func:`apply_noise`: one profile from its trace in one call."""
+def measure_pass(stream, model, counter, range_mm, reason, cos_inc, out_xz, out_valid,
+                 out_intensity):
+    """:func:`noise_draws` of profile ``counter`` of ``stream`` then :func:`apply_noise` with
+    ``model`` (:class:`SensorModel`; either may be a plain tuple of its fields, as Python
+    passes them: see :mod:`twin.profiler.scan_kernels`): one profile from its trace in one
+    call."""
+    stream, model = DrawStream(*stream), SensorModel(*model)
     n = range_mm.shape[0]
-    gauss, speckle = np.empty(n), np.empty(n)
-    u_drop, u_ghost, ghost_mm = np.empty(n), np.empty(n), np.empty(n)
-    noise_draws(seed, sensor, counter, kernel, lo, hi, gauss, speckle, u_drop, u_ghost,
-                ghost_mm)
-    apply_noise(range_mm, reason, cos_inc, gauss, speckle, u_drop, u_ghost, ghost_mm,
-                range_sigma, speckle_sigma, outlier_prob, dropout_prob, dir_x, dir_z, z_start,
-                z_end, out_xz, out_valid, out_intensity)
+    draws = Draws(np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty(n))
+    noise_draws(stream, counter, draws)
+    apply_noise(model, draws, range_mm, reason, cos_inc, out_xz, out_valid, out_intensity)

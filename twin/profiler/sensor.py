@@ -26,6 +26,7 @@ from dm2.core.config import SensorConfig
 from dm2.core.messages import COUNTER_MODULO, SENSOR_IDS, Profile
 from twin.profiler import noise_kernels as PN
 from twin.profiler import scan_kernels as PS
+from twin.profiler.kernels import PlateField
 from twin.profiler.model import _FACE_TOL_MM, _LIFT_MM, ProfileTrace, first_occluder_hit
 from twin.profiler.occluders import CylinderOccluder
 from twin.schema import NoiseConfig
@@ -83,6 +84,15 @@ class VirtualProfiler:
         half = int(np.ceil(3.0 * noise.speckle_length_points))
         kernel = np.exp(-0.5 * (np.arange(-half, half + 1) / noise.speckle_length_points) ** 2)
         self._speckle_kernel = kernel / np.sqrt(np.sum(kernel * kernel))
+        lo, hi = noise.outlier_offset_mm
+        # the kernels' bundles as plain tuples of their fields (see twin.profiler.scan_kernels)
+        self._stream = tuple(PN.DrawStream(self.seed, self.sensor_index, self._speckle_kernel,
+                                           float(lo), float(hi)))
+        self._model = tuple(PN.SensorModel(float(noise.range_sigma_mm),
+                                           float(noise.speckle_sigma_mm),
+                                           float(noise.outlier_prob), float(noise.dropout_prob),
+                                           self._dir_x, self._dir_z, float(sensors.z_start_mm),
+                                           float(sensors.z_end_mm)))
 
     # ------------------------------------------------------------------ geometry
     def trace(self, hf, T_B_O: np.ndarray, occluders: Sequence | None = None) -> ProfileTrace:
@@ -115,16 +125,14 @@ class VirtualProfiler:
         setup = self._kernel_setup(tuple(occluders))
         if setup is None:
             raise TypeError(f"{self.sensor_id}: trace_rays casts capped-cylinder occluders only")
-        rays, params, T_C_B, cylinders = setup
-        PS.trace_posed(hf._h, hf._bmax, hf._zmax, hf.cell_mm, hf.thickness_mm, hf.size_mm[0],
-                       hf.size_mm[1], np.ascontiguousarray(T_B_O, dtype=np.float64), self.T_B_S,
-                       rays, self.camera_S, T_C_B, cylinders, params, int(r0), int(r1),
-                       out.range_mm, out.reason, out.cos_incidence, out.points_O)
+        PS.trace_posed(_plate_field(hf), setup, np.ascontiguousarray(T_B_O, dtype=np.float64),
+                       int(r0), int(r1), out.range_mm, out.reason, out.cos_incidence,
+                       out.points_O)
 
     def _kernel_setup(self, occluders: tuple):
-        """The constant inputs of :mod:`twin.profiler.scan_kernels` for this occluder set:
-        ``rays (n, 6)``, ``params (N_PARAMS,)``, the cylinders' ``T_C_B (k, 4, 4)`` and
-        ``(k, 2)`` squared radius [mm^2] and length [mm]; None when an occluder is not a
+        """The constant inputs of :mod:`twin.profiler.scan_kernels` for this occluder set (a
+        :class:`twin.profiler.scan_kernels.Scanner` as a plain tuple of its fields, as the
+        kernels take it from Python); None when an occluder is not a
         :class:`~twin.profiler.occluders.CylinderOccluder`. Made once per occluder set."""
         key = tuple(id(o) for o in occluders)
         cached = self._kernel_cache
@@ -134,24 +142,18 @@ class VirtualProfiler:
         if all(isinstance(o, CylinderOccluder) for o in occluders):
             k = len(occluders)
             t_occ = self._laser_occluder_t(occluders) if occluders else self._t_max
-            rays = np.ascontiguousarray(np.column_stack([self.dirs_S, self._t_min, self._t_max,
-                                                         t_occ]), dtype=np.float64)
-            nz, sn = self.noise, self.sensors
-            params = np.zeros(PS.N_PARAMS)
-            params[[PS.P_FACE_TOL, PS.P_LIFT, PS.P_MIN_INTENSITY, PS.P_MAX_RANGE,
-                    PS.P_RANGE_SIGMA, PS.P_SPECKLE_SIGMA, PS.P_OUTLIER_PROB, PS.P_DROPOUT_PROB,
-                    PS.P_Z_START, PS.P_Z_END, PS.P_GHOST_LO, PS.P_GHOST_HI, PS.P_HAS_OCC,
-                    PS.P_CAMERA_REACH]] = (
-                _FACE_TOL_MM, _LIFT_MM, nz.min_intensity, self._max_range_mm,
-                nz.range_sigma_mm, nz.speckle_sigma_mm, nz.outlier_prob, nz.dropout_prob,
-                sn.z_start_mm, sn.z_end_mm, nz.outlier_offset_mm[0], nz.outlier_offset_mm[1],
-                1.0 if occluders else 0.0, self._camera_reach_mm)
             T_C_B = np.zeros((k, 4, 4))
-            cylinders = np.zeros((k, 2))
+            r2, length = np.zeros(k), np.zeros(k)
             for i, o in enumerate(occluders):
                 T_C_B[i] = o._T_C_B
-                cylinders[i] = (o.radius_mm ** 2, o.length_mm)
-            setup = (rays, params, T_C_B, cylinders)
+                r2[i], length[i] = o.radius_mm ** 2, o.length_mm
+            f64 = np.float64
+            setup = tuple(PS.Scanner(
+                np.array(self.dirs_S, dtype=f64), np.array(self._t_min, dtype=f64),
+                np.array(self._t_max, dtype=f64), np.array(t_occ, dtype=f64), self.T_B_S,
+                self.camera_S, T_C_B, r2, length, bool(occluders), self._max_range_mm,
+                float(_FACE_TOL_MM), float(_LIFT_MM), self._camera_reach_mm,
+                float(self.noise.min_intensity)))
         # the occluders are held so that their ids stay theirs while cached
         self._kernel_cache = (key, occluders, setup)
         return setup
@@ -198,15 +200,13 @@ class VirtualProfiler:
         if not isinstance(hf, HeightField) or setup is None:
             return self.measure(self.trace(hf, T_B_O, occluders), stamp_s, counter)
         counter = self._check_counter(counter)
-        rays, params, T_C_B, cylinders = setup
-        n = rays.shape[0]
+        n = self.dirs_S.shape[0]
         xz = np.empty((n, 2))
         valid = np.empty(n, dtype=bool)
         intensity = np.empty(n, dtype=np.float32)
-        PS.scan_pass(hf._h, hf._bmax, hf._zmax, hf.cell_mm, hf.thickness_mm, hf.size_mm[0],
-                     hf.size_mm[1], np.ascontiguousarray(T_B_O, dtype=np.float64), self.T_B_S,
-                     rays, self.camera_S, T_C_B, cylinders, params, self.seed, self.sensor_index,
-                     counter, self._speckle_kernel, xz, valid, intensity)
+        PS.scan_pass(_plate_field(hf), setup, self._stream, self._model,
+                     np.ascontiguousarray(T_B_O, dtype=np.float64), counter, xz, valid,
+                     intensity)
         return Profile.trusted(self.sensor_id, float(stamp_s), counter, xz, valid, intensity)
 
     def _check_counter(self, counter) -> int:
@@ -218,30 +218,24 @@ class VirtualProfiler:
     def measure(self, trace: ProfileTrace, stamp_s: float, counter: int) -> Profile:
         """Apply the sensor's noise to a trace and format it as a :class:`Profile`."""
         counter = self._check_counter(counter)
-        nz, sn = self.noise, self.sensors
         n = trace.range_mm.size
         xz = np.empty((n, 2))
         valid = np.empty(n, dtype=bool)
         intensity = np.empty(n, dtype=np.float32)
-        PN.measure_pass(self.seed, self.sensor_index, counter, self._speckle_kernel,
-                        float(nz.outlier_offset_mm[0]), float(nz.outlier_offset_mm[1]),
+        PN.measure_pass(self._stream, self._model, counter,
                         np.ascontiguousarray(trace.range_mm, dtype=np.float64),
                         np.ascontiguousarray(trace.reason, dtype=np.int8),
                         np.ascontiguousarray(trace.cos_incidence, dtype=np.float64),
-                        nz.range_sigma_mm, nz.speckle_sigma_mm, nz.outlier_prob,
-                        nz.dropout_prob, self._dir_x, self._dir_z, sn.z_start_mm,
-                        sn.z_end_mm, xz, valid, intensity)
+                        xz, valid, intensity)
         return Profile.trusted(self.sensor_id, float(stamp_s), counter, xz, valid, intensity)
 
     def _draws(self, counter: int, n: int):
         """The profile's random draws from its ``(seed, sensor, counter)`` stream
         (:func:`twin.profiler.noise_kernels.noise_draws`), in order: range noise, speckle,
         dropout and ghost uniforms, ghost offsets [mm], each ``(n,)``."""
-        lo, hi = self.noise.outlier_offset_mm
-        draws = tuple(np.empty(n) for _ in range(5))
-        PN.noise_draws(self.seed, self.sensor_index, int(counter), self._speckle_kernel,
-                       float(lo), float(hi), *draws)
-        return draws
+        draws = PN.Draws(*(np.empty(n) for _ in range(5)))
+        PN.noise_draws(self._stream, int(counter), tuple(draws))
+        return tuple(draws)
 
     def measure_numpy(self, trace: ProfileTrace, stamp_s: float, counter: int) -> Profile:
         """:meth:`measure` in plain numpy (:mod:`twin.profiler.numpy_path`)."""
@@ -254,3 +248,10 @@ class VirtualProfiler:
         from twin.profiler.numpy_path import _noise
 
         return _noise(self, trace, counter)
+
+
+def _plate_field(hf: HeightField) -> tuple:
+    """``hf``'s arrays and plate as the profiler kernels take them from Python (no copies): the
+    fields of a :class:`twin.profiler.kernels.PlateField`, as a plain tuple."""
+    return tuple(PlateField(hf._h, hf._bmax, hf._zmax, float(hf.cell_mm), float(hf.thickness_mm),
+                            float(hf.size_mm[0]), float(hf.size_mm[1])))
