@@ -4,9 +4,8 @@
 A short pad run with a 1 mm bump from layer 2 and the same run without the fault: the verdict
 opens with the bump's kind, place and first layer, is the monitor's own (unchanged once the
 twin's truth is deleted and the page re-rendered) and fits the first 1400 x 900 screen. A
-monitored run without any deviation reads "No defect found"; the fault-free twin control should
-too, but the monitor reports false underbuild tracks on it under the twin's default model error
-(a strict xfail, as the bench's control targets). ``dm2 view`` serves the bump run: its 3D
+monitored run without any deviation reads "No defect found", and so does the fault-free twin
+control under the twin's default model error. ``dm2 view`` serves the bump run: its 3D
 canvas draws the part (the bump in the red of positive deviation) and shows the layer slider.
 """
 
@@ -108,8 +107,6 @@ def test_a_run_without_deviation_reads_no_defect_found(tmp_path):
     assert page["overview"] > 0 and page["bottom"] <= 900
 
 
-@pytest.mark.xfail(strict=True, reason="missed target: no global track on a fault-free pad (the "
-                   "monitor reports false underbuild tracks under the twin's default model error)")
 def test_fault_free_control_reads_no_defect_found(runs):
     page = _sheet(runs["control"] / "index.html")
     assert page["overview"] > 0 and page["bottom"] <= 900
