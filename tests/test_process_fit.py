@@ -31,8 +31,8 @@ def build(true_scale_of_layer, layers=8):
         meas += LAYER_MM * true_scale_of_layer(k)
         ref += LAYER_MM * fit.scale
         devs.append(meas - ref)
-        scale, rescale = fit.update(layer(k, meas, ref))
-        assert scale == fit.scale
+        scale, rescale, plume = fit.update(layer(k, meas, ref))
+        assert scale == fit.scale and plume == 1.0  # no reference map: no plume estimate
         ref *= rescale  # the reference deposited so far follows the calibration
     return fit, np.array(devs)
 
@@ -88,3 +88,12 @@ def test_process_finding_is_in_the_verdict_not_a_defect():
     assert v["headline"].startswith("No defect found in 8 layers") and v["defects"] == 0
     assert v["sentences"] == [f"Process finding: {fit.findings()[0]}."]
     assert "8 % below nominal since layer 0" in v["sentences"][0]
+
+
+def test_a_change_during_the_build_is_its_own_finding():
+    # the cell deposits 8 % below nominal from the start; from layer 3 the feed drops by 40 %
+    fit, _ = build(lambda k: 0.92 if k < 3 else 0.92 * 0.6)
+    (change,) = fit.finding_details()  # the change tells the story: no offset beside it
+    assert change["kind"] == "change" and change["sign"] == -1 and change["since_layer"] == 3
+    assert change["text"].startswith("deposition fell")
+    assert fit.layers[0]["next_scale"] == pytest.approx(0.92)  # calibrated before the drop

@@ -41,11 +41,12 @@ real-time false alarm
     the alarm). Reported per hour of process time.
 process finding
     the run's report states the deposition scale off nominal (report.json ``process``
-    ``finding_details``: estimate, sign, first layer). It **detects** a global fault (not a
-    bump, dent or corner dwell) of its sign whose onset is within one layer of the finding's;
-    it is **correct** when its estimate is within :data:`FINDING_TOLERANCE` (3 %) of the
-    scale the twin's ``[twin_process]`` deposits at (``expected_process_scale``); otherwise it is
-    a **false finding**, counted with the false tracks.
+    ``finding_details``: kind, estimate, sign, first layer). It **detects** a global fault (not
+    a bump, dent or corner dwell) of its sign whose onset is within one layer of the finding's.
+    Otherwise an ``offset`` finding (the cell's scale) is **correct** when its estimate is within
+    :data:`FINDING_TOLERANCE` (3 %) of the scale the twin's ``[twin_process]`` deposits at
+    (``expected_process_scale``), and any other finding is a **false finding**, counted with the
+    false tracks.
 control
     a run without faults: any track or false finding on it is false.
 """
@@ -248,7 +249,7 @@ def _score_findings(report, faults, scores, expected_scale) -> list[dict]:
                               detected_global=True, first_layer_detected=since,
                               onset_delay_layers=since - sc["onset_layer"])
         if verdict is None:
-            ok = expected_scale is not None and \
+            ok = fd.get("kind", "offset") == "offset" and expected_scale is not None and \
                 abs(float(fd["estimate"]) - expected_scale) <= FINDING_TOLERANCE
             verdict = "correct" if ok else "false"
         out.append({**fd, "verdict": verdict, "expected_scale": expected_scale})

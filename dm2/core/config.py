@@ -172,6 +172,13 @@ class MonitorConfig(_Model):
     process_finding_threshold: float = Field(0.05, gt=0)
     gates: InputGateConfig = InputGateConfig()
 
+    @model_validator(mode="after")
+    def _deposit_cap(self):
+        if self.deposit_weight_cap is not None and self.deposit_weight_cap < self.min_weight:
+            raise ValueError(f"deposit_weight_cap {self.deposit_weight_cap} must be at least "
+                             f"min_weight {self.min_weight} (a capped surface would vanish)")
+        return self
+
 
 class ExpectTrack(_Model):
     kind: Literal["overbuild", "underbuild", "local_overbuild", "local_underbuild"]

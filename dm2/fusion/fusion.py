@@ -141,10 +141,6 @@ class TsdfFusion:
         self._cap_spot_O = np.full(3, np.nan)  # where the weights were last capped
         # a list (set by the session): (xy_O (n, 2) [mm], stamp) of each batch fused since taken
         self.observed_xy: list[tuple] | None = None
-        if monitor_cfg.deposit_weight_cap is not None and \
-                monitor_cfg.deposit_weight_cap < monitor_cfg.min_weight:
-            raise ValueError(f"monitor.deposit_weight_cap {monitor_cfg.deposit_weight_cap} must "
-                             f"be at least monitor.min_weight {monitor_cfg.min_weight}")
         self._finished = False
         self.max_delay_s = float(max_delay_s)
         self.defer_meshing = bool(defer_meshing)

@@ -35,13 +35,16 @@ from __future__ import annotations
 
 import numpy as np
 
-from dm2.defects.classify import UNOBSERVED
+from dm2.defects.classify import DEFECT_CLASSES, UNOBSERVED
 
 TOP_NZ = 0.95  # |n_z| of a vertex counted as the part's top
 MIN_TOP_VERTICES = 50  # fewer top vertices: no estimate this layer
 MIN_HEIGHT_MM = 0.2  # reference thinner than this on the top: no estimate
 PLATEAU_SLOPE = 0.1  # reference slope [mm/mm] of the plateau the scale is measured on
 PLATEAU_FRACTION = 0.7  # of the top's 95th-percentile reference height
+CHANGE_FACTOR = 2.0  # a change of the process: twice the finding threshold off the calibration
+PLUME_BOUND = 0.25  # the calibrated plume width stays within 1 +- this of nominal
+PLUME_MIN_SENSITIVITY_MM = 0.05  # vertices whose height barely depends on the plume width
 
 
 class ProcessFit:
@@ -64,33 +67,40 @@ class ProcessFit:
         self.bound = float(bound)
         self.finding_threshold = float(finding_threshold)
         self.planned_height_mm = planned_height_mm
+        self.plume_bound = PLUME_BOUND
         self.scale = 1.0  # the reference deposits at this scale (from the next state on)
         self.layers: list[dict] = []
         self._nominal_mm = 0.0  # reference top height at the nominal process (estimate)
         self._last_ref_mm = 0.0  # the reference's top after the last update (as rescaled)
         self._first: tuple[float, float] | None = None  # (measured, nominal) at calibration
 
-    def update(self, result) -> tuple[float, float]:
+    def update(self, result) -> tuple[float, float, float]:
         """Take one analysed layer (dm2.defects.layer_analysis.LayerResult).
 
-        Returns ``(scale, rescale)``: the scale the reference deposits with from now on, and
-        the factor by which the reference deposited so far is to be scaled (1 except at the
-        calibration layer)."""
+        Returns ``(scale, rescale, plume)``: the scale the reference deposits with from now
+        on, the factor by which the reference deposited so far is to be scaled, and the factor
+        its plume width is to be widened by (both 1 except at the calibration layer)."""
         dev = result.deviation
         normals = _normals_z(dev)
         top = (dev.class_code != UNOBSERVED) & (normals >= TOP_NZ)
+        top &= ~np.isin(dev.class_code, DEFECT_CLASSES)  # the process where no defect is
         if dev.outside_mm is not None:
             top &= dev.outside_mm <= 0.0
         top &= _on_plateau(getattr(result, "reference", None), dev.foot_O, top)
         entry = {"layer": int(result.layer), "applied_scale": self.scale, "estimate": None,
                  "top_vertices": int(top.sum())}
-        rescale = 1.0
+        rescale = plume = 1.0
         if top.sum() >= MIN_TOP_VERTICES:
-            meas = float(np.median(dev.vertices_O[top, 2]))
             seen_ref = dev.foot_O[top, 2]  # the reference as the profilers last saw it
             if getattr(dev, "unseen_mm", None) is not None:
                 seen_ref = seen_ref - dev.unseen_mm[top]
-            ref = float(np.median(seen_ref))
+            area = getattr(dev, "vertex_area_mm2", None)
+            area = np.ones(seen_ref.size) if area is None else np.asarray(area)[top]
+            ref = _weighted_median(seen_ref, area)
+            # the measured top as the reference's plus the median difference: a flat top's
+            # marching-cubes vertices crowd at the voxel-centre levels, so their own median
+            # sticks to a voxel plane (0.1 mm low on a thin first layer)
+            meas = ref + _weighted_median(dev.vertices_O[top, 2] - seen_ref, area)
             if ref >= MIN_HEIGHT_MM:
                 # the reference's growth since the last update was deposited at self.scale
                 self._nominal_mm += max(ref - self._last_ref_mm, 0.0) / self.scale
@@ -105,6 +115,8 @@ class ProcessFit:
                     rescale = new / self.scale
                     self._last_ref_mm = ref * rescale
                     entry["calibration"] = True
+                    plume = _plume_factor(result, new, self.plume_bound)
+                    entry["plume_factor"] = plume
                 elif self._nominal_mm - self._first[1] >= MIN_HEIGHT_MM:
                     est = (meas - self._first[0]) / (self._nominal_mm - self._first[1])
                     step = float(np.clip(est - self.scale, -self.rate_per_layer,
@@ -116,34 +128,58 @@ class ProcessFit:
                 entry["estimate"] = est
         entry["next_scale"] = self.scale
         self.layers.append(entry)
-        return self.scale, rescale
+        return self.scale, rescale, plume
 
     def finding_details(self) -> list[dict]:
-        """The process findings as data: ``{"quantity", "estimate", "sign", "since_layer",
-        "text"}``; the latest estimate off nominal by ``finding_threshold`` or more, since the
-        first layer of the run of estimates beyond it with the same sign."""
-        est = [e for e in self.layers if e["estimate"] is not None]
-        if not est or abs(est[-1]["estimate"] - 1.0) < self.finding_threshold:
+        """The process findings as data, each ``{"kind", "quantity", "estimate", "sign",
+        "since_layer", "text"}``:
+
+        * ``change``: the latest estimate off the calibrated scale by ``CHANGE_FACTOR *
+          finding_threshold`` or more of it (the calibration itself is good to about +-5 % on the
+          twin's parts), since the first layer of the trailing run of such estimates with its
+          sign: a drift or step of the process during the build;
+        * ``offset``: without a change, the cell's scale (the latest estimate) off nominal by
+          ``finding_threshold`` or more, since the calibration layer.
+        """
+        cal = next((e for e in self.layers if e.get("calibration")), None)
+        if cal is None:
             return []
-        s_hat = float(est[-1]["estimate"])
-        sign = int(np.sign(s_hat - 1.0))
-        since = est[-1]["layer"]
-        for e in reversed(self.layers):
-            if e["estimate"] is None:
-                continue
-            if np.sign(e["estimate"] - 1.0) != sign or \
-                    abs(e["estimate"] - 1.0) < self.finding_threshold:
-                break
-            since = e["layer"]
-        pct = abs(s_hat - 1.0) * 100
-        text = (f"deposition efficiency {pct:.0f} % {'below' if sign < 0 else 'above'} "
-                f"nominal since layer {since}")
-        if self.planned_height_mm:
-            short = (1.0 - s_hat) * self.planned_height_mm
-            text += (f"; at this rate the part ends {abs(short):.1f} mm "
-                     f"{'short' if short > 0 else 'tall'}")
-        return [{"quantity": "deposition scale", "estimate": s_hat, "sign": sign,
-                 "since_layer": int(since), "text": text}]
+        s0 = float(cal["next_scale"])
+        later = [e for e in self.layers if e["estimate"] is not None and e is not cal]
+        out = []
+        base = float(later[-1]["estimate"]) if later else s0  # the best estimate of the cell
+        change = CHANGE_FACTOR * self.finding_threshold
+        if later and abs(later[-1]["estimate"] / s0 - 1.0) >= change:
+            s_hat = float(later[-1]["estimate"])
+            sign = int(np.sign(s_hat - s0))
+            since = later[-1]["layer"]
+            for e in reversed(later):
+                if np.sign(e["estimate"] - s0) != sign or abs(e["estimate"] / s0 - 1.0) < change:
+                    break
+                since = e["layer"]
+            base = None  # a drift's start blurs into the estimates before it: no offset then
+            pct = abs(s_hat / s0 - 1.0) * 100
+            text = (f"deposition {'fell' if sign < 0 else 'rose'} {pct:.0f} % against the "
+                    f"first layer since layer {since}")
+            if self.planned_height_mm:
+                short = (1.0 - s_hat / s0) * self.planned_height_mm
+                text += (f"; at this rate the part ends {abs(short):.1f} mm "
+                         f"{'short' if short > 0 else 'tall'}")
+            out.append({"kind": "change", "quantity": "deposition scale", "estimate": s_hat,
+                        "sign": sign, "since_layer": int(since), "text": text})
+        if base is not None and abs(base - 1.0) >= self.finding_threshold:
+            sign = int(np.sign(base - 1.0))
+            pct = abs(base - 1.0) * 100
+            text = (f"deposition efficiency {pct:.0f} % {'below' if sign < 0 else 'above'} "
+                    f"nominal since layer {cal['layer']}")
+            if self.planned_height_mm:
+                short = (1.0 - base) * self.planned_height_mm
+                text += (f"; at this rate the part ends {abs(short):.1f} mm "
+                         f"{'short' if short > 0 else 'tall'}")
+            out.insert(0, {"kind": "offset", "quantity": "deposition scale",
+                           "estimate": float(base), "sign": sign,
+                           "since_layer": int(cal["layer"]), "text": text})
+        return out
 
     def findings(self) -> list[str]:
         """The process findings' sentences (:meth:`finding_details`)."""
@@ -155,6 +191,47 @@ class ProcessFit:
                 "calibration": "first layer", "rate_per_layer": self.rate_per_layer,
                 "bound": self.bound, "scale": self.scale, "layers": self.layers,
                 "findings": self.findings(), "finding_details": self.finding_details()}
+
+
+def _plume_factor(result, scale: float, bound: float) -> float:
+    """The plume width against nominal that the first layer's edges show.
+
+    A plume a fraction ``r`` wider moves the reference by ``r * P`` with ``P = sigma^2
+    laplacian(h)`` (ReferenceMap.plume_sensitivity_at): the least-squares ``r`` of
+    ``measured - scale * seen = scale * r * P`` over the observed, defect-free vertices within
+    two plume widths of the outline where ``|P|`` matters, one pass trimmed at 3 MAD."""
+    ref = getattr(result, "reference", None)
+    dev = result.deviation
+    if ref is None or not ref.plume_sigma_mm > 0:
+        return 1.0
+    ok = (dev.class_code != UNOBSERVED) & ~np.isin(dev.class_code, DEFECT_CLASSES)
+    if dev.outside_mm is not None:
+        ok &= dev.outside_mm <= 2.0 * ref.plume_sigma_mm
+    P = ref.plume_sensitivity_at(dev.foot_O[:, :2])
+    ok &= np.abs(P) >= PLUME_MIN_SENSITIVITY_MM
+    if ok.sum() < MIN_TOP_VERTICES:
+        return 1.0
+    seen = dev.foot_O[ok, 2]
+    if getattr(dev, "unseen_mm", None) is not None:
+        seen = seen - dev.unseen_mm[ok]
+    area = getattr(dev, "vertex_area_mm2", None)
+    w = np.ones(seen.size) if area is None else np.asarray(area)[ok]
+    y = dev.vertices_O[ok, 2] - scale * seen
+    x = scale * P[ok]
+    r = float(np.sum(w * x * y) / np.sum(w * x * x))
+    res = y - r * x
+    mad = float(np.median(np.abs(res - np.median(res)))) * 1.4826
+    keep = np.abs(res) <= 3.0 * max(mad, 1e-6)
+    if keep.sum() >= MIN_TOP_VERTICES:
+        r = float(np.sum((w * x * y)[keep]) / np.sum((w * x * x)[keep]))
+    return float(np.clip(1.0 + r, 1.0 - bound, 1.0 + bound))
+
+
+def _weighted_median(values: np.ndarray, weights: np.ndarray) -> float:
+    """The value below which half the total weight lies."""
+    order = np.argsort(values, kind="stable")
+    cw = np.cumsum(weights[order])
+    return float(values[order][min(int(np.searchsorted(cw, 0.5 * cw[-1])), cw.size - 1)])
 
 
 def _on_plateau(reference, foot_O, top) -> np.ndarray:

@@ -67,6 +67,7 @@ FRAME_SET = 3  # profiles per real-time comparison (the three cascaded profilers
 STATE_BACKLOG = 2500  # states buffered at most while no profile is fused (10 s at 250 Hz)
 STATE_SLICE = 25  # robot states per reference update while catching up (0.1 s at 250 Hz)
 PREMESH_EVERY_S = 0.25  # [s] wall, pre-meshing of touched surface chunks at most this often
+FIT_APPLY_DELAY_S = 5.0  # [s] stream time after a layer's close its process fit applies at
 
 
 def _process_fit_on(monitor_cfg) -> bool:
@@ -126,7 +127,9 @@ class MonitoringSession:
         self.seen = SeenReference(self.reference.heights_mm.shape, self.reference.cell_mm,
                                   0.5 * monitor_cfg.voxel_mm)
         self._last_close_s = -np.inf
-        self._pending_fit: tuple[float, float] | None = None
+        self._pending_fit: tuple[float, float, float] | None = None
+        self._fit_due_s: float | None = None  # stream time the pending fit is applied at
+        self._taken_layer = -1
         self._rt_latency_s: list[float] = []
         self._finished = False
         self._last_premesh = 0.0
@@ -275,6 +278,11 @@ class MonitoringSession:
 
     def _flush_states(self, upto_s: float = np.inf, max_states: int | None = None) -> bool:
         t0 = time.perf_counter()
+        if self._fit_due_s is not None and upto_s >= self._fit_due_s:
+            if not self.states.flush(self._fit_due_s, max_states):
+                self.timing.reference_s += time.perf_counter() - t0
+                return False
+            self._apply_fit()
         done = self.states.flush(upto_s, max_states)
         self.timing.reference_s += time.perf_counter() - t0
         return done
@@ -336,35 +344,46 @@ class MonitoringSession:
     def _take_layer(self, done: LayerSurface) -> None:
         """The finished layer's reference (states flushed up to its last profile), then its
         analysis (here, or queued for the worker)."""
+        if self._fit_due_s is not None:  # a layer shorter than FIT_APPLY_DELAY_S
+            self._apply_fit()
         ref = self.reference.layers.get(done.layer)
         if ref is None:  # no layer marks in the stream: take the reference now
             ref = self.reference.end_layer(done.layer)
         stamp = None if not np.isfinite(done.stamp_s) else done.stamp_s
-        ref = self._apply_fit(ref)
         unseen = SeenReference.unseen(self.seen.snapshot(), ref, self._last_close_s)
         self._last_close_s = done.stamp_s
+        self._taken_layer = done.layer
+        if self.process_fit is not None:
+            self._fit_due_s = done.stamp_s + FIT_APPLY_DELAY_S
         if self._worker is None:
             self._analyse(done, ref, stamp, unseen)
         else:  # meshed (done.surface) and analysed on the worker
             self._worker.submit(done, ref, stamp, unseen)
 
-    def _apply_fit(self, ref: ReferenceMap) -> ReferenceMap:
-        """Apply the process fit of the layer analysed last, at a fixed point of the stream (this
-        layer's close, whether the analysis ran inline or on the worker): the reference deposits
-        at the fitted scale from here and, at the calibration, what it holds, this layer's
-        ``ref`` and the seen reference are scaled; returns ``ref`` as scaled."""
+    def _apply_fit(self) -> None:
+        """Apply the process fit of the layer analysed last at a fixed point of the stream
+        (robot states up to ``_fit_due_s`` integrated, or the next layer's close), whether the
+        analysis ran inline or on the worker: the reference deposits at the fitted scale from
+        here, and at the calibration what it holds, its layers not yet analysed and the seen
+        reference are scaled."""
+        self._fit_due_s = None
         if self._worker is not None:
-            self._worker.join()  # the previous layer's analysis (it had a layer's time)
+            self._worker.join()  # the previous layer's analysis (it had FIT_APPLY_DELAY_S)
         pending, self._pending_fit = self._pending_fit, None
         if pending is None:
-            return ref
-        scale, rescale = pending
+            return
+        scale, rescale, plume = pending
         self.reference.set_process_scale(scale, rescale)
         self.seen.rescale(rescale)
-        if rescale == 1.0:
-            return ref
-        return ReferenceMap(ref.heights_mm * rescale, ref.cell_mm, ref.layer, ref.stamp_s,
-                            ref.plume_sigma_mm)
+        if plume != 1.0:  # the seen heights move with the reference's
+            before = self.reference.heights_mm.copy()
+            self.reference.set_plume_factor(plume)
+            self.seen.heights_mm += self.reference.heights_mm - before
+        if rescale != 1.0:
+            for k, m in list(self.reference.layers.items()):
+                if k > self._taken_layer:
+                    self.reference.layers[k] = ReferenceMap(m.heights_mm * rescale, m.cell_mm,
+                                                            m.layer, m.stamp_s, m.plume_sigma_mm)
 
     def _analyse(self, done: LayerSurface, ref, stamp, unseen=None) -> None:
         t0 = time.perf_counter()
@@ -373,7 +392,7 @@ class MonitoringSession:
             log.warning("layer %d: no surface was reconstructed; skipped", done.layer)
             return
         result = self.defects.analyse_layer(surface, ref, done.layer, stamp, unseen)
-        if self.process_fit is not None:  # applied at the next layer's close (_apply_fit)
+        if self.process_fit is not None:  # applied at _fit_due_s (_apply_fit)
             self._pending_fit = self.process_fit.update(result)
         self.timing.analysis_s += time.perf_counter() - t0
         if self.on_layer is not None:

@@ -114,8 +114,8 @@ class NearNetReference:
         self._deposited_mm3 = 0.0
         self._buf_spot = np.empty((64, 3))
         self._buf_axis = np.empty((64, 3))
-        side = 2.0 * FOOTPRINT_SIGMAS * self.sigma_mm / 0.2 / self.cell_mm + 3
-        self._scratch = np.empty(int(min(side, nx + 1) * min(side, ny + 1)) + nx + ny + 2)
+        self._scratch = np.empty(0)
+        self._size_scratch()
         self.stamp_s = 0.0
         self.layers: dict[int, ReferenceMap] = {}
         self.gaps_skipped = 0
@@ -140,6 +140,38 @@ class NearNetReference:
             self.heights_mm *= rescale_deposited
             self._zmax *= rescale_deposited
             self._deposited_mm3 *= rescale_deposited
+
+    def _size_scratch(self) -> None:
+        ny, nx = self.heights_mm.shape
+        side = 2.0 * FOOTPRINT_SIGMAS * self.sigma_mm / 0.2 / self.cell_mm + 3
+        need = int(min(side, nx + 1) * min(side, ny + 1)) + nx + ny + 2
+        if self._scratch.size < need:
+            self._scratch = np.empty(need)
+
+    def set_plume_factor(self, factor: float) -> None:
+        """Deposit with a plume ``factor`` times as wide from now on and widen (or narrow) what
+        was deposited so far to match: a Gaussian footprint is a heat kernel, so a wider plume's
+        deposit is the narrower one's blurred by ``sigma * sqrt(factor^2 - 1)``; a narrower one
+        is the first-order step ``h + (factor - 1) sigma^2 laplacian(h)``
+        (dm2.pipeline.process_fit's plume calibration)."""
+        from scipy.ndimage import gaussian_filter, laplace
+
+        if not 0.5 <= factor <= 2.0:
+            raise ValueError(f"NearNetReference: plume factor must be in [0.5, 2], got {factor}")
+        if factor == 1.0:
+            return
+        sigma = self.sigma_mm
+        if factor > 1.0:
+            self.heights_mm[:] = gaussian_filter(
+                self.heights_mm, sigma * np.sqrt(factor * factor - 1.0) / self.cell_mm,
+                mode="nearest")
+        else:
+            lap = laplace(self.heights_mm, mode="nearest") / (self.cell_mm * self.cell_mm)
+            self.heights_mm[:] = np.maximum(self.heights_mm + (factor - 1.0) * sigma ** 2 * lap,
+                                            0.0)
+        self._zmax[0] = float(self.heights_mm.max())
+        self.sigma_mm = sigma * factor
+        self._size_scratch()
 
     def spot_O(self, T_B_F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Deposition spot and spray axis in ``O`` for flange poses ``T_B_F`` (..., 4, 4)."""

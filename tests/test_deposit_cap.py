@@ -1,0 +1,59 @@
+"""Deposition buries what the profilers saw: the weights around the spray axis are capped as
+the spot passes (dm2.fusion.tsdf.deposit), and the comparison is against the reference as the
+profilers last saw each column (dm2.pipeline.seen_reference)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_tsdf import _plane_rays, _zero_crossing
+
+from dm2.fusion.tsdf.deposit import cap_points
+from dm2.fusion.tsdf.field import SparseTSDF
+from dm2.pipeline.seen_reference import SeenReference
+from dm2.reference.height_map import ReferenceMap
+
+
+def _observe(tsdf, z, rng, passes):
+    for _ in range(passes):  # inactive rays: the history accumulates up to the weight cap
+        o, p = _plane_rays(20_000, z, rng, tilt=(0.0, 0.0, 80.0))
+        tsdf.integrate(o, p)
+
+
+def test_a_pass_of_the_spot_lets_the_next_profiles_decide_the_surface_only_there():
+    rng = np.random.default_rng(5)
+    tsdf = SparseTSDF(0.5, 1.5, weight_cap=4.0)
+    _observe(tsdf, 0.0, rng, 20)  # long history of the old surface, 1 mm below the new one
+    n = tsdf.cap_weights_near_axis(np.array([20.0, 20.0, 0.0]), np.array([0.0, 0.0, -1.0]),
+                                   radius_mm=6.0, half_length_mm=6.0, weight_cap=1.0)
+    assert n > 0
+    _, w = tsdf.sample(np.array([[20.1, 20.1, 0.25], [35.1, 35.1, 0.25]]))
+    assert w[0] == 1.0 and w[1] > 10.0  # capped within 6 mm of the axis only
+    _observe(tsdf, 1.0, rng, 5)  # a few passes of the profilers over the new deposit
+    assert _zero_crossing(tsdf, 20.2, 20.2) == pytest.approx(1.0, abs=0.1)
+    assert _zero_crossing(tsdf, 35.2, 35.2) < 0.5  # outside the spray: the history stays
+
+
+def test_cap_points_follow_the_spot_a_step_at_a_time_whatever_the_batching():
+    spots = np.column_stack([np.linspace(0.0, 3.0, 31), np.zeros(31), np.zeros(31)])
+    whole = cap_points(spots, np.full(3, np.nan), 0.5)
+    last = np.full(3, np.nan)
+    parts = np.concatenate([cap_points(spots[a:a + 7], last, 0.5) + a for a in range(0, 31, 7)])
+    assert np.array_equal(whole, parts)
+    assert np.allclose(spots[whole, 0], [0.0, 0.5, 1.0, 1.5, 2.0, 2.5, 3.0])
+
+
+def test_growth_after_the_last_observation_is_the_unseen_part():
+    cell = 0.25
+    live = np.zeros((40, 40))
+    live[:, :20] = 0.8  # the left half sprayed once
+    seen = SeenReference(live.shape, cell, radius_mm=0.0)
+    xy = np.column_stack([np.full(80, 2.0), np.linspace(0.05, 9.95, 80)])  # a profile line
+    seen.observe(xy, 1.0, live)
+    live[:, :20] += 0.5  # sprayed again: nobody has looked since
+    ref = ReferenceMap(live.copy(), cell)
+    unseen = SeenReference.unseen(seen.snapshot(), ref, since_s=0.0)
+    col = int(2.0 / cell)
+    assert np.allclose(unseen.heights_mm[:, col], 0.5)  # the column the profile saw
+    assert np.count_nonzero(unseen.heights_mm) == 40  # and nothing else
+    assert not SeenReference.unseen(seen.snapshot(), ref, since_s=1.0).heights_mm.any()
