@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 from test_tsdf import _plane_rays, _zero_crossing
 
-from dm2.fusion.tsdf.deposit import cap_points
 from dm2.fusion.tsdf.field import SparseTSDF
 from dm2.pipeline.seen_reference import SeenReference
 from dm2.reference.height_map import ReferenceMap
@@ -32,15 +31,6 @@ def test_a_pass_of_the_spot_lets_the_next_profiles_decide_the_surface_only_there
     _observe(tsdf, 1.0, rng, 5)  # a few passes of the profilers over the new deposit
     assert _zero_crossing(tsdf, 20.2, 20.2) == pytest.approx(1.0, abs=0.1)
     assert _zero_crossing(tsdf, 35.2, 35.2) < 0.5  # outside the spray: the history stays
-
-
-def test_cap_points_follow_the_spot_a_step_at_a_time_whatever_the_batching():
-    spots = np.column_stack([np.linspace(0.0, 3.0, 31), np.zeros(31), np.zeros(31)])
-    whole = cap_points(spots, np.full(3, np.nan), 0.5)
-    last = np.full(3, np.nan)
-    parts = np.concatenate([cap_points(spots[a:a + 7], last, 0.5) + a for a in range(0, 31, 7)])
-    assert np.array_equal(whole, parts)
-    assert np.allclose(spots[whole, 0], [0.0, 0.5, 1.0, 1.5, 2.0, 2.5, 3.0])
 
 
 def test_growth_after_the_last_observation_is_the_unseen_part():

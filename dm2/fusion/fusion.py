@@ -27,7 +27,6 @@ from dm2.fusion.layers import LayerTracker
 from dm2.fusion.registration import profile_frames, spot_B
 from dm2.fusion.surface import PendingSurface, SurfaceExtractor, SurfaceMesh
 from dm2.fusion.sync import StreamSync, SyncedProfile
-from dm2.fusion.tsdf.deposit import cap_points
 from dm2.fusion.tsdf.field import SparseTSDF
 from dm2.io.spill import SpillStore
 
@@ -138,8 +137,7 @@ class TsdfFusion:
         self._spot_B = spot_B(calibration, process.standoff_mm)
         self._axis_B = calibration.T_B_N[:3, 2].copy()
         self._last_stamp_s = float("nan")
-        self._cap_spot_O = np.full(3, np.nan)  # where the weights were last capped
-        # a list (set by the session): (xy_O (n, 2) [mm], stamp) of each batch fused since taken
+        # a list (set by the session): (xy_O (n, 2) [mm], stamp) of each profile fused since
         self.observed_xy: list[tuple] | None = None
         self._finished = False
         self.max_delay_s = float(max_delay_s)
@@ -269,31 +267,31 @@ class TsdfFusion:
             self.on_layer_done(ls)
 
     def _fuse_range(self, xz, offsets, T_O_S, spots_O, axes_O, stamps, a: int, b: int) -> None:
-        """Register and fuse profiles ``a:b`` of a batch (one numba pass, eq 1 then eqs 2-5),
-        capping the weights around the spray axis first wherever the spot has moved a voxel
-        (dm2.fusion.tsdf.deposit; where it happens depends on the stream, not the batching)."""
+        """Register and fuse profiles ``a:b`` of a batch (one numba pass, eq 1 then eqs 2-5);
+        with ``deposit_weight_cap``, each profile is fused after the weights around its spray
+        axis are capped (dm2.fusion.tsdf.deposit: the spot has moved on since the previous
+        profile, about a millimetre; per profile, so neither the batching nor the path before
+        decides where)."""
         if b <= a:
             return
-        if self.cfg.deposit_weight_cap is not None:
-            caps = (cap_points(spots_O[a:b], self._cap_spot_O, self.cfg.voxel_mm) + a).tolist()
-            for c in caps:
-                if c > a:
-                    self._fuse_profiles(xz, offsets, T_O_S, spots_O, axes_O, stamps, a, c)
-                self.tsdf.cap_weights_near_axis(spots_O[c], axes_O[c], self.active_radius_mm,
-                                                self.active_radius_mm,
-                                                self.cfg.deposit_weight_cap)
-                a = c
-        self._fuse_profiles(xz, offsets, T_O_S, spots_O, axes_O, stamps, a, b)
+        if self.cfg.deposit_weight_cap is None:
+            self._fuse_profiles(xz, offsets, T_O_S, spots_O, axes_O, stamps, a, b)
+            return
+        for c in range(a, b):
+            self.tsdf.cap_weights_near_axis(spots_O[c], axes_O[c], self.active_radius_mm,
+                                            self.active_radius_mm, self.cfg.deposit_weight_cap)
+            self._fuse_profiles(xz, offsets, T_O_S, spots_O, axes_O, stamps, c, c + 1)
 
     def _fuse_profiles(self, xz, offsets, T_O_S, spots_O, axes_O, stamps, a: int, b: int) -> None:
         if b <= a:
             return
-        if self.observed_xy is not None:  # where the profiles saw the surface (xy in O)
+        if self.observed_xy is not None:  # where each profile saw the surface (xy in O)
             lo, hi = offsets[a], offsets[b]
             k = np.repeat(np.arange(a, b), np.diff(offsets[a: b + 1]))
             T = T_O_S[k]
-            self.observed_xy.append((T[:, :2, 3] + xz[lo:hi, 0:1] * T[:, :2, 0]
-                                     + xz[lo:hi, 1:2] * T[:, :2, 2], stamps[b - 1]))
+            xy = T[:, :2, 3] + xz[lo:hi, 0:1] * T[:, :2, 0] + xz[lo:hi, 1:2] * T[:, :2, 2]
+            for j in range(a, b):  # per profile, so the batching does not matter
+                self.observed_xy.append((xy[offsets[j] - lo: offsets[j + 1] - lo], stamps[j]))
         lo, hi = offsets[a], offsets[b]
         fused, n_out = self.tsdf.integrate_profiles(
             xz[lo:hi], offsets[a: b + 1] - lo, T_O_S[a:b], spots_O[a:b], axes_O[a:b],

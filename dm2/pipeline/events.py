@@ -21,8 +21,8 @@ class LayerStarted:
 
 @dataclass(frozen=True)
 class Observed:
-    """The fusion fused profiles up to ``stamp_s`` that saw the surface at ``xy_O (n, 2)``
-    [mm]: the reference there, once integrated up to ``stamp_s``, is what they saw."""
+    """The fusion fused a profile stamped ``stamp_s`` that saw the surface at ``xy_O (n, 2)``
+    [mm]: the reference there, once integrated up to ``stamp_s``, is what it saw."""
 
     stamp_s: float
     xy_O: np.ndarray

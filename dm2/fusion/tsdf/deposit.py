@@ -6,8 +6,9 @@ surface in its mean: with the leading profiler seeing each point before the nozz
 the trailing ones after, the fused top settled between the two, 0.10-0.14 mm (median) below
 the true top of the twin's parts at about 0.8 mm per pass.
 
-So as the spot moves, every stored voxel within ``radius_mm`` of the spray axis (and within
-``half_length_mm`` of the spot along it) keeps at most ``weight_cap`` of weight: what was seen
+So before each profile is fused, every stored voxel within ``radius_mm`` of the spray axis at
+its stamp (and within ``half_length_mm`` of the spot along it) keeps at most ``weight_cap`` of
+weight: what was seen
 there before now counts as that many observations, and the first profiles after the pass
 decide the surface. A place no profiler sees again keeps its old surface, with the low weight
 that makes its uncertainty large (dm2.defects.uncertainty). The signed distances are not
@@ -58,20 +59,3 @@ def cap_near_axis(table_keys, table_slots, voxels, voxel_mm, spot_O, axis_O, rad
                     n += 1
     return n
 
-
-@njit(cache=True)
-def cap_points(spots_O, last_O, step_mm):
-    """Indices of the spots at which the cap is applied: each the first one ``step_mm`` or
-    farther from the previous such spot (``last_O (3,)``, updated in place; NaN: none yet)."""
-    out = np.empty(spots_O.shape[0], np.int64)
-    n = 0
-    s2 = step_mm * step_mm
-    for i in range(spots_O.shape[0]):
-        dx = spots_O[i, 0] - last_O[0]
-        dy = spots_O[i, 1] - last_O[1]
-        dz = spots_O[i, 2] - last_O[2]
-        if not dx * dx + dy * dy + dz * dz < s2:  # NaN (no cap yet) counts as far
-            out[n] = i
-            n += 1
-            last_O[0], last_O[1], last_O[2] = spots_O[i, 0], spots_O[i, 1], spots_O[i, 2]
-    return out[:n]
