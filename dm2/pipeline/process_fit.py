@@ -14,21 +14,24 @@ observed top (vertices inside the planned outline, ``|n_z| >= TOP_NZ``, not unob
 
 * **First layer: calibration.** The ratio of the measured to the reference top height after the
   first layer with enough top is the cell's deposition scale ``s_0`` (efficiency x feed against
-  nominal), within ``1 +- bound``. The reference deposited so far is scaled by it and deposits
-  at it from then on. A fault spanning the whole build from its first layer at one rate cannot
-  be told from such an offset; it is reported as a process finding, not hidden.
+  nominal), within ``1 +- bound``; the plume width is the least-squares factor that explains
+  the layer's edges (:func:`_plume_factor`), within ``1 +- PLUME_BOUND``. The reference
+  deposited so far is scaled and blurred by them and deposits with them from then on. A fault
+  spanning the whole build from its first layer at one rate cannot be told from such an
+  offset; it is reported as a process finding, not hidden.
 * **Later layers: a slow follower.** The estimate ``s_hat`` is the measured growth since the
   calibration layer over the growth the reference would have had at the nominal process. The
   scale moves towards it by at most ``rate_per_layer`` per layer (from then on only; what was
   deposited stays as it was) and stays within ``1 +- bound``. So a slow drift is absorbed over
   many layers and still reported, and a fault faster or larger than that (an efficiency drift of
-  25 %/layer, a feed step of 40 %) is measured as a defect. The plume sigma is not fitted.
+  25 %/layer, a feed step of 40 %) is measured as a defect. The plume width is not followed
+  after the calibration.
 
 What the fit absorbs is never hidden: every layer's height ratio (measured over nominal top
-height), estimate and applied scale are in report.json (``process``), and an estimate
-``finding_threshold`` or more off nominal is a *process finding*, e.g. "deposition efficiency
-8 % below nominal since layer 0; at this rate the part ends 0.8 mm short"
-(``finding_details`` gives its scale, sign and first layer).
+height), estimate, applied scale and the calibrated plume factor are in report.json
+(``process``), and the findings (:meth:`ProcessFit.finding_details`: an *offset* off nominal or
+a *change* off the calibration) are in the verdict, e.g. "deposition efficiency 8 % below
+nominal since layer 0; at this rate the part ends 0.8 mm short".
 """
 
 from __future__ import annotations
@@ -187,7 +190,8 @@ class ProcessFit:
 
     def summary(self) -> dict:
         """The report.json ``process`` section."""
-        return {"fitted": "deposition scale (efficiency x feed against nominal)",
+        return {"fitted": "deposition scale (efficiency x feed against nominal); plume width "
+                          "at the calibration",
                 "calibration": "first layer", "rate_per_layer": self.rate_per_layer,
                 "bound": self.bound, "scale": self.scale, "layers": self.layers,
                 "findings": self.findings(), "finding_details": self.finding_details()}
