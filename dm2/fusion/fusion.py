@@ -24,7 +24,7 @@ from dm2.core.config import MonitorConfig, ProcessConfig
 from dm2.core.messages import Calibration, Toolpath
 from dm2.core.plume import plume_sigma_mm
 from dm2.fusion.layers import LayerTracker
-from dm2.fusion.registration import profile_frames, spot_B
+from dm2.fusion.registration import profile_frames, register_profile, spot_B
 from dm2.fusion.surface import PendingSurface, SurfaceExtractor, SurfaceMesh
 from dm2.fusion.sync import StreamSync, SyncedProfile
 from dm2.fusion.tsdf.field import SparseTSDF
@@ -285,14 +285,11 @@ class TsdfFusion:
     def _fuse_profiles(self, xz, offsets, T_O_S, spots_O, axes_O, stamps, a: int, b: int) -> None:
         if b <= a:
             return
-        if self.observed_xy is not None:  # where each profile saw the surface (xy in O)
-            lo, hi = offsets[a], offsets[b]
-            k = np.repeat(np.arange(a, b), np.diff(offsets[a: b + 1]))
-            T = T_O_S[k]
-            xy = T[:, :2, 3] + xz[lo:hi, 0:1] * T[:, :2, 0] + xz[lo:hi, 1:2] * T[:, :2, 2]
-            for j in range(a, b):  # per profile, so the batching does not matter
-                self.observed_xy.append((xy[offsets[j] - lo: offsets[j + 1] - lo], stamps[j]))
         lo, hi = offsets[a], offsets[b]
+        if self.observed_xy is not None:  # where each profile saw the surface (xy in O)
+            for j in range(a, b):  # per profile, so the batching does not matter
+                points_O, _ = register_profile(xz[offsets[j]:offsets[j + 1]], T_O_S[j])
+                self.observed_xy.append((points_O[:, :2], stamps[j]))
         fused, n_out = self.tsdf.integrate_profiles(
             xz[lo:hi], offsets[a: b + 1] - lo, T_O_S[a:b], spots_O[a:b], axes_O[a:b],
             self.active_radius_mm, self.bounds_O)

@@ -56,14 +56,9 @@ class SeenReference:
         """The reference deposited so far was scaled by ``factor`` (the process calibration)."""
         self.heights_mm *= factor
 
-    def snapshot(self) -> tuple[np.ndarray, np.ndarray]:
-        return self.heights_mm.copy(), self.stamp_s.copy()
-
-    @staticmethod
-    def unseen(snapshot, reference: ReferenceMap, since_s: float) -> ReferenceMap:
+    def unseen(self, reference: ReferenceMap, since_s: float) -> ReferenceMap:
         """The reference's growth since each column's last observation, over the columns seen
-        after ``since_s`` (0 elsewhere), as a map on the reference's grid."""
-        seen, stamp = snapshot
-        grown = np.where(stamp > since_s, reference.heights_mm - seen, 0.0)
+        after ``since_s`` (0 elsewhere), as a new map on the reference's grid."""
+        grown = np.where(self.stamp_s > since_s, reference.heights_mm - self.heights_mm, 0.0)
         return ReferenceMap(np.maximum(np.nan_to_num(grown), 0.0), reference.cell_mm,
                             reference.layer, reference.stamp_s)

@@ -350,7 +350,7 @@ class MonitoringSession:
         if ref is None:  # no layer marks in the stream: take the reference now
             ref = self.reference.end_layer(done.layer)
         stamp = None if not np.isfinite(done.stamp_s) else done.stamp_s
-        unseen = SeenReference.unseen(self.seen.snapshot(), ref, self._last_close_s)
+        unseen = self.seen.unseen(ref, self._last_close_s)
         self._last_close_s = done.stamp_s
         self._taken_layer = done.layer
         if self.process_fit is not None:
