@@ -8,7 +8,7 @@ from test_monitor_scene import Scene, make_calibration, raster_run
 
 from dm2.core.config import MonitorConfig, ProcessConfig
 from dm2.core.frames import PoseInterpolator, from_euler_deg, pose_error
-from dm2.core.messages import Calibration, Profile, RobotState
+from dm2.core.messages import Calibration, LayerMark, Profile, RobotState
 from dm2.fusion.fusion import TsdfFusion
 from dm2.fusion.posebuffer import PoseBuffer
 from dm2.fusion.sync import StreamSync
@@ -92,6 +92,37 @@ def test_stream_sync_counts_each_kind_of_bad_message_exactly():
     assert dict(sync.dropped) == {"duplicate_state": 1, "nan_points": 1, "empty_profile": 2,
                                   "duplicate_counter": 1, "unknown_sensor": 1,
                                   "late_message": 1, "bad_message": 1, "pose_gap": 1}
+
+
+def test_a_layer_mark_waits_for_every_profiler_to_pass_it():
+    """Robot states (and the marks they carry) arrive over one link, profiles over others: a
+    profile stamped before the mark that arrives after it still ends the old layer, as it does
+    when the stream comes in stamp order; a silent profiler holds the mark for the window only."""
+    eye = np.eye(4)
+    sync = StreamSync(["S1", "S2"], max_pose_gap_s=0.05, reorder_window_s=0.5)
+    out = []
+    for k in range(21):  # poses to 0.2 s, then the mark at 0.1 s, all ahead of the profiles
+        out += sync.push(RobotState(0.01 * k, k, np.zeros(6), eye))
+    out += sync.push(_profile("S1", 0.05, 1, [[0, 80]]))
+    out += sync.push(_profile("S2", 0.06, 1, [[0, 80]]))
+    out += sync.push(LayerMark(0.1, 1))
+    out += sync.push(_profile("S1", 0.08, 2, [[0, 80]]))  # before the mark, arrives after it
+    out += sync.push(_profile("S1", 0.12, 3, [[0, 80]]))
+    assert [type(m).__name__ for m in out] == ["SyncedProfile"] * 3  # S2 not past 0.1 s yet
+    out += sync.push(_profile("S2", 0.09, 2, [[0, 80]]))
+    out += sync.push(_profile("S2", 0.11, 3, [[0, 80]]))
+    order = [m.layer if isinstance(m, LayerMark) else m.profile.stamp_s for m in out]
+    assert order == [0.05, 0.06, 0.08, 0.09, 1, 0.11, 0.12]
+    # a profiler that falls silent holds the next mark until the window has passed it
+    assert sync.push(LayerMark(0.15, 2)) == []
+    released_at = []
+    for k in range(21, 70):
+        out = sync.push(RobotState(0.01 * k, k, np.zeros(6), eye))
+        if k == 30:
+            out += sync.push(_profile("S1", 0.3, 4, [[0, 80]]))
+        released_at += [(k, m.layer) for m in out if isinstance(m, LayerMark)]
+    assert released_at == [(65, 2)]  # the newest stamp 0.65 s is the window past 0.15 s
+    assert sync.dropped == {}
 
 
 @pytest.fixture(scope="module")

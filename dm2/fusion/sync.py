@@ -3,9 +3,12 @@
 The stream is never trusted to be ordered or complete. Robot states go into a time-sorted pose
 buffer as they arrive; profiles and layer marks wait in a heap ordered by stamp and are released
 in stamp order as soon as the pose buffer reaches past their stamp, or at the latest when the
-newest stamp seen is ``reorder_window_s`` beyond them. Poses are interpolated (SLERP rotation,
-linear translation) between the two robot states that bracket a profile's stamp, only if those
-are at most ``max_pose_gap_s`` apart.
+newest stamp seen is ``reorder_window_s`` beyond them. A layer mark also waits until every
+profiler heard from so far has sent a profile stamped at or after it (the profiles travel on
+other links than the robot states, and a profile stamped before the mark belongs to the layer
+the mark ends), at the latest until the window has passed it. Poses are interpolated (SLERP
+rotation, linear translation) between the two robot states that bracket a profile's stamp, only
+if those are at most ``max_pose_gap_s`` apart.
 
 Drop reasons (``StreamSync.dropped``; message counts unless marked as points):
 
@@ -75,6 +78,7 @@ class StreamSync:
         self._seen_counters: dict[str, dict[int, float]] = {s: {} for s in self.sensor_ids}
         self._seen_stamps: dict[str, dict[float, float]] = {s: {} for s in self.sensor_ids}
         self._marked_layers: set[int] = set()
+        self._newest_profile_s: dict[str, float] = {}  # per sensor, of the accepted profiles
 
     def push(self, msg) -> list:
         """Take one message; return what became ready: ``SyncedProfile`` and ``LayerMark``
@@ -143,6 +147,8 @@ class StreamSync:
                 self.dropped["duplicate_counter"] += 1
                 return False
             seen[p.counter] = p.stamp_s
+        if p.stamp_s > self._newest_profile_s.get(p.sensor_id, -np.inf):
+            self._newest_profile_s[p.sensor_id] = p.stamp_s
         if len(seen) > 4096:  # forget counters far outside the window (24-bit counters wrap)
             horizon = self.watermark_s - 10 * (self.reorder_window_s + 1.0)
             for c in [c for c, t in seen.items() if t < horizon]:
@@ -157,7 +163,8 @@ class StreamSync:
 
     def _release(self, final: bool) -> list:
         """Pop waiting messages in stamp order: a profile as soon as two poses within the gap
-        bracket it, at the latest when the window has passed it (then possibly as pose_gap)."""
+        bracket it, a layer mark once the poses and every profiler heard from are past it; at
+        the latest when the window has passed it (a profile then possibly as pose_gap)."""
         ready = []
         limit = self.watermark_s - self.reorder_window_s
         heap = self._heap
@@ -165,7 +172,8 @@ class StreamSync:
             stamp, _, msg = heap[0]
             due = final or stamp <= limit
             if isinstance(msg, LayerMark):
-                if not (due or self.poses.covers(stamp)):
+                profiles_past = all(t >= stamp for t in self._newest_profile_s.values())
+                if not (due or (self.poses.covers(stamp) and profiles_past)):
                     break
                 ready.append(heapq.heappop(heap)[2])
                 continue
