@@ -138,7 +138,7 @@ class TsdfFusion:
         self._axis_B = calibration.T_B_N[:3, 2].copy()
         self._last_stamp_s = float("nan")
         # a list (set by the session): (xy_O (n, 2) [mm], stamp) of each profile fused since
-        self.observed_xy: list[tuple] | None = None
+        self.observed_points: list[tuple] | None = None
         self._finished = False
         self.max_delay_s = float(max_delay_s)
         self.defer_meshing = bool(defer_meshing)
@@ -286,10 +286,10 @@ class TsdfFusion:
         if b <= a:
             return
         lo, hi = offsets[a], offsets[b]
-        if self.observed_xy is not None:  # where each profile saw the surface (xy in O)
+        if self.observed_points is not None:  # where each profile saw the surface (in O)
             for j in range(a, b):  # per profile, so the batching does not matter
                 points_O, _ = register_profile(xz[offsets[j]:offsets[j + 1]], T_O_S[j])
-                self.observed_xy.append((points_O[:, :2], stamps[j]))
+                self.observed_points.append((points_O, stamps[j]))
         fused, n_out = self.tsdf.integrate_profiles(
             xz[lo:hi], offsets[a: b + 1] - lo, T_O_S[a:b], spots_O[a:b], axes_O[a:b],
             self.active_radius_mm, self.bounds_O)

@@ -21,11 +21,11 @@ class LayerStarted:
 
 @dataclass(frozen=True)
 class Observed:
-    """The fusion fused a profile stamped ``stamp_s`` that saw the surface at ``xy_O (n, 2)``
-    [mm]: the reference there, once integrated up to ``stamp_s``, is what it saw."""
+    """The fusion fused a profile stamped ``stamp_s`` that saw the surface at ``points_O
+    (n, 3)`` [mm]: the reference there, once integrated up to ``stamp_s``, is what it saw."""
 
     stamp_s: float
-    xy_O: np.ndarray
+    points_O: np.ndarray
 
 
 @dataclass(frozen=True)

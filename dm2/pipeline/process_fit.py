@@ -76,6 +76,7 @@ class ProcessFit:
         self._nominal_mm = 0.0  # reference top height at the nominal process (estimate)
         self._last_ref_mm = 0.0  # the reference's top after the last update (as rescaled)
         self._first: tuple[float, float] | None = None  # (measured, nominal) at calibration
+        self._calibration: dict | None = None  # the calibration layer until recalibrate()
 
     def update(self, result) -> tuple[float, float, float]:
         """Take one analysed layer (dm2.defects.layer_analysis.LayerResult).
@@ -116,6 +117,8 @@ class ProcessFit:
                     self._first = (meas, self._nominal_mm)
                     new = float(np.clip(est, 1 - self.bound, 1 + self.bound))
                     rescale = new / self.scale
+                    self._calibration = {"result": result, "ref": ref, "entry": entry,
+                                         "scale": self.scale}
                     self._last_ref_mm = ref * rescale
                     entry["calibration"] = True
                     plume = _plume_factor(result, new, self.plume_bound)
@@ -132,6 +135,37 @@ class ProcessFit:
         entry["next_scale"] = self.scale
         self.layers.append(entry)
         return self.scale, rescale, plume
+
+    @property
+    def calibrating(self) -> bool:
+        """No layer has calibrated the scale yet."""
+        return self._first is None
+
+    def recalibrate(self, top) -> tuple[float, float, float] | None:
+        """The calibration again from the calibration layer's top as the profilers saw it
+        once the next layer had begun (:class:`dm2.pipeline.reobserved_top.ReobservedTop`),
+        when enough of it was seen: the ``(scale, rescale, plume)`` to apply instead of the
+        layer's own, or None to keep those. Later estimates still measure the growth since
+        the fused calibration layer, whose lag then cancels."""
+        cal, self._calibration = self._calibration, None
+        if cal is None:
+            return None
+        dev = cal["result"].deviation
+        defects = dev.vertices_O[np.isin(dev.class_code, DEFECT_CLASSES), :2]
+        ratio, cells = top.estimate(defects)
+        entry = cal["entry"]
+        entry["reobserved_cells"] = cells
+        if ratio is None:
+            return None
+        est = ratio * cal["scale"]  # the reference was deposited at cal["scale"] so far
+        new = float(np.clip(est, 1 - self.bound, 1 + self.bound))
+        rescale = new / cal["scale"]
+        self._last_ref_mm = cal["ref"] * rescale
+        plume = _plume_factor(cal["result"], new, self.plume_bound)
+        entry.update({"fused_estimate": entry["estimate"], "estimate": est,
+                      "plume_factor": plume, "next_scale": new})
+        self.scale = new
+        return new, rescale, plume
 
     def finding_details(self) -> list[dict]:
         """The process findings as data, each ``{"kind", "quantity", "estimate", "sign",

@@ -52,9 +52,15 @@ class SeenReference:
         self.heights_mm[rows, cols] = reference_heights_mm[rows, cols]
         self.stamp_s[rows, cols] = stamp_s
 
-    def rescale(self, factor: float) -> None:
-        """The reference deposited so far was scaled by ``factor`` (the process calibration)."""
-        self.heights_mm *= factor
+    def calibrated(self, reference, rescale: float, plume: float) -> None:
+        """The process calibration: ``reference`` (the NearNetReference) scaled what it
+        deposited so far by ``rescale``; its plume is widened by ``plume`` here, and the seen
+        heights move with it."""
+        self.heights_mm *= rescale
+        if plume != 1.0:
+            before = reference.heights_mm.copy()
+            reference.set_plume_factor(plume)
+            self.heights_mm += reference.heights_mm - before
 
     def unseen(self, reference: ReferenceMap, since_s: float) -> ReferenceMap:
         """The reference's growth since each column's last observation, over the columns seen

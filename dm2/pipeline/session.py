@@ -55,9 +55,9 @@ from dm2.fusion.fusion import LayerSurface, TsdfFusion
 from dm2.pipeline.events import LayerClosed, LayerStarted, Observed, SessionTiming
 from dm2.pipeline.layer_worker import LayerWorker
 from dm2.pipeline.process_fit import ProcessFit
+from dm2.pipeline.reobserved_top import ReobservedTop
 from dm2.pipeline.seen_reference import SeenReference
 from dm2.reference.feed import ReferenceFeed
-from dm2.reference.height_map import ReferenceMap
 from dm2.reference.model import NearNetReference
 
 log = logging.getLogger(__name__)
@@ -123,11 +123,12 @@ class MonitoringSession:
         self.realtime = RealtimeDeviation(monitor_cfg, size_mm=tuple(plate_size_mm[:2]),
                                           outline=outline)
         self._rt_profiles = 0
-        self.fusion.observed_xy = []
+        self.fusion.observed_points = []
         self.seen = SeenReference(self.reference.heights_mm.shape, self.reference.cell_mm,
                                   0.5 * monitor_cfg.voxel_mm)
         self._last_close_s = -np.inf
         self._pending_fit: tuple[float, float, float] | None = None
+        self._reobserved: ReobservedTop | None = None  # the calibration layer seen again
         self._fit_due_s: float | None = None  # stream time the pending fit is applied at
         self._taken_layer = -1
         self._rt_latency_s: list[float] = []
@@ -266,7 +267,9 @@ class MonitoringSession:
                     return False
             step = self._ops.popleft()
             if isinstance(step, Observed):
-                self.seen.observe(step.xy_O, step.stamp_s, self.reference.heights_mm)
+                self.seen.observe(step.points_O[:, :2], step.stamp_s, self.reference.heights_mm)
+                if self._reobserved is not None:
+                    self._reobserved.observe(step.points_O, step.stamp_s, self.reference.heights_mm)
             elif isinstance(step, LayerStarted):
                 self.reference.end_layer(step.layer - 1)
                 self.reference.layer = step.layer
@@ -290,9 +293,9 @@ class MonitoringSession:
     def _queue_observed(self) -> None:
         """Queue where the profiles fused since the last call saw the surface (in stream order
         with the layer steps, so the seen reference does not depend on the slicing)."""
-        for xy, stamp in self.fusion.observed_xy:
-            self._ops.append(Observed(float(stamp), xy))
-        self.fusion.observed_xy.clear()
+        for points, stamp in self.fusion.observed_points:
+            self._ops.append(Observed(float(stamp), points))
+        self.fusion.observed_points.clear()
 
     def _realtime(self) -> None:
         """Compare the active region with the reference as of the newest fused profile."""
@@ -355,6 +358,8 @@ class MonitoringSession:
         self._taken_layer = done.layer
         if self.process_fit is not None:
             self._fit_due_s = done.stamp_s + FIT_APPLY_DELAY_S
+            if self.process_fit.calibrating:  # this layer may calibrate: watch its top
+                self._reobserved = ReobservedTop(ref, done.stamp_s, self._fit_due_s)
         if self._worker is None:
             self._analyse(done, ref, stamp, unseen)
         else:  # meshed (done.surface) and analysed on the worker
@@ -364,26 +369,20 @@ class MonitoringSession:
         """Apply the process fit of the layer analysed last at a fixed point of the stream
         (robot states up to ``_fit_due_s`` integrated, or the next layer's close), whether the
         analysis ran inline or on the worker: the reference deposits at the fitted scale from
-        here, and at the calibration what it holds, its layers not yet analysed and the seen
-        reference are scaled."""
+        here, and at the calibration (measured on the top seen again, if enough was) what it
+        holds, its layers not yet analysed and the seen reference are scaled and widened."""
         self._fit_due_s = None
         if self._worker is not None:
             self._worker.join()  # the previous layer's analysis (it had FIT_APPLY_DELAY_S)
         pending, self._pending_fit = self._pending_fit, None
+        top, self._reobserved = self._reobserved, None
         if pending is None:
             return
+        if top is not None:  # a calibration: from the top seen again, if enough was
+            pending = self.process_fit.recalibrate(top) or pending
         scale, rescale, plume = pending
-        self.reference.set_process_scale(scale, rescale)
-        self.seen.rescale(rescale)
-        if plume != 1.0:  # the seen heights move with the reference's
-            before = self.reference.heights_mm.copy()
-            self.reference.set_plume_factor(plume)
-            self.seen.heights_mm += self.reference.heights_mm - before
-        if rescale != 1.0:
-            for k, m in list(self.reference.layers.items()):
-                if k > self._taken_layer:
-                    self.reference.layers[k] = ReferenceMap(m.heights_mm * rescale, m.cell_mm,
-                                                            m.layer, m.stamp_s, m.plume_sigma_mm)
+        self.reference.set_process_scale(scale, rescale, analysed_to=self._taken_layer)
+        self.seen.calibrated(self.reference, rescale, plume)
 
     def _analyse(self, done: LayerSurface, ref, stamp, unseen=None) -> None:
         t0 = time.perf_counter()

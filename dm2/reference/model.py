@@ -126,11 +126,13 @@ class NearNetReference:
         self._slope_cells = (max(int(round(self.slope_probe_mm / self.cell_mm)), 1)
                              if self.angle_from_surface else 0)
 
-    def set_process_scale(self, scale: float, rescale_deposited: float = 1.0) -> None:
+    def set_process_scale(self, scale: float, rescale_deposited: float = 1.0,
+                          analysed_to: int | None = None) -> None:
         """Deposit at ``scale`` times the nominal volume rate from now on (efficiency x feed
         against nominal; dm2.pipeline.process_fit), and scale what was deposited so far by
-        ``rescale_deposited`` (the first layer's calibration). Finished layers' maps in
-        ``layers`` keep the heights they were analysed against."""
+        ``rescale_deposited`` (the first layer's calibration), with the finished layers' maps
+        in ``layers`` after ``analysed_to`` (not analysed yet); the others keep the heights
+        they were analysed against."""
         if not 0 < scale < 10 or not 0 < rescale_deposited < 10:
             raise ValueError(f"NearNetReference: process scale {scale} and rescale "
                              f"{rescale_deposited} must be in (0, 10)")
@@ -140,6 +142,10 @@ class NearNetReference:
             self.heights_mm *= rescale_deposited
             self._zmax *= rescale_deposited
             self._deposited_mm3 *= rescale_deposited
+            for k, m in list(self.layers.items()):
+                if analysed_to is not None and k > analysed_to:
+                    self.layers[k] = ReferenceMap(m.heights_mm * rescale_deposited, m.cell_mm,
+                                                  m.layer, m.stamp_s, m.plume_sigma_mm)
 
     def _size_scratch(self) -> None:
         ny, nx = self.heights_mm.shape

@@ -1,0 +1,86 @@
+"""The calibration layer's top as the profilers see it again once the next layer has begun.
+
+The first-layer calibration (:mod:`dm2.pipeline.process_fit`) measures the deposition scale as
+the ratio of the measured to the reference top. The fused surface of a layer at its close lags
+the part's true top: the plume's flank keeps depositing on a column after its last observations,
+and the fused average still holds the observations made while the column grew. On a thin first
+layer that lag is a few per cent of its height (twin parts, 0.8 mm layers: 0.03-0.06 mm, the
+calibration 3-5 % low), and an early calibration error stays in the reference of every layer.
+
+In the first seconds of the next layer the profilers sweep the finished top again, most of it
+ahead of the spray. A profile point that falls on a column the reference has not grown since the
+close (``FRESH_GROWTH`` of its height) sees the calibration layer's final surface, with no
+averaging behind it. :class:`ReobservedTop` keeps, per reference cell of the calibration
+layer's plateau (reference slope at most ``PLATEAU_SLOPE``, at least ``PLATEAU_FRACTION`` of the
+top's 95th-percentile height), the mean height of such points seen in a window of stream time
+after the close. Its :meth:`estimate` is the reference's median plateau height plus the median
+measured-minus-reference difference over the cells seen, against the reference's median height:
+the scale the calibration then uses, when at least ``MIN_CELLS`` cells were seen (else the
+calibration keeps the fused layer's estimate). Cells near a flagged defect of the calibration
+layer are left out, as the fused layer's estimate leaves out defect vertices.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from dm2.pipeline.process_fit import MIN_HEIGHT_MM, PLATEAU_FRACTION, PLATEAU_SLOPE
+from dm2.reference.height_map import ReferenceMap
+
+FRESH_GROWTH = 0.01  # a column counts as finished while the reference grew less than this share
+MIN_CELLS = 200  # reference cells seen again on the plateau for an estimate (12.5 mm2 at 0.25)
+DEFECT_CLEARANCE_MM = 1.0  # cells this close to a flagged defect vertex are left out
+
+
+class ReobservedTop:
+    """Profile points on the calibration layer's finished plateau, in a window after its close.
+
+    Parameters
+    ----------
+    close_map : the calibration layer's reference at its close
+    since_s, until_s : float [s], the window of profile stamps (the close, the fit's time)
+    """
+
+    def __init__(self, close_map: ReferenceMap, since_s: float, until_s: float):
+        self.cell_mm = float(close_map.cell_mm)
+        self.close_mm = np.asarray(close_map.heights_mm, np.float64)
+        self.since_s, self.until_s = float(since_s), float(until_s)
+        gy, gx = np.gradient(self.close_mm, self.cell_mm)
+        top = self.close_mm >= MIN_HEIGHT_MM
+        p95 = np.percentile(self.close_mm[top], 95) if top.any() else np.inf
+        self.plateau = (top & (np.hypot(gx, gy) <= PLATEAU_SLOPE)
+                        & (self.close_mm >= PLATEAU_FRACTION * p95))
+        self._sum_mm = np.zeros_like(self.close_mm)
+        self._count = np.zeros(self.close_mm.shape, np.int64)
+
+    def observe(self, points_O: np.ndarray, stamp_s: float, heights_mm: np.ndarray) -> None:
+        """Points ``(n, 3)`` [mm] of a profile stamped ``stamp_s``, with the reference's live
+        heights (same grid) integrated up to that stamp."""
+        if not (self.since_s < stamp_s <= self.until_s) or points_O.shape[0] == 0:
+            return
+        ny, nx = self.close_mm.shape
+        j = np.floor(points_O[:, 0] / self.cell_mm).astype(np.int64)
+        i = np.floor(points_O[:, 1] / self.cell_mm).astype(np.int64)
+        ok = (j >= 0) & (j < nx) & (i >= 0) & (i < ny)
+        i, j, z = i[ok], j[ok], points_O[ok, 2]
+        close = self.close_mm[i, j]
+        ok = self.plateau[i, j] & (heights_mm[i, j] - close <= FRESH_GROWTH * close)
+        np.add.at(self._sum_mm, (i[ok], j[ok]), z[ok])
+        np.add.at(self._count, (i[ok], j[ok]), 1)
+
+    def estimate(self, defect_xy_O: np.ndarray | None = None) -> tuple[float | None, int]:
+        """``(measured / reference height ratio or None, cells used)``; cells within
+        ``DEFECT_CLEARANCE_MM`` of ``defect_xy_O (k, 2)`` [mm] are left out."""
+        i, j = np.nonzero(self._count)
+        if defect_xy_O is not None and len(defect_xy_O):
+            xy = np.c_[(j + 0.5) * self.cell_mm, (i + 0.5) * self.cell_mm]
+            far = cKDTree(np.asarray(defect_xy_O)[:, :2]).query(
+                xy, distance_upper_bound=DEFECT_CLEARANCE_MM)[0] > DEFECT_CLEARANCE_MM
+            i, j = i[far], j[far]
+        if i.size < MIN_CELLS:
+            return None, int(i.size)
+        ref = self.close_mm[i, j]
+        measured = self._sum_mm[i, j] / self._count[i, j]
+        ref_mm = float(np.median(ref))
+        return (ref_mm + float(np.median(measured - ref))) / ref_mm, int(i.size)
