@@ -78,8 +78,8 @@ def one_run(cell, wire, speed: float, folder: Path, view=None) -> dict:
     """Stream ``wire`` at ``speed`` into a live runner; latencies [ms] and load figures."""
     runner = LiveRunner(cell, folder, record=True)
     if view is not None:
-        states = runner.analysis.session.states
-        view.pose_source = lambda: states.last_T_B_F
+        pipeline = runner.analysis.pipeline
+        view.pose_source = lambda: pipeline.last_T_B_F
         runner.analysis.layer_listeners.append(view.on_layer)
     addr = runner.open_sources()
     span = {}

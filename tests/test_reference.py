@@ -199,3 +199,43 @@ def test_each_footprint_cell_sticks_at_its_own_spray_angle():
     assert ref.deposited_mm3 == pytest.approx(expected, rel=0.02)
     added = (ref.snapshot().heights_mm.sum() - before) * ref.cell_mm ** 2
     assert added == pytest.approx(expected, rel=0.02)
+
+
+def test_feed_gives_the_same_reference_for_any_arrival_order_and_slicing():
+    """Robot states arriving out of order within the window and integrated in slices of any
+    size build the reference bit for bit as in-order states integrated at once; a state older
+    than the last integrated one is dropped."""
+    from dm2.reference.feed import ReferenceFeed
+
+    proc = ProcessConfig()
+    ts, poses = straight_pass(proc)
+    ref_a = NearNetReference(proc, MonitorConfig(), CAL)
+    feed_a = ReferenceFeed(ref_a)
+    for t, T in zip(ts, poses, strict=True):
+        feed_a.push(t, T)
+    assert len(feed_a) == len(ts) and feed_a.flush()
+    ref_b = NearNetReference(proc, MonitorConfig(), CAL)
+    feed_b = ReferenceFeed(ref_b)
+    rng = np.random.default_rng(3)
+    order = np.argsort(np.arange(len(ts)) + rng.uniform(0, 6, len(ts)), kind="stable")
+    assert not np.all(np.diff(order) > 0)  # some states arrive late
+    pushed = 0
+    for k in rng.integers(1, 40, 400):  # push a few, then integrate what is due in slices
+        for i in order[pushed: pushed + k]:
+            feed_b.push(ts[i], poses[i])
+        pushed = min(pushed + k, len(ts))
+        due = ts[order[:pushed]].min() if pushed < len(ts) else np.inf
+        upto = min(due, ts[order[pushed:]].min()) if pushed < len(ts) else np.inf
+        while not feed_b.flush(upto_s=np.nextafter(upto, -np.inf), max_states=int(k)):
+            pass
+        if pushed == len(ts):
+            break
+    assert feed_b.flush() and len(feed_b) == 0
+    np.testing.assert_array_equal(ref_a.snapshot().heights_mm,
+                                  ref_b.snapshot().heights_mm)
+    feed_b.push(ts[5], poses[5])  # long integrated: dropped, the reference unchanged
+    assert feed_b.flush() and len(feed_b) == 0
+    np.testing.assert_array_equal(ref_a.snapshot().heights_mm,
+                                  ref_b.snapshot().heights_mm)
+    assert ref_a.snapshot().heights_mm.max() > 0.05
+    assert ref_a.deposited_mm3 == pytest.approx(ref_b.deposited_mm3, rel=1e-12)

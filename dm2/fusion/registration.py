@@ -22,10 +22,18 @@ def spot_B(calibration: Calibration, standoff_mm: float) -> np.ndarray:
 
 def register_profile(xz_S: np.ndarray, T_O_S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Points ``(n, 3)`` [mm] in ``O`` and the sensor origin ``(3,)`` [mm] in ``O``."""
-    xz = np.asarray(xz_S, dtype=np.float64)
-    R = T_O_S[:3, :3]
-    pts = np.outer(xz[:, 0], R[:, 0]) + np.outer(xz[:, 1], R[:, 2]) + T_O_S[:3, 3]
-    return pts, T_O_S[:3, 3].copy()
+    T = np.ascontiguousarray(T_O_S, dtype=np.float64)
+    return _points_O(np.ascontiguousarray(xz_S, dtype=np.float64), T), T[:3, 3].copy()
+
+
+@njit(cache=True)
+def _points_O(xz_S, T_O_S):
+    """``x R[:, 0] + z R[:, 2] + t`` per point: the laser plane's (x, z) placed in ``O``."""
+    out = np.empty((xz_S.shape[0], 3))
+    for i in range(xz_S.shape[0]):
+        for c in range(3):
+            out[i, c] = xz_S[i, 0] * T_O_S[c, 0] + xz_S[i, 1] * T_O_S[c, 2] + T_O_S[c, 3]
+    return out
 
 
 @njit(cache=True)

@@ -22,7 +22,10 @@ layer are left out, as the fused layer's estimate leaves out defect vertices.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+from numba import njit
 from scipy.spatial import cKDTree
 
 from dm2.pipeline.process_fit import MIN_HEIGHT_MM, PLATEAU_FRACTION, PLATEAU_SLOPE
@@ -57,17 +60,9 @@ class ReobservedTop:
     def observe(self, points_O: np.ndarray, stamp_s: float, heights_mm: np.ndarray) -> None:
         """Points ``(n, 3)`` [mm] of a profile stamped ``stamp_s``, with the reference's live
         heights (same grid) integrated up to that stamp."""
-        if not (self.since_s < stamp_s <= self.until_s) or points_O.shape[0] == 0:
-            return
-        ny, nx = self.close_mm.shape
-        j = np.floor(points_O[:, 0] / self.cell_mm).astype(np.int64)
-        i = np.floor(points_O[:, 1] / self.cell_mm).astype(np.int64)
-        ok = (j >= 0) & (j < nx) & (i >= 0) & (i < ny)
-        i, j, z = i[ok], j[ok], points_O[ok, 2]
-        close = self.close_mm[i, j]
-        ok = self.plateau[i, j] & (heights_mm[i, j] - close <= FRESH_GROWTH * close)
-        np.add.at(self._sum_mm, (i[ok], j[ok]), z[ok])
-        np.add.at(self._count, (i[ok], j[ok]), 1)
+        if self.since_s < stamp_s <= self.until_s:
+            _accumulate(np.ascontiguousarray(points_O, np.float64), self.cell_mm, self.plateau,
+                        self.close_mm, heights_mm, self._sum_mm, self._count)
 
     def estimate(self, defect_xy_O: np.ndarray | None = None) -> tuple[float | None, int]:
         """``(measured / reference height ratio or None, cells used)``; cells within
@@ -84,3 +79,18 @@ class ReobservedTop:
         measured = self._sum_mm[i, j] / self._count[i, j]
         ref_mm = float(np.median(ref))
         return (ref_mm + float(np.median(measured - ref))) / ref_mm, int(i.size)
+
+
+@njit(cache=True)
+def _accumulate(points_O, cell_mm, plateau, close_mm, heights_mm, sum_mm, count):
+    """Add each point's height to its cell where that cell is on the plateau and its reference
+    grew less than ``FRESH_GROWTH`` of its height since the close."""
+    ny, nx = close_mm.shape
+    for k in range(points_O.shape[0]):
+        x, y = points_O[k, 0] / cell_mm, points_O[k, 1] / cell_mm
+        if not (x >= 0.0 and y >= 0.0 and x < nx and y < ny):
+            continue
+        i, j = int(math.floor(y)), int(math.floor(x))
+        if plateau[i, j] and heights_mm[i, j] - close_mm[i, j] <= FRESH_GROWTH * close_mm[i, j]:
+            sum_mm[i, j] += points_O[k, 2]
+            count[i, j] += 1

@@ -15,7 +15,10 @@ to the process fit, which measures the deposition scale against what was seen.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+from numba import njit
 
 from dm2.reference.height_map import ReferenceMap
 
@@ -34,23 +37,13 @@ class SeenReference:
         self.cell_mm = float(cell_mm)
         self.heights_mm = np.full(shape, np.nan)
         self.stamp_s = np.full(shape, -np.inf)
-        r = max(int(round(radius_mm / self.cell_mm)), 0)
-        self._offsets = np.arange(-r, r + 1)
+        self._reach = max(int(round(radius_mm / self.cell_mm)), 0)  # cells around a point
 
     def observe(self, xy_O: np.ndarray, stamp_s: float, reference_heights_mm: np.ndarray):
         """Profile points ``xy_O (n, 2)`` [mm] seen up to ``stamp_s`` against the reference's
         live height map (same grid)."""
-        if xy_O.shape[0] == 0:
-            return
-        ny, nx = self.heights_mm.shape
-        ij = np.floor(np.asarray(xy_O) / self.cell_mm).astype(np.int64)
-        ij = np.unique(ij[(ij[:, 0] >= 0) & (ij[:, 0] < nx) & (ij[:, 1] >= 0)
-                          & (ij[:, 1] < ny)], axis=0)
-        di, dj = np.meshgrid(self._offsets, self._offsets)
-        cols = np.clip((ij[:, 0:1] + di.reshape(1, -1)).reshape(-1), 0, nx - 1)
-        rows = np.clip((ij[:, 1:2] + dj.reshape(1, -1)).reshape(-1), 0, ny - 1)
-        self.heights_mm[rows, cols] = reference_heights_mm[rows, cols]
-        self.stamp_s[rows, cols] = stamp_s
+        _observe_cells(np.ascontiguousarray(xy_O, np.float64), self.cell_mm, self._reach,
+                       float(stamp_s), reference_heights_mm, self.heights_mm, self.stamp_s)
 
     def calibrated(self, reference, rescale: float, plume: float) -> None:
         """The process calibration: ``reference`` (the NearNetReference) scaled what it
@@ -68,3 +61,19 @@ class SeenReference:
         grown = np.where(self.stamp_s > since_s, reference.heights_mm - self.heights_mm, 0.0)
         return ReferenceMap(np.maximum(np.nan_to_num(grown), 0.0), reference.cell_mm,
                             reference.layer, reference.stamp_s)
+
+
+@njit(cache=True)
+def _observe_cells(xy_O, cell_mm, reach, stamp_s, reference_heights_mm, heights_mm, stamps_s):
+    """Cells within ``reach`` cells of each point ``xy_O (n, 2)`` [mm] on the plate (clipped
+    to its edge) take the reference's height and ``stamp_s``."""
+    ny, nx = heights_mm.shape
+    for k in range(xy_O.shape[0]):
+        x, y = xy_O[k, 0] / cell_mm, xy_O[k, 1] / cell_mm
+        if not (x >= 0.0 and y >= 0.0 and x < nx and y < ny):
+            continue
+        i0, j0 = int(math.floor(y)), int(math.floor(x))
+        for i in range(max(i0 - reach, 0), min(i0 + reach, ny - 1) + 1):
+            for j in range(max(j0 - reach, 0), min(j0 + reach, nx - 1) + 1):
+                heights_mm[i, j] = reference_heights_mm[i, j]
+                stamps_s[i, j] = stamp_s

@@ -16,6 +16,8 @@ the reference.
 
 from __future__ import annotations
 
+import bisect
+
 import numpy as np
 
 from dm2.core.messages import Toolpath
@@ -42,37 +44,46 @@ class ReferenceFeed:
         self.clock = clock
         self.dwell_speed_mm_s = float(dwell_speed_mm_s)
         self.progress = ToolpathProgress(toolpath) if toolpath is not None else None
-        self._stamps: list[float] = []
+        self._stamps: list[float] = []  # waiting from self._head on, sorted while _sorted
         self._poses: list[np.ndarray] = []
+        self._head = 0
+        self._sorted = True
         self._last_stamp_s = -np.inf
         self._nominal_s = 0.0
         self.last_T_B_F: np.ndarray | None = None
 
     def __len__(self) -> int:
         """Robot states waiting."""
-        return len(self._stamps)
+        return len(self._stamps) - self._head
 
     def push(self, stamp_s: float, T_B_F: np.ndarray) -> None:
+        if len(self._stamps) > self._head and stamp_s < self._stamps[-1]:
+            self._sorted = False  # a late state: sorted (stably) at the next flush
         self._stamps.append(stamp_s)
         self._poses.append(T_B_F)
 
     def flush(self, upto_s: float = np.inf, max_states: int | None = None) -> bool:
         """Integrate the states stamped up to ``upto_s`` (at most ``max_states`` of them);
         True when none stamped up to ``upto_s`` is left."""
-        if not self._stamps:
+        head = self._head
+        if len(self._stamps) == head:
             return True
-        stamps = np.asarray(self._stamps)
-        order = np.argsort(stamps, kind="stable")
-        stamps = stamps[order]
-        n_due = int(np.searchsorted(stamps, upto_s, side="right"))
+        if not self._sorted:
+            order = np.argsort(np.asarray(self._stamps[head:]), kind="stable") + head
+            self._stamps = [self._stamps[i] for i in order]
+            self._poses = [self._poses[i] for i in order]
+            head = self._head = 0
+            self._sorted = True
+        n_due = bisect.bisect_right(self._stamps, upto_s, lo=head) - head
         n = n_due if max_states is None else min(n_due, int(max_states))
         if n == 0:
             return True
-        poses = np.stack([self._poses[i] for i in order[:n]])
-        rest = order[n:]
-        self._stamps = [self._stamps[i] for i in rest]
-        self._poses = [self._poses[i] for i in rest]
-        stamps = stamps[:n]
+        stamps = np.array(self._stamps[head: head + n])
+        poses = np.stack(self._poses[head: head + n])
+        self._head = head + n
+        if self._head > 4096 and 2 * self._head > len(self._stamps):  # drop the consumed
+            del self._stamps[: self._head], self._poses[: self._head]
+            self._head = 0
         keep = np.concatenate([[True], np.diff(stamps) > 0]) & (stamps > self._last_stamp_s)
         if np.any(keep):
             stamps, poses = stamps[keep], poses[keep]
