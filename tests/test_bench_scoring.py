@@ -247,3 +247,56 @@ def test_sweep_cases_and_smallest_reliable_size():
     summ = summarize_sweep(res)
     assert [r["probability"] for r in summ["by_size"]] == [0.5, 0.5, 1.0, 1.0]
     assert summ["smallest_reliable_size"] == 0.6
+
+
+def _with_findings(rep, *findings):
+    rep["process"] = {"finding_details": [
+        {"kind": k, "quantity": "deposition scale", "estimate": e, "sign": s, "since_layer": L,
+         "text": ""} for k, e, s, L in findings]}
+    return rep
+
+
+FEED_STEP_DEV = {k: np.where(PART, 0.3 * k, 0.0) for k in LAYERS}  # onset: layer 2 (0.6 mm)
+
+
+def test_process_findings_detect_global_faults_or_are_judged_against_the_twin_scale():
+    # a change of the fault's sign from the fault's onset detects it (no track needed)
+    rep = _with_findings(report({}), ("change", 1.3, 1, 2), ("change", 0.8, -1, 2),
+                         ("change", 1.3, 1, 0))
+    s = score_run(rep, truth("feed_step", 1), truth_maps=maps(FEED_STEP_DEV),
+                  expected_process_scale=0.95)
+    (f,) = s["faults"]
+    assert f["onset_layer"] == 2 and f["detected"] and f["detected_by"] == "process finding"
+    assert f["onset_delay_layers"] == 0
+    assert [x["verdict"] for x in s["findings"]] == ["true", "false", "false"]  # sign, onset
+    assert s["false_findings"] == 2 and s["false_tracks"] == []
+    # a local fault is never explained by a process finding
+    rep = _with_findings(report({}), ("change", 1.3, 1, 1))
+    s = score_run(rep, truth("bump", 1, [[25.0, 14.0]]), truth_maps=maps(BUMP_DEV),
+                  expected_process_scale=0.95)
+    assert not s["faults"][0]["detected"] and s["findings"][0]["verdict"] == "false"
+
+
+def test_an_offset_on_a_control_is_correct_within_the_tolerance_of_the_twin_scale():
+    zero = {k: np.zeros((N, N)) for k in LAYERS}
+    tol = scoring.FINDING_TOLERANCE
+    rep = _with_findings(report({}), ("offset", 0.95 + 0.99 * tol, -1, 0),
+                         ("offset", 0.95 - 1.01 * tol, -1, 0), ("change", 0.95, -1, 1))
+    s = score_run(rep, None, truth_maps=maps(zero), expected_process_scale=0.95)
+    assert [x["verdict"] for x in s["findings"]] == ["correct", "false", "false"]
+    assert s["false_findings"] == 2
+    s = score_run(_with_findings(report({}), ("offset", 0.95, -1, 0)), None,
+                  truth_maps=maps(zero), expected_process_scale=None)
+    assert s["findings"][0]["verdict"] == "false"  # nothing to judge it against
+    assert summarize({"c": s})["false_tracks_per_control"] == {"c": 1}  # counted as false
+
+
+def test_twin_process_scale_is_feed_times_efficiency_over_the_dense_fraction():
+    from dm2.cli.bench_runner import twin_process_scale
+    from dm2.core.config import load_scenario
+    from scenarios import resolve_scenario
+
+    sc = load_scenario(resolve_scenario("pad"))
+    twin = {"efficiency_factor": 1.15, "porosity": 0.04, "feed_g_min": sc.process.feed_g_min * 0.9}
+    sc = sc.model_copy(update={"twin_process": sc.twin_process.model_copy(update=twin)})
+    assert twin_process_scale(sc) == pytest.approx(0.9 * 1.15 / 0.96, rel=1e-12)
