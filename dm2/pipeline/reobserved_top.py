@@ -22,13 +22,12 @@ layer are left out, as the fused layer's estimate leaves out defect vertices.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from numba import njit
 from scipy.spatial import cKDTree
 
 from dm2.pipeline.process_fit import MIN_HEIGHT_MM, PLATEAU_FRACTION, PLATEAU_SLOPE
+from dm2.pipeline.seen_reference import cell_of
 from dm2.reference.height_map import ReferenceMap
 
 FRESH_GROWTH = 0.01  # a column counts as finished while the reference grew less than this share
@@ -87,10 +86,9 @@ def _accumulate(points_O, cell_mm, plateau, close_mm, heights_mm, sum_mm, count)
     grew less than ``FRESH_GROWTH`` of its height since the close."""
     ny, nx = close_mm.shape
     for k in range(points_O.shape[0]):
-        x, y = points_O[k, 0] / cell_mm, points_O[k, 1] / cell_mm
-        if not (x >= 0.0 and y >= 0.0 and x < nx and y < ny):
+        i, j = cell_of(points_O[k, 0], points_O[k, 1], cell_mm, ny, nx)
+        if i < 0 or not plateau[i, j]:
             continue
-        i, j = int(math.floor(y)), int(math.floor(x))
-        if plateau[i, j] and heights_mm[i, j] - close_mm[i, j] <= FRESH_GROWTH * close_mm[i, j]:
+        if heights_mm[i, j] - close_mm[i, j] <= FRESH_GROWTH * close_mm[i, j]:
             sum_mm[i, j] += points_O[k, 2]
             count[i, j] += 1

@@ -63,16 +63,25 @@ class SeenReference:
                             reference.layer, reference.stamp_s)
 
 
+@njit(cache=True, inline="always")
+def cell_of(x_mm, y_mm, cell_mm, ny, nx):
+    """(row, column) of the grid cell holding ``(x_mm, y_mm)``, or (-1, -1) off the grid (NaN
+    included)."""
+    x, y = x_mm / cell_mm, y_mm / cell_mm
+    if not (x >= 0.0 and y >= 0.0 and x < nx and y < ny):
+        return -1, -1
+    return int(math.floor(y)), int(math.floor(x))
+
+
 @njit(cache=True)
 def _observe_cells(xy_O, cell_mm, reach, stamp_s, reference_heights_mm, heights_mm, stamps_s):
     """Cells within ``reach`` cells of each point ``xy_O (n, 2)`` [mm] on the plate (clipped
     to its edge) take the reference's height and ``stamp_s``."""
     ny, nx = heights_mm.shape
     for k in range(xy_O.shape[0]):
-        x, y = xy_O[k, 0] / cell_mm, xy_O[k, 1] / cell_mm
-        if not (x >= 0.0 and y >= 0.0 and x < nx and y < ny):
+        i0, j0 = cell_of(xy_O[k, 0], xy_O[k, 1], cell_mm, ny, nx)
+        if i0 < 0:
             continue
-        i0, j0 = int(math.floor(y)), int(math.floor(x))
         for i in range(max(i0 - reach, 0), min(i0 + reach, ny - 1) + 1):
             for j in range(max(j0 - reach, 0), min(j0 + reach, nx - 1) + 1):
                 heights_mm[i, j] = reference_heights_mm[i, j]
