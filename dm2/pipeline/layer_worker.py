@@ -41,6 +41,11 @@ class LayerWorker:
             self._thread.start()
         self._jobs.put(job)
 
+    @property
+    def busy(self) -> bool:
+        """A submitted job has not finished yet."""
+        return self._jobs.unfinished_tasks > 0
+
     def join(self) -> None:
         """Wait until every queued job has run; re-raises a failure."""
         if self._thread is not None:
@@ -54,10 +59,16 @@ class LayerWorker:
             raise RuntimeError(f"{self.name} failed on its worker thread") from self._error
 
     def _work(self) -> None:
-        while (job := self._jobs.get()) is not None:
-            if self._error is None:
-                try:
-                    self.fn(*job)
-                except BaseException as exc:  # noqa: BLE001 - re-raised in the feeding thread
-                    log.exception("%s: a job failed", self.name)
-                    self._error = exc
+        while True:
+            job = self._jobs.get()
+            try:
+                if job is None:
+                    return
+                if self._error is None:
+                    try:
+                        self.fn(*job)
+                    except BaseException as exc:  # noqa: BLE001 - re-raised in the feeder
+                        log.exception("%s: a job failed", self.name)
+                        self._error = exc
+            finally:
+                self._jobs.task_done()

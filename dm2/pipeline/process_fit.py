@@ -50,6 +50,13 @@ PLUME_BOUND = 0.25  # the calibrated plume width stays within 1 +- this of nomin
 PLUME_MIN_SENSITIVITY_MM = 0.05  # vertices whose height barely depends on the plume width
 
 
+def process_fit_on(monitor_cfg) -> bool:
+    """``[monitor] process_fit``, by default on with the executed reference clock only."""
+    if monitor_cfg.process_fit is None:
+        return monitor_cfg.reference_clock == "executed"
+    return bool(monitor_cfg.process_fit)
+
+
 class ProcessFit:
     """Deposition scale: calibrated on the first layer, then followed slowly (module docstring).
 

@@ -54,7 +54,7 @@ from dm2.defects.realtime import RealtimeDeviation
 from dm2.fusion.fusion import LayerSurface, TsdfFusion
 from dm2.pipeline.events import LayerClosed, LayerStarted, Observed, SessionTiming
 from dm2.pipeline.layer_worker import LayerWorker
-from dm2.pipeline.process_fit import ProcessFit
+from dm2.pipeline.process_fit import ProcessFit, process_fit_on
 from dm2.pipeline.reobserved_top import ReobservedTop
 from dm2.pipeline.seen_reference import SeenReference
 from dm2.reference.feed import ReferenceFeed
@@ -68,13 +68,6 @@ STATE_BACKLOG = 2500  # states buffered at most while no profile is fused (10 s 
 STATE_SLICE = 25  # robot states per reference update while catching up (0.1 s at 250 Hz)
 PREMESH_EVERY_S = 0.25  # [s] wall, pre-meshing of touched surface chunks at most this often
 FIT_APPLY_DELAY_S = 5.0  # [s] stream time after a layer's close its process fit applies at
-
-
-def _process_fit_on(monitor_cfg) -> bool:
-    """``[monitor] process_fit``, by default on with the executed reference clock only."""
-    if monitor_cfg.process_fit is None:
-        return monitor_cfg.reference_clock == "executed"
-    return bool(monitor_cfg.process_fit)
 
 
 class MonitoringSession:
@@ -114,7 +107,7 @@ class MonitoringSession:
         self.process_fit = (ProcessFit(monitor_cfg.process_fit_rate_per_layer,
                                        monitor_cfg.process_fit_bound,
                                        monitor_cfg.process_finding_threshold, planned)
-                            if _process_fit_on(monitor_cfg) else None)
+                            if process_fit_on(monitor_cfg) else None)
         self.fusion = TsdfFusion(calibration, monitor_cfg, process, toolpath=toolpath,
                                on_layer_done=self._layer_done, defer_meshing=analysis_thread)
         self.timing = SessionTiming()
@@ -130,6 +123,7 @@ class MonitoringSession:
         self._pending_fit: tuple[float, float, float] | None = None
         self._reobserved: ReobservedTop | None = None  # the calibration layer seen again
         self._fit_due_s: float | None = None  # stream time the pending fit is applied at
+        self._no_wait = self._fit_waits = False  # catch_up: the fit waits for the worker
         self._taken_layer = -1
         self._rt_latency_s: list[float] = []
         self._finished = False
@@ -203,23 +197,27 @@ class MonitoringSession:
         ``should_yield()`` is asked between slices; when it returns True the method returns
         False at once (call again later). Returns True when nothing is left.
         """
-        def stop() -> bool:
-            return should_yield is not None and should_yield()
+        def stop() -> bool:  # a message waits, or the fit waits for the layer worker
+            return self._fit_waits or (should_yield is not None and should_yield())
 
-        if self.fusion.profiles_fused - self._rt_profiles >= FRAME_SET:
-            upto = self.fusion.last_fused_stamp_s
-            while not self._advance(upto_s=upto, max_states=STATE_SLICE):
+        self._fit_waits, self._no_wait = False, True
+        try:
+            if self.fusion.profiles_fused - self._rt_profiles >= FRAME_SET:
+                upto = self.fusion.last_fused_stamp_s
+                while not self._advance(upto_s=upto, max_states=STATE_SLICE):
+                    if stop():
+                        return False
+                self._realtime()
+            while self._ops and np.isfinite(self._ops[0].stamp_s):
+                self._advance(upto_s=self._ops[0].stamp_s, max_states=STATE_SLICE)
                 if stop():
                     return False
-            self._realtime()
-        while self._ops and np.isfinite(self._ops[0].stamp_s):
-            self._advance(upto_s=self._ops[0].stamp_s, max_states=STATE_SLICE)
-            if stop():
-                return False
-        while len(self.states) >= STATE_BACKLOG:
-            self._advance(max_states=STATE_SLICE)
-            if stop():
-                return False
+            while len(self.states) >= STATE_BACKLOG:
+                self._advance(max_states=STATE_SLICE)
+                if stop():
+                    return False
+        finally:
+            self._no_wait = False
         now = time.perf_counter()
         if now - self._last_premesh >= PREMESH_EVERY_S and not stop():
             t0 = time.perf_counter()
@@ -282,9 +280,10 @@ class MonitoringSession:
     def _flush_states(self, upto_s: float = np.inf, max_states: int | None = None) -> bool:
         t0 = time.perf_counter()
         if self._fit_due_s is not None and upto_s >= self._fit_due_s:
-            if not self.states.flush(self._fit_due_s, max_states):
+            self._fit_waits = self._no_wait and self._worker is not None and self._worker.busy
+            if self._fit_waits or not self.states.flush(self._fit_due_s, max_states):
                 self.timing.reference_s += time.perf_counter() - t0
-                return False
+                return False  # (catch_up comes back once the worker is done: no stall)
             self._apply_fit()
         done = self.states.flush(upto_s, max_states)
         self.timing.reference_s += time.perf_counter() - t0
