@@ -181,6 +181,34 @@ def test_tilted_spray_lands_where_its_axis_meets_a_lagging_surface():
     assert centre == pytest.approx(60.125 - 2.0 * math.tan(alpha), abs=0.05)
 
 
+def test_tilted_spray_onto_a_slope_follows_its_rays():
+    """A 35 degree spray along a plane rising 0.5 mm/mm into the jet: each ray lands where it
+    meets the plane, so the ridge is sigma / (cos a + s sin a) wide across the pass (a flat
+    plate at the impact height would give sigma / cos a, a third wider), centred on the
+    impact, and its volume is the powder's at the plane's spray angle (nothing is lost or
+    made by the slope)."""
+    proc = ProcessConfig()
+    alpha, s = math.radians(35.0), 0.5
+    axis = np.array([0.0, math.sin(alpha), -math.cos(alpha)])
+    ref = NearNetReference(proc, MonitorConfig(), CAL)
+    y = (np.arange(ref.heights_mm.shape[0]) + 0.5) * ref.cell_mm
+    ref.heights_mm[:] = (20.0 + s * (y - 60.125))[:, None]
+    before = ref.heights_mm.copy()
+    ts = np.arange(0.0, 100.0 / 30.0 + 1e-9, 1 / 250)
+    pts = np.column_stack([10.0 + 30.0 * ts, np.full_like(ts, 60.125), np.full_like(ts, 20.0)])
+    ref.add_states(ts, flange_poses(pts, np.tile(axis, (len(ts), 1))))
+    ridge = (ref.snapshot().heights_mm - before)[:, 240]
+    centre = float((ridge * y).sum() / ridge.sum())
+    spread = math.sqrt(float((ridge * (y - centre) ** 2).sum() / ridge.sum()))
+    assert centre == pytest.approx(60.125, abs=0.05)
+    expected = plume_sigma_mm(proc) / (math.cos(alpha) + s * math.sin(alpha))
+    assert spread == pytest.approx(expected, rel=0.02)
+    assert abs(spread - plume_sigma_mm(proc) / math.cos(alpha)) > 0.5  # not the flat plate's
+    theta = math.acos((s * math.sin(alpha) + math.cos(alpha)) / math.sqrt(1.0 + s * s))
+    zeta = deposition_efficiency(theta, proc)
+    assert ref.deposited_mm3 == pytest.approx(volume_rate_mm3_s(proc) * zeta * ts[-1], rel=0.02)
+
+
 def test_each_footprint_cell_sticks_at_its_own_spray_angle():
     """A vertical spray centred on the edge of a 50 degree flank: half the powder meets the
     flat top (zeta(0)), half the flank (zeta(50 deg)); the footprint's centre slope is no

@@ -9,6 +9,10 @@ Per spot (see :mod:`dm2.reference.model` for the model):
 
 * the spray axis is ray-marched from the nozzle exit onto the reference's own surface, so a
   tilted spray lands where its axis meets the current surface, not at the programmed point;
+* a tilted spray's footprint is taken along its rays: each cell's offset from the axis is
+  that of its own surface point (``dz`` above or below the impact point), so a cell below the
+  impact point catches the rays ``dz * tan(tilt)`` farther down the tilt, not those that a flat
+  plate at the impact height would (a tilted contour over a rim or a mound);
 * the spray angle of every footprint cell is taken against that cell's own surface normal
   (central difference over ``slope_cells``) or, with ``slope_cells == 0``, against ``+z_O``.
 """
@@ -141,10 +145,15 @@ def deposit_spot(hm, px, py, pz, ax, ay, az, dt, spray):
     t_max = (oz - min(pz, 0.0) + n_sigma * sigma) / -az  # well below the spot and the plate
     t = march_to_surface(h, cell, zmax[0], ox, oy, oz, ax, ay, az, t_max)
     if t >= 0.0:
-        px, py = ox + t * ax, oy + t * ay
+        px, py, pz = ox + t * ax, oy + t * ay, oz + t * az
     inv2s2 = 1.0 / (2.0 * sigma * sigma)
     amp = v_dot * dt / (2.0 * math.pi * sigma * sigma) * abs(az)
+    tilted = ax * ax + ay * ay > NEAR_ZERO
     reach = n_sigma * sigma / max(abs(az), 0.2)
+    if tilted:  # a cell dz below (above) the impact point catches rays dz * tan(tilt) on
+        dz_most = max(pz, zmax[0] - pz, 0.0)
+        reach = min(reach + dz_most * math.sqrt(ax * ax + ay * ay) / abs(az),
+                    n_sigma * sigma / 0.2)
     i_lo = max(int((px - reach) / cell), 0)
     i_hi = min(int((px + reach) / cell) + 1, nx - 1)
     j_lo = max(int((py - reach) / cell), 0)
@@ -156,9 +165,9 @@ def deposit_spot(hm, px, py, pz, ax, ay, az, dt, spray):
     zeta_flat = efficiency(-az, zeta0, theta_c)
     total = 0.0
     zeta_cos = max(math.cos(theta_c), 0.0)
-    # an axis in a coordinate plane (infill, most edges) makes the Gaussian separable:
+    # a vertical axis (infill) makes the Gaussian separable:
     # exp(-d2 / 2s^2) = ex[i] * ey[j]; the tail of ``scratch`` holds ex and ey
-    separable = abs(ax * ay) < NEAR_ZERO
+    separable = not tilted
     off = scratch.shape[0] - (nx + ny + 2)
     if separable:
         for i in range(i_lo, i_hi + 1):
@@ -174,8 +183,13 @@ def deposit_spot(hm, px, py, pz, ax, ay, az, dt, spray):
         ey = scratch[off + w + j - j_lo] if separable else 0.0
         for i in range(i_lo, i_hi + 1):
             rx = (i + 0.5) * cell - px
-            along = rx * ax + ry * ay
-            d2 = rx * rx + ry * ry - along * along
+            if tilted:  # the ray through the cell's surface point, off the axis by r_perp
+                rz = h[j, i] - pz
+                along = rx * ax + ry * ay + rz * az
+                d2 = rx * rx + ry * ry + rz * rz - along * along
+            else:
+                along = rx * ax + ry * ay
+                d2 = rx * rx + ry * ry - along * along
             s = (j - j_lo) * w + (i - i_lo)
             if d2 > lim2:
                 scratch[s] = 0.0
@@ -188,6 +202,10 @@ def deposit_spot(hm, px, py, pz, ax, ay, az, dt, spray):
                 gy = (h[jp, i] - h[jm, i]) / (max(jp - jm, 1) * cell)
                 cos_t = (ax * gx + ay * gy - az) / math.sqrt(gx * gx + gy * gy + 1.0)
                 zeta = (lut[int(cos_t * (lut.shape[0] - 1) + 0.5)] if cos_t > zeta_cos else 0.0)
+                if tilted:  # the rays a cell's sloped patch catches, per horizontal area:
+                    # |n . a| / n_z (|a_z| on a flat cell, the factor in amp), so the
+                    # footprint keeps its volume on any surface the rays reach once
+                    zeta *= max(ax * gx + ay * gy - az, 0.0) / abs(az)
             g = scratch[off + i - i_lo] * ey if separable else math.exp(-d2 * inv2s2)
             dz = amp * zeta * g
             scratch[s] = dz
