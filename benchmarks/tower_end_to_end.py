@@ -17,7 +17,11 @@ Printed:
   closed (``truth/layer_NNN.ply``), inside the truth's xy extent less 1 mm (as ``dm2 run``
   measures it): RMS and p95 of the unsigned distance [mm], and the coverage: the share of the
   true surface's vertices over built cells (height above 1 um) that have a written vertex
-  within ``--cover-mm`` (default 1 mm, two voxels), mean over the band's layers;
+  within ``--cover-mm`` (default 1 mm, two voxels), mean over the band's layers; and, beside
+  them, the share of those vertices that stood still for ``--stale-layers`` layers (bit-identical
+  to a vertex of that many layers' earlier mesh: no profile has touched their voxels since, e.g.
+  ledges far below the top of a tall part), the RMS over them and over the others (the surface
+  the profilers still see), so that what the TSDF could not follow is told from what it got wrong;
 - the track count of the report.
 
     .venv/bin/python benchmarks/tower_end_to_end.py [--duration S] [--band 8] [--out DIR]
@@ -43,6 +47,7 @@ ROOT = Path(__file__).resolve().parents[1]
 CROP_MM = 1.0          # as dm2.cli.bench_runner.reconstruction_errors
 BUILT_MM = 1e-3        # a truth cell with material (as twin.world.truth.write_layer_surface)
 UNOBSERVED = 5.0       # dm2.defects.classify.CLASS_NAMES.index("unobserved")
+SAME_MM = 1e-4         # a vertex this close to an earlier mesh's vertex stood still
 
 
 def cpu_model() -> str:
@@ -74,22 +79,30 @@ def run_child(args, run_dir: Path) -> tuple[float, float, int]:
     return time.perf_counter() - t0, usage.ru_maxrss / 1024.0, proc.returncode
 
 
-def layer_errors(run_dir: Path, layer: int, cover_mm: float):
-    """``(distances (n,), covered share)`` of one layer, or None without its files."""
+def observed_vertices(run_dir: Path, layer: int):
+    """Observed vertices ``(n, 3)`` [mm] of one layer's mesh, or None without the file."""
+    from dm2.report.meshes import read_ply_vertex_fields
+
+    mesh_path = run_dir / "meshes" / f"layer_{layer:03d}.ply"
+    if not mesh_path.exists():
+        return None
+    f = read_ply_vertex_fields(mesh_path)
+    v = np.column_stack([f["x"], f["y"], f["z"]]).astype(np.float64)
+    return v[f["scalar_class"] != UNOBSERVED]
+
+
+def layer_errors(run_dir: Path, layer: int, cover_mm: float, stale_layers: int):
+    """``(distances (n,), covered share, stale (n,) bool)`` of one layer, or None without its
+    files; ``stale``: the vertex is bit-identical to one ``stale_layers`` layers earlier."""
     import open3d as o3d
     import trimesh
     from scipy.spatial import cKDTree
 
-    from dm2.report.meshes import read_ply_vertex_fields
-
     truth_path = run_dir / "truth" / f"layer_{layer:03d}.ply"
-    mesh_path = run_dir / "meshes" / f"layer_{layer:03d}.ply"
-    if not truth_path.exists() or not mesh_path.exists():
+    v = observed_vertices(run_dir, layer)
+    if not truth_path.exists() or v is None:
         return None
     truth = trimesh.load(truth_path, force="mesh")
-    f = read_ply_vertex_fields(mesh_path)
-    v = np.column_stack([f["x"], f["y"], f["z"]]).astype(np.float64)
-    v = v[f["scalar_class"] != UNOBSERVED]
     tv = np.asarray(truth.vertices)
     lo, hi = tv[:, :2].min(axis=0) + CROP_MM, tv[:, :2].max(axis=0) - CROP_MM
     v = v[np.all((v[:, :2] >= lo) & (v[:, :2] <= hi), axis=1)]
@@ -104,7 +117,12 @@ def layer_errors(run_dir: Path, layer: int, cover_mm: float):
         covered = float(np.mean(np.isfinite(near)))
     else:
         covered = 0.0
-    return d, covered
+    stale = np.zeros(len(v), bool)
+    earlier = observed_vertices(run_dir, layer - stale_layers) if layer >= stale_layers else None
+    if earlier is not None and len(earlier) and len(v):
+        gap, _ = cKDTree(earlier).query(v, distance_upper_bound=SAME_MM)
+        stale = np.isfinite(gap)
+    return d, covered, stale
 
 
 def main() -> None:
@@ -113,6 +131,8 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=None, help="process seconds to run")
     ap.add_argument("--band", type=int, default=8, help="layers per band")
     ap.add_argument("--cover-mm", type=float, default=1.0)
+    ap.add_argument("--stale-layers", type=int, default=16,
+                    help="a vertex unchanged for this many layers counts as stale")
     ap.add_argument("--out", type=Path, default=None, help="keep the run folder here")
     ap.add_argument("--analyse", type=Path, default=None, metavar="RUN_DIR",
                     help="only print the figures of a run folder this script kept with --out")
@@ -172,23 +192,29 @@ def report(run_dir: Path, wall: float, rss_mib: float, args) -> None:
     print(f"reconstruction per {args.band}-layer band (all written vertices vs the twin's true "
           f"surface at each layer's end; coverage: true built surface within {args.cover_mm:g} "
           "mm of a written vertex)")
-    print(f"{'layers':>9} {'RMS mm':>7} {'p95 mm':>7} {'max mm':>7} {'cover':>6} {'vertices':>9}")
+    print(f"{'layers':>9} {'RMS mm':>7} {'p95 mm':>7} {'max mm':>7} {'cover':>6} {'vertices':>9}"
+          f" {'stale':>6} {'RMS stale':>9} {'RMS rest':>8}   (stale: unchanged for "
+          f"{args.stale_layers} layers)")
     worst = [0.0, 0.0, 1.0]
     for b0 in range(0, (max(layers) + 1) if layers else 0, args.band):
-        ds, cov = [], []
+        ds, cov, stale = [], [], []
         for k in range(b0, b0 + args.band):
-            r = layer_errors(run_dir, k, args.cover_mm)
+            r = layer_errors(run_dir, k, args.cover_mm, args.stale_layers)
             if r is not None:
                 ds.append(r[0])
                 cov.append(r[1])
+                stale.append(r[2])
         if not ds:
             continue
-        d = np.concatenate(ds)
+        d, old = np.concatenate(ds), np.concatenate(stale)
         rms, p95, c = float(np.sqrt(np.mean(d ** 2))), float(np.percentile(d, 95)), \
             float(np.mean(cov))
+        rms_stale, rms_rest = (float(np.sqrt(np.mean(x ** 2))) if x.size else float("nan")
+                               for x in (d[old], d[~old]))
         worst = [max(worst[0], rms), max(worst[1], p95), min(worst[2], c)]
         print(f"{b0:4d}-{b0 + len(ds) - 1:<4d} {rms:7.3f} {p95:7.3f} {d.max():7.2f} "
-              f"{100 * c:5.1f}% {d.size:9d}")
+              f"{100 * c:5.1f}% {d.size:9d} {100 * old.mean():5.1f}% {rms_stale:9.3f} "
+              f"{rms_rest:8.3f}")
     print(f"worst band: RMS {worst[0]:.3f} mm, p95 {worst[1]:.3f} mm, coverage "
           f"{100 * worst[2]:.1f}% (targets: <= 0.25 mm, <= 0.5 mm, >= 95 %)")
 

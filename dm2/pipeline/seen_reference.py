@@ -8,9 +8,12 @@ layer read 5-20 % short that way).
 
 :class:`SeenReference` keeps, per reference cell, the reference height when a profile point
 last fell within ``radius_mm`` of it, and when. At a layer's end, the growth of the reference
-since then (``unseen_mm``, over the columns observed since the previous layer's end) goes to
-the layer analysis, which does not call an underbuild of that size (dm2.defects.deviation), and
-to the process fit, which measures the deposition scale against what was seen.
+since then (``unseen_mm``, over every column observed at least once) goes to the layer
+analysis, which does not call an underbuild of that size (dm2.defects.deviation), and to the
+process fit, which measures the deposition scale against what was seen. A column the profilers
+no longer see (a ledge far below the top of a tall part, where the plume's tail still lands)
+is so compared with the reference of its last observation, not with a reference that went on
+growing while the measured surface stood still.
 """
 
 from __future__ import annotations
@@ -55,13 +58,12 @@ class SeenReference:
             reference.set_plume_factor(plume)
             self.heights_mm += reference.heights_mm - before
 
-    def unseen(self, reference: ReferenceMap, since_s: float) -> ReferenceMap:
-        """The reference's growth since each column's last observation, over the columns seen
-        after ``since_s`` (0 elsewhere), as a new map on the reference's grid."""
-        grown = np.where(self.stamp_s > since_s, reference.heights_mm - self.heights_mm, 0.0)
+    def unseen(self, reference: ReferenceMap) -> ReferenceMap:
+        """The reference's growth since each column's last observation (0 where no profile
+        point ever fell), as a new map on the reference's grid."""
+        grown = np.where(np.isfinite(self.stamp_s), reference.heights_mm - self.heights_mm, 0.0)
         return ReferenceMap(np.maximum(np.nan_to_num(grown), 0.0), reference.cell_mm,
                             reference.layer, reference.stamp_s)
-
 
 @njit(cache=True, inline="always")
 def cell_of(x_mm, y_mm, cell_mm, ny, nx):

@@ -119,7 +119,6 @@ class MonitoringSession:
         self.fusion.observed_points = []
         self.seen = SeenReference(self.reference.heights_mm.shape, self.reference.cell_mm,
                                   0.5 * monitor_cfg.voxel_mm)
-        self._last_close_s = -np.inf
         self._pending_fit: tuple[float, float, float] | None = None
         self._reobserved: ReobservedTop | None = None  # the calibration layer seen again
         self._fit_due_s: float | None = None  # stream time the pending fit is applied at
@@ -352,8 +351,7 @@ class MonitoringSession:
         if ref is None:  # no layer marks in the stream: take the reference now
             ref = self.reference.end_layer(done.layer)
         stamp = None if not np.isfinite(done.stamp_s) else done.stamp_s
-        unseen = self.seen.unseen(ref, self._last_close_s)
-        self._last_close_s = done.stamp_s
+        unseen = self.seen.unseen(ref)
         self._taken_layer = done.layer
         if self.process_fit is not None:
             self._fit_due_s = done.stamp_s + FIT_APPLY_DELAY_S
