@@ -65,6 +65,7 @@ class SeenReference:
         return ReferenceMap(np.maximum(np.nan_to_num(grown), 0.0), reference.cell_mm,
                             reference.layer, reference.stamp_s)
 
+
 @njit(cache=True, inline="always")
 def cell_of(x_mm, y_mm, cell_mm, ny, nx):
     """(row, column) of the grid cell holding ``(x_mm, y_mm)``, or (-1, -1) off the grid (NaN
