@@ -44,7 +44,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-CROP_MM = 1.0          # as dm2.cli.bench_runner.reconstruction_errors
+CROP_MM = 1.0          # as dm2.bench.reconstruction.reconstruction_errors
 BUILT_MM = 1e-3        # a truth cell with material (as twin.world.truth.write_layer_surface)
 UNOBSERVED = 5.0       # dm2.defects.classify.CLASS_NAMES.index("unobserved")
 SAME_MM = 1e-4         # a vertex this close to an earlier mesh's vertex stood still
@@ -94,22 +94,20 @@ def observed_vertices(run_dir: Path, layer: int):
 def layer_errors(run_dir: Path, layer: int, cover_mm: float, stale_layers: int):
     """``(distances (n,), covered share, stale (n,) bool)`` of one layer, or None without its
     files; ``stale``: the vertex is bit-identical to one ``stale_layers`` layers earlier."""
-    import open3d as o3d
-    import trimesh
     from scipy.spatial import cKDTree
+
+    from dm2.bench.reconstruction import mesh_distance
+    from dm2.io.ply import read_mesh_ply
 
     truth_path = run_dir / "truth" / f"layer_{layer:03d}.ply"
     v = observed_vertices(run_dir, layer)
     if not truth_path.exists() or v is None:
         return None
-    truth = trimesh.load(truth_path, force="mesh")
-    tv = np.asarray(truth.vertices)
+    fields, faces = read_mesh_ply(truth_path)
+    tv = np.column_stack([fields[k] for k in "xyz"]).astype(np.float64)
     lo, hi = tv[:, :2].min(axis=0) + CROP_MM, tv[:, :2].max(axis=0) - CROP_MM
     v = v[np.all((v[:, :2] >= lo) & (v[:, :2] <= hi), axis=1)]
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(tv.astype(np.float32)),
-                        o3d.core.Tensor(np.asarray(truth.faces, np.uint32)))
-    d = scene.compute_distance(o3d.core.Tensor(v.astype(np.float32))).numpy().astype(np.float64)
+    d = mesh_distance(v, tv, faces)  # (as dm2 run's own reconstruction check)
     inside = np.all((tv[:, :2] >= lo) & (tv[:, :2] <= hi), axis=1)
     built = tv[inside & (np.abs(tv[:, 2]) > BUILT_MM)]
     if len(v) and len(built):

@@ -126,6 +126,7 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
     twin.cell.kinematics.ReachError : the toolpath leaves the robot's reach (nothing written)
     ValueError : ``run_dir`` cannot be written (nothing written)
     """
+    from dm2.bench.reconstruction import reconstruction_errors
     from dm2.core.toml_write import dump_toml
     from dm2.pipeline.pipeline import Pipeline
     from dm2.report import check_output_dir
@@ -187,44 +188,6 @@ def track_footprints(results) -> dict:
             new = (xy[ids], areas[ids])
             layers[int(r.layer)] = new if prev is None else (
                 np.vstack([prev[0], new[0]]), np.concatenate([prev[1], new[1]]))
-    return out
-
-
-def reconstruction_errors(results, truth_dir: Path) -> dict[int, dict]:
-    """Per layer: distance [mm] of the observed reconstructed vertices to the true surface.
-
-    The truth is the twin's ``layer_NNN.ply`` (the true top surface when the layer closed);
-    only vertices inside its xy extent (less 1 mm) are compared, as the truth mesh is cropped
-    to the built region. The truth is read as plain arrays (a loaded ``trimesh.Trimesh`` sits in
-    reference cycles until the garbage collector runs: over the 124 layers of the twisted tower
-    that held 690 MiB of truth meshes at the run's memory peak).
-    """
-    import open3d as o3d
-
-    from dm2.defects.classify import CLASS_NAMES
-    from dm2.io.ply import read_mesh_ply
-
-    unobserved = CLASS_NAMES.index("unobserved")
-    out: dict[int, dict] = {}
-    for r in results:
-        path = Path(truth_dir) / f"layer_{r.layer:03d}.ply"
-        if not path.exists():
-            continue
-        fields, faces = read_mesh_ply(path)
-        truth_O = np.column_stack([fields[k] for k in "xyz"]).astype(np.float32)
-        dev = r.deviation
-        v = dev.vertices_O[dev.class_code != unobserved]
-        lo, hi = truth_O[:, :2].min(axis=0) + 1.0, truth_O[:, :2].max(axis=0) - 1.0
-        v = v[np.all((v[:, :2] >= lo) & (v[:, :2] <= hi), axis=1)]
-        if v.shape[0] == 0:
-            continue
-        scene = o3d.t.geometry.RaycastingScene()
-        scene.add_triangles(o3d.core.Tensor(truth_O),
-                            o3d.core.Tensor(np.ascontiguousarray(faces, np.uint32)))
-        d = scene.compute_distance(o3d.core.Tensor(v.astype(np.float32))).numpy()
-        out[int(r.layer)] = {"rms_mm": float(np.sqrt(np.mean(d.astype(np.float64) ** 2))),
-                             "p95_mm": float(np.percentile(d, 95)),
-                             "n_vertices": int(v.shape[0])}
     return out
 
 

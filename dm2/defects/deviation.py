@@ -44,7 +44,7 @@ def _surface_arrays(surface):
 
 
 @njit(cache=True, inline="always")
-def _closest_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
+def closest_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
     """Closest point of triangle abc to p (Ericson, Real-Time Collision Detection 5.1.5)."""
     abx, aby, abz = bx - ax, by - ay, bz - az
     acx, acy, acz = cx - ax, cy - ay, cz - az
@@ -125,10 +125,10 @@ def _closest_on_heightmap(points, h, cell, max_r):
                 d = h[j + 1, i + 1]
                 for t in range(2):
                     if t == 0:
-                        cx_, cy_, cz_ = _closest_on_triangle(px, py, pz, x0, y0, a, x1, y0, b,
+                        cx_, cy_, cz_ = closest_on_triangle(px, py, pz, x0, y0, a, x1, y0, b,
                                                              x1, y1, d)
                     else:
-                        cx_, cy_, cz_ = _closest_on_triangle(px, py, pz, x0, y0, a, x1, y1, d,
+                        cx_, cy_, cz_ = closest_on_triangle(px, py, pz, x0, y0, a, x1, y1, d,
                                                              x0, y1, c)
                     d2 = (cx_ - px) ** 2 + (cy_ - py) ** 2 + (cz_ - pz) ** 2
                     if d2 < best2:

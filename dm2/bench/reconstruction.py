@@ -1,0 +1,154 @@
+"""How far the reconstructed surface lies from the twin's true surface, layer by layer.
+
+The twin writes each layer's true top surface as ``truth/layer_NNN.ply``: its height field's
+cell centres as a regular grid of vertices (row-major, x fastest), each quad split into the
+triangles a-b-d and a-d-c along the diagonal from (i, j) to (i + 1, j + 1)
+(``twin.world.heightfield.HeightField.to_mesh``). Such a grid mesh is searched in place: the
+exact closest point-triangle distance over the quads in rings around the point's own quad,
+each quad skipped when its bounding box is farther than the best distance so far, rings stopped
+once they are farther (:func:`grid_mesh_distance`, numba, parallel over points). Any other
+mesh goes through Open3D's ``RaycastingScene.compute_distance`` (a BVH; it holds the GIL and
+builds a tree per layer, ``benchmarks/reconstruction_check.py`` measures both).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+from numba import njit, prange
+
+from dm2.defects.classify import CLASS_NAMES
+from dm2.defects.deviation import closest_on_triangle
+from dm2.io.ply import read_mesh_ply
+
+CROP_MM = 1.0  # vertices this close to the truth's xy extent are not compared (it is cropped)
+GRID_TOL_MM = 1e-6  # a grid's vertex coordinates agree with its spacing within this
+
+
+def grid_of_mesh(vertices: np.ndarray, faces: np.ndarray):
+    """``(heights_mm (H, W), x0_mm, y0_mm, cell_mm)`` when ``vertices`` (H*W, 3) [mm] and
+    ``faces`` (m, 3) are a grid mesh as the module docstring describes, else None."""
+    v = np.asarray(vertices, dtype=np.float64)
+    n = v.shape[0]
+    if n < 4 or faces.shape[0] == 0:
+        return None
+    x0, y0 = v[0, 0], v[0, 1]
+    W = int(np.argmax(v[:, 1] > y0 + GRID_TOL_MM)) or n  # first vertex of the second row
+    H = n // W
+    if W < 2 or H < 2 or H * W != n:
+        return None
+    cell = v[1, 0] - x0
+    if cell <= GRID_TOL_MM:
+        return None
+    g = v.reshape(H, W, 3)
+    ii, jj = np.arange(W) * cell + x0, np.arange(H) * cell + y0
+    if (np.abs(g[:, :, 0] - ii[None, :]).max() > 1e3 * GRID_TOL_MM
+            or np.abs(g[:, :, 1] - jj[:, None]).max() > 1e3 * GRID_TOL_MM):
+        return None
+    a = (np.arange(H - 1)[:, None] * W + np.arange(W - 1)[None, :]).ravel()
+    expected = np.concatenate([np.column_stack([a, a + 1, a + W + 1]),
+                               np.column_stack([a, a + W + 1, a + W])])
+    if faces.shape != expected.shape or not np.array_equal(faces, expected):
+        return None
+    return np.ascontiguousarray(g[:, :, 2]), float(x0), float(y0), float(cell)
+
+
+@njit(cache=True, inline="always")
+def _quad_best(px, py, pz, h, x0, y0, cell, i, j, best2):
+    """``best2`` lowered to the squared distance of p to quad (i, j)'s two triangles where one
+    is closer; the quad is skipped when its bounding box is no closer."""
+    qx0 = x0 + i * cell
+    qy0 = y0 + j * cell
+    a, b = h[j, i], h[j, i + 1]
+    c, d = h[j + 1, i], h[j + 1, i + 1]
+    ex = max(qx0 - px, 0.0, px - qx0 - cell)
+    ey = max(qy0 - py, 0.0, py - qy0 - cell)
+    ez = max(min(a, b, c, d) - pz, 0.0, pz - max(a, b, c, d))
+    if ex * ex + ey * ey + ez * ez >= best2:
+        return best2
+    qx1, qy1 = qx0 + cell, qy0 + cell
+    cx, cy, cz = closest_on_triangle(px, py, pz, qx0, qy0, a, qx1, qy0, b, qx1, qy1, d)
+    best2 = min(best2, (cx - px) ** 2 + (cy - py) ** 2 + (cz - pz) ** 2)
+    cx, cy, cz = closest_on_triangle(px, py, pz, qx0, qy0, a, qx1, qy1, d, qx0, qy1, c)
+    return min(best2, (cx - px) ** 2 + (cy - py) ** 2 + (cz - pz) ** 2)
+
+
+@njit(cache=True, parallel=True)
+def grid_mesh_distance(points, h, x0, y0, cell):
+    """Unsigned distance [mm] (n,) of ``points`` (n, 3) [mm] to the grid mesh of heights ``h``
+    (H, W) with vertex (i, j) at (x0 + i cell, y0 + j cell, h[j, i]), exact."""
+    ny, nx = h.shape
+    n = points.shape[0]
+    dist = np.empty(n)
+    for k in prange(n):
+        px, py, pz = points[k, 0], points[k, 1], points[k, 2]
+        fi = min(max(int(math.floor((px - x0) / cell)), 0), nx - 2)
+        fj = min(max(int(math.floor((py - y0) / cell)), 0), ny - 2)
+        best2 = np.inf
+        r = 0
+        while True:
+            if r >= 2 and ((r - 1) * cell) ** 2 >= best2:
+                break  # every quad of this ring lies farther in xy alone
+            if fi - r < 0 and fj - r < 0 and fi + r > nx - 2 and fj + r > ny - 2:
+                break  # the ring lies wholly outside the grid
+            for j in range(max(fj - r, 0), min(fj + r, ny - 2) + 1):
+                if j == fj - r or j == fj + r:  # the ring's bottom and top rows: all quads
+                    for i in range(max(fi - r, 0), min(fi + r, nx - 2) + 1):
+                        best2 = _quad_best(px, py, pz, h, x0, y0, cell, i, j, best2)
+                else:  # its sides: the two end quads (r >= 1 here)
+                    if fi - r >= 0:
+                        best2 = _quad_best(px, py, pz, h, x0, y0, cell, fi - r, j, best2)
+                    if fi + r <= nx - 2:
+                        best2 = _quad_best(px, py, pz, h, x0, y0, cell, fi + r, j, best2)
+            r += 1
+        dist[k] = math.sqrt(best2)
+    return dist
+
+
+def mesh_distance(points_O: np.ndarray, vertices_O: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Unsigned distance [mm] (n,) of ``points_O`` (n, 3) to the triangle mesh
+    (``vertices_O`` (m, 3) [mm], ``faces`` (f, 3)): in place on a grid mesh, else Open3D."""
+    p = np.ascontiguousarray(points_O, dtype=np.float64).reshape(-1, 3)
+    grid = grid_of_mesh(vertices_O, faces)
+    if grid is not None:
+        return grid_mesh_distance(p, *grid)
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(vertices_O, np.float32)),
+                        o3d.core.Tensor(np.ascontiguousarray(faces, np.uint32)))
+    return scene.compute_distance(o3d.core.Tensor(p.astype(np.float32))).numpy().astype(
+        np.float64)
+
+
+def reconstruction_errors(results, truth_dir: Path) -> dict[int, dict]:
+    """Per layer: distance [mm] of the observed reconstructed vertices to the true surface.
+
+    The truth is the twin's ``layer_NNN.ply`` (the true top surface when the layer closed);
+    only vertices inside its xy extent (less ``CROP_MM``) are compared, as the truth mesh is
+    cropped to the built region. The truth is read as plain arrays (a loaded
+    ``trimesh.Trimesh`` sits in reference cycles until the garbage collector runs: over the 124
+    layers of the twisted tower that held 690 MiB of truth meshes at the run's memory peak).
+    """
+    unobserved = CLASS_NAMES.index("unobserved")
+    out: dict[int, dict] = {}
+    for r in results:
+        path = Path(truth_dir) / f"layer_{r.layer:03d}.ply"
+        if not path.exists():
+            continue
+        fields, faces = read_mesh_ply(path)
+        truth_O = np.column_stack([fields[k] for k in "xyz"]).astype(np.float64)
+        dev = r.deviation
+        v = dev.vertices_O[dev.class_code != unobserved]
+        lo = truth_O[:, :2].min(axis=0) + CROP_MM
+        hi = truth_O[:, :2].max(axis=0) - CROP_MM
+        v = v[np.all((v[:, :2] >= lo) & (v[:, :2] <= hi), axis=1)]
+        if v.shape[0] == 0:
+            continue
+        d = mesh_distance(v, truth_O, faces)
+        out[int(r.layer)] = {"rms_mm": float(np.sqrt(np.mean(d ** 2))),
+                             "p95_mm": float(np.percentile(d, 95)),
+                             "n_vertices": int(v.shape[0])}
+    return out
