@@ -66,3 +66,21 @@ def test_local_only_region_is_an_early_warning_until_it_turns_global():
     assert t.kinds == {1: "local_overbuild", 2: "local_overbuild", 3: "overbuild"}
     tr.finish()
     assert len(tr.tracks) == 1  # the dent never turned global: no track
+
+
+def test_a_merge_keeps_the_global_evidence():
+    """A region that meets a global candidate and an older local-only one continues the global
+    one: merged into the local candidate, whose window ends, the global layer would be lost."""
+    tr = RegionTracker(confirm_observations=2, confirm_window_layers=2,
+                       confirm_requires_global=True)
+    assert tr.update(3, [region(3, 0, 3, kind="local_overbuild", height=0.3)]) == [None]
+    # layer 4: the local bump goes on at x 0-3; a global overbuild opens beside it at x 5-9
+    assert tr.update(4, [region(4, 5, 9, kind="overbuild", height=0.8),
+                         region(4, 0, 3, kind="local_overbuild", height=0.3)]) == [None, None]
+    # layer 5: one region over both, back under delta_global_mm
+    assert tr.update(5, [region(5, 0, 9, kind="local_overbuild", height=0.35)]) == [1]
+    (t,) = tr.tracks
+    assert t.kind == "overbuild" and t.first_layer == 4 and t.last_layer == 5
+    assert t.kinds == {4: "overbuild", 5: "local_overbuild"}
+    tr.finish()
+    assert len(tr.tracks) == 1

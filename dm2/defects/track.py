@@ -19,7 +19,8 @@ ids are numbered in the order tracks are confirmed. Per layer a track is in one 
 * ``new``; ``growing`` (amplifying), ``shrinking`` (self-compensating) or ``stable``, judged
   on the area change (beyond ``area_tolerance``) and otherwise on the height change (beyond
   ``height_tolerance_mm``);
-* ``merged``: several tracks met one region; it continues the oldest, the others end;
+* ``merged``: several tracks met one region; it continues the oldest confirmed one (among
+  candidates only: one seen global before local-only ones, then the oldest), the others end;
 * ``split``: one track met several regions; the largest continues it, the rest start new tracks
   (their ``parent`` is the split track);
 * ``ended``: no region continued it this layer.
@@ -171,7 +172,10 @@ class RegionTracker:
         for j in range(len(regions)):
             cands = [act[i] for i in np.flatnonzero(hit[:, j])]
             if len(cands) > 1:
-                keep = min(cands, key=lambda t: (not t.confirmed, t.first_layer, t.serial))
+                # a confirmed track continues; among candidates one seen global keeps its
+                # evidence (a merge into a local-only candidate would drop it)
+                keep = min(cands, key=lambda t: (not t.confirmed, t.kind.startswith("local_"),
+                                                 t.first_layer, t.serial))
                 owner[j], state[j] = keep, "merged"
                 for t in cands:
                     if t is not keep:
