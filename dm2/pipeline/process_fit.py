@@ -208,7 +208,7 @@ class ProcessFit:
             if self.planned_height_mm:
                 short = (1.0 - s_hat / s0) * self.planned_height_mm
                 text += (f"; at this rate the part ends {abs(short):.1f} mm "
-                         f"{'short' if short > 0 else 'tall'}")
+                         f"{'short' if short > 0 else 'too tall'}")
             out.append({"kind": "change", "quantity": "deposition scale", "estimate": s_hat,
                         "sign": sign, "since_layer": int(since), "text": text})
         if base is not None and abs(base - 1.0) >= self.finding_threshold:
@@ -219,7 +219,7 @@ class ProcessFit:
             if self.planned_height_mm:
                 short = (1.0 - base) * self.planned_height_mm
                 text += (f"; at this rate the part ends {abs(short):.1f} mm "
-                         f"{'short' if short > 0 else 'tall'}")
+                         f"{'short' if short > 0 else 'too tall'}")
             out.insert(0, {"kind": "offset", "quantity": "deposition scale",
                            "estimate": float(base), "sign": sign,
                            "since_layer": int(cal["layer"]), "text": text})

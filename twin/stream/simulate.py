@@ -183,7 +183,8 @@ class Simulation:
 
         def produce(c: int):
             """Chunk ``c`` on the true field: truth and blobs at a new layer, deposition, rays
-            ``0:rays`` of its fans; returns (rays, traces, changed cells or None, CPU s)."""
+            ``0:rays`` of its fans; returns (rays, traces, changed cells or None, CPU s), the
+            traces measured into Profiles when ``rays`` is the whole fan."""
             c0 = time.thread_time()
             a, b = chunks[c]
             layer = int(layers[a])
@@ -201,7 +202,10 @@ class Simulation:
                 prof = profilers[trig_sensor[q]]
                 out = prof.empty_trace()
                 prof.trace_rays(hf, trig_T_B_O[q], occluders, out, 0, rays)
-                traces.append(out)
+                # a whole fan is measured here too (the noise is drawn from the profile's own
+                # (seed, sensor, counter) stream: the same bits on either thread)
+                traces.append(out if rays < n_rays else
+                              prof.measure(out, trig_stamps[q], trig_counter[q]))
             changes = (hf.take_changes() if mirror is not hf and trig_end[c] > k0
                        and rays < n_rays else None)
             c2 = time.thread_time()
@@ -245,8 +249,10 @@ class Simulation:
                                         occluders)
                         continue
                     out = traces[q - k]
-                    if rays < n_rays:
-                        prof.trace_rays(mirror, trig_T_B_O[q], occluders, out, rays, n_rays)
+                    if rays == n_rays:  # cast and measured on the worker
+                        yield out
+                        continue
+                    prof.trace_rays(mirror, trig_T_B_O[q], occluders, out, rays, n_rays)
                     yield prof.measure(out, trig_stamps[q], trig_counter[q])
                 k = trig_end[c]
         finally:

@@ -3,7 +3,8 @@
 The stream is cut into chunks (:func:`chunk_runs`): motion samples that share a layer and hold
 no profile trigger inside. The worker thread (:class:`ChunkWorker`) runs a few chunks ahead:
 it deposits a chunk, casts rays ``0:rays`` of the profiler fans that end it on the true field
-and hands over the cells the chunk changed; the calling thread yields the chunk's robot states,
+(measuring them into profiles too when that is the whole fan) and hands over the cells the chunk
+changed; the calling thread yields the chunk's robot states,
 applies the changes to its mirror of the field and casts the remaining rays there. Every ray is
 cast on its own, so the messages do not depend on ``rays``: :class:`FanSplit` moves it, chunk
 by chunk, towards equal CPU seconds on both threads (the calling thread also does whatever the
