@@ -111,6 +111,7 @@ class NearNetReference:
         self.process_scale = 1.0
         self._theta_c = math.radians(process.critical_angle_deg)
         self._T_O_F = invert(calibration.T_F_O)
+        self._T_F_O_for_spot = invert(self._T_O_F)  # T_F_O as spot_O always composed it
         T_B_N = calibration.T_B_N
         self._spot_B = T_B_N[:3, :3] @ np.array([0.0, 0.0, process.standoff_mm]) + T_B_N[:3, 3]
         self._axis_B = T_B_N[:3, 2].copy()
@@ -188,9 +189,11 @@ class NearNetReference:
 
     def spot_O(self, T_B_F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Deposition spot and spray axis in ``O`` for flange poses ``T_B_F`` (..., 4, 4)."""
-        T_O_B = invert(np.asarray(T_B_F) @ invert(self._T_O_F))  # inv(T_B_F @ T_F_O)
-        spot = np.einsum("...ij,j->...i", T_O_B[..., :3, :3], self._spot_B) + T_O_B[..., :3, 3]
-        axis = np.einsum("...ij,j->...i", T_O_B[..., :3, :3], self._axis_B)
+        T_B_O = np.asarray(T_B_F) @ self._T_F_O_for_spot  # (frames.invert's arithmetic, unchecked:
+        R_O_B = np.swapaxes(T_B_O[..., :3, :3], -1, -2)  # these are the feed's own rigid poses)
+        t_O_B = -np.einsum("...ij,...j->...i", R_O_B, T_B_O[..., :3, 3])
+        spot = np.einsum("...ij,j->...i", R_O_B, self._spot_B) + t_O_B
+        axis = np.einsum("...ij,j->...i", R_O_B, self._axis_B)
         return spot, axis
 
     def feed(self, msg) -> ReferenceMap | None:
