@@ -134,11 +134,14 @@ def recent_slot(bx, by, bz, a, b):
 
 @njit(cache=True, inline="always")
 def dda_start(ox, oy, oz, dx, dy, dz, r, truncation_mm, voxel_mm, inv_vox):
-    """First voxel and DDA state (Amanatides & Woo) of the band ``r +- truncation_mm``: voxel
-    ``vx, vy, vz``, the band's length ``span`` [voxels], steps ``st*``, crossing increments
-    ``td*`` and next crossings ``tm*`` [voxels], and the projective signed distance ``d`` [mm]
-    of the first voxel's centre (``r`` minus its distance from the origin along the ray) with
-    its change ``dd*`` [mm] per step along each axis."""
+    """First voxel and DDA state (Amanatides & Woo) of the band ``r +- truncation_mm`` of the
+    ray from ``(ox, oy, oz)`` [mm, O] along the unit ``(dx, dy, dz)``: ``vx, vy, vz, span, tmx,
+    tmy, tmz, d, steps`` with the first voxel ``vx, vy, vz``, the band's length ``span``
+    [voxels], the next crossings ``tm*`` [voxels] and the projective signed distance ``d`` [mm]
+    of the first voxel's centre (``r`` minus its distance from the origin along the ray).
+    ``steps`` holds the ray's constants for :func:`dda_step`: ``(stx, sty, stz, tdx, tdy, tdz,
+    ddx, ddy, ddz)``, the voxel steps ``st*`` (+-1), the crossing increments ``td*`` [voxels]
+    and the change ``dd*`` [mm] of ``d`` per step along each axis."""
     t0 = r - truncation_mm
     t1 = r + truncation_mm
     sx0, sy0, sz0 = (ox + dx * t0) * inv_vox, (oy + dy * t0) * inv_vox, \
@@ -157,14 +160,17 @@ def dda_start(ox, oy, oz, dx, dy, dz, r, truncation_mm, voxel_mm, inv_vox):
     tmz = ((vz + 1 - sz0) if dz > 0 else (sz0 - vz)) * tdz if dz != 0 else big
     d = r - (((vx + 0.5) * voxel_mm - ox) * dx + ((vy + 0.5) * voxel_mm - oy) * dy
              + ((vz + 0.5) * voxel_mm - oz) * dz)
-    return (vx, vy, vz, span, stx, sty, stz, tdx, tdy, tdz, tmx, tmy, tmz, d,
-            stx * voxel_mm * dx, sty * voxel_mm * dy, stz * voxel_mm * dz)
+    return (vx, vy, vz, span, tmx, tmy, tmz, d,
+            (stx, sty, stz, tdx, tdy, tdz,
+             stx * voxel_mm * dx, sty * voxel_mm * dy, stz * voxel_mm * dz))
 
 
 @njit(cache=True, inline="always")
-def dda_step(vx, vy, vz, stx, sty, stz, tdx, tdy, tdz, tmx, tmy, tmz, d, ddx, ddy, ddz):
-    """Step to the next voxel along the axis whose boundary the ray crosses first; returns the
-    new ray parameter ``t`` (voxel units), voxel, crossing parameters and signed distance."""
+def dda_step(vx, vy, vz, tmx, tmy, tmz, d, steps):
+    """Step to the next voxel along the axis whose boundary the ray crosses first (``steps``:
+    the ray's constants from :func:`dda_start`); returns the new ray parameter ``t`` (voxel
+    units), voxel, crossing parameters and signed distance [mm]."""
+    stx, sty, stz, tdx, tdy, tdz, ddx, ddy, ddz = steps
     if tmx < tmy:
         if tmx < tmz:
             return tmx, vx + stx, vy, vz, tmx + tdx, tmy, tmz, d - ddx
@@ -197,29 +203,28 @@ def update_voxel(voxels, slot, vx, vy, vz, d, truncation_mm, inv_trunc, act, act
 
 
 @njit(cache=True, error_model="numpy")
-def integrate_rays(origins_O, points_O, active, voxel_mm, truncation_mm, active_weight_cap,
-                   max_weight, table_keys, table_slots, block_keys, voxels, touched, state,
-                   start):
-    """Fuse rays ``origins_O[i] -> points_O[i]`` into the sparse TSDF, from index ``start``.
+def integrate_rays(batch, params, table, block_keys, voxels, touched, state, start):
+    """Fuse the rays ``origins_O[i] -> points_O[i]`` of ``batch`` (a
+    :func:`~dm2.fusion.tsdf.bundles.ray_batch`) into the sparse TSDF, from index ``start``.
 
-    ``state[0]`` is the number of allocated blocks. Returns the index of the first ray that was
-    not integrated because the block arrays or the hash table need to grow (``n`` when done).
+    ``params``: :class:`~dm2.fusion.tsdf.bundles.FusionParams` (its active radius and bounds
+    unused); ``table``: the field's :class:`~dm2.fusion.tsdf.bundles.BlockHash`; ``block_keys
+    (capacity,)`` int64, ``voxels (capacity, 512, 2)`` float32, ``touched (capacity,)`` bool
+    the field's block rows; ``state[0]`` is the number of allocated blocks. Returns the index
+    of the first ray that was not integrated because the block arrays or the hash table need
+    to grow (``n`` when done).
     """
-    n = points_O.shape[0]
-    offsets = np.array([0, n], dtype=np.int64)
-    none3 = np.zeros((0, 3))
     counts = np.zeros(2, dtype=np.int64)
-    return _fuse(False, origins_O, points_O, active, points_O, offsets, np.zeros((0, 4, 4)),
-                 none3, none3, 0.0, none3[0:0, 0], none3[0:0, 0], False, start, voxel_mm,
-                 truncation_mm, active_weight_cap, max_weight, table_keys, table_slots,
-                 block_keys, voxels, touched, state, counts)
+    return _fuse(False, False, batch, params, start, table, block_keys, voxels, touched, state,
+                 counts)
 
 
 @njit(cache=True, error_model="numpy")
-def fuse_profiles(xz_S, offsets, T_O_S, spot_O, axis_O, active_r2_mm2, bounds_lo, bounds_hi,
-                  use_bounds, start, voxel_mm, truncation_mm, active_weight_cap, max_weight,
-                  table_keys, table_slots, block_keys, voxels, touched, state, counts):
-    """Register and fuse a batch of profiles (paper eq 1, then eqs 2-5), from point ``start``.
+def fuse_profiles(batch, params, use_bounds, start, table, block_keys, voxels, touched, state,
+                  counts):
+    """Register and fuse a batch of profiles (paper eq 1, then eqs 2-5), from point ``start``
+    (``batch``: a :func:`~dm2.fusion.tsdf.bundles.profile_batch`; the other arguments as in
+    :func:`integrate_rays`).
 
     Profile ``k`` owns points ``xz_S[offsets[k]:offsets[k + 1]]``; its point ``(x, z)`` lies at
     ``p = t + x * R[:, 0] + z * R[:, 2]`` in ``O`` with ``R, t`` of ``T_O_S[k]`` and its ray
@@ -230,23 +235,16 @@ def fuse_profiles(xz_S, offsets, T_O_S, spot_O, axis_O, active_r2_mm2, bounds_lo
     counted in ``counts[1]``. Returns the index of the first point not handled because the
     block arrays or the hash table need to grow (``len(xz_S)`` when done).
     """
-    none3 = np.zeros((0, 3))
     if use_bounds:  # literal flags: each variant is compiled without the other's tests
-        return _fuse(True, none3, none3, np.zeros(0, np.bool_), xz_S, offsets, T_O_S, spot_O,
-                     axis_O, active_r2_mm2, bounds_lo, bounds_hi, True, start, voxel_mm,
-                     truncation_mm, active_weight_cap, max_weight, table_keys, table_slots,
-                     block_keys, voxels, touched, state, counts)
-    return _fuse(True, none3, none3, np.zeros(0, np.bool_), xz_S, offsets, T_O_S, spot_O,
-                 axis_O, active_r2_mm2, bounds_lo, bounds_hi, False, start, voxel_mm,
-                 truncation_mm, active_weight_cap, max_weight, table_keys, table_slots,
-                 block_keys, voxels, touched, state, counts)
+        return _fuse(True, True, batch, params, start, table, block_keys, voxels, touched,
+                     state, counts)
+    return _fuse(True, False, batch, params, start, table, block_keys, voxels, touched, state,
+                 counts)
 
 
 @njit(cache=True, inline="always")
-def _fuse(register, origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, axis_O,
-          active_r2_mm2, bounds_lo, bounds_hi, use_bounds, start, voxel_mm, truncation_mm,
-          active_weight_cap, max_weight, table_keys, table_slots, block_keys, voxels, touched,
-          state, counts):
+def _fuse(register, use_bounds, batch, params, start, table, block_keys, voxels, touched, state,
+          counts):
     """The one integration loop behind :func:`integrate_rays` (``register=False``: rays given
     in ``O``) and :func:`fuse_profiles` (``register=True``: profiles registered here), inlined
     into each with ``register`` and ``use_bounds`` as constants.
@@ -260,6 +258,11 @@ def _fuse(register, origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, a
     ends where the walk enters another two-thread column, as the two-thread kernel sees it).
     ``voxels[slot, li, 0]`` is the signed distance, ``voxels[slot, li, 1]`` the weight.
     """
+    # the bundles' fields, read once here: a field read in a loop would be reference-counted
+    origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, axis_O = batch
+    voxel_mm, truncation_mm, active_weight_cap, max_weight, active_r2_mm2, bounds_lo, \
+        bounds_hi = params
+    table_keys, table_slots = table.keys, table.slots
     capacity = voxels.shape[0]
     table_limit = table_keys.shape[0] // 2
     inv_vox = 1.0 / voxel_mm
@@ -283,7 +286,7 @@ def _fuse(register, origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, a
                 bounds_hi, use_bounds, truncation_mm, counts)
             if not ok:
                 continue
-            vx, vy, vz, span, stx, sty, stz, tdx, tdy, tdz, tmx, tmy, tmz, d, ddx, ddy, ddz = \
+            vx, vy, vz, span, tmx, tmy, tmz, d, steps = \
                 dda_start(ox, oy, oz, dx, dy, dz, r, truncation_mm, voxel_mm, inv_vox)
             last_bx, last_by, last_bz, slot = 1 << 40, 0, 0, -1
             t = 0.0
@@ -298,8 +301,7 @@ def _fuse(register, origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, a
                     last_bx, last_by, last_bz = bx, by, bz
                 update_voxel(voxels, slot, vx, vy, vz, d, truncation_mm, inv_trunc, act,
                              active_weight_cap, max_weight)
-                t, vx, vy, vz, tmx, tmy, tmz, d = dda_step(vx, vy, vz, stx, sty, stz, tdx, tdy,
-                                                           tdz, tmx, tmy, tmz, d, ddx, ddy, ddz)
+                t, vx, vy, vz, tmx, tmy, tmz, d = dda_step(vx, vy, vz, tmx, tmy, tmz, d, steps)
             if not act:
                 continue
             # beyond the band: allocated blocks only; a free run ends at a column edge
@@ -318,6 +320,5 @@ def _fuse(register, origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, a
                     last_bx, last_by, last_bz = bx, by, bz
                 n_run = carve_visit(voxels, slot, vx, vy, vz, truncation_mm, run, n_run,
                                     touched, capacity)
-                t, vx, vy, vz, tmx, tmy, tmz, d = dda_step(vx, vy, vz, stx, sty, stz, tdx, tdy,
-                                                           tdz, tmx, tmy, tmz, d, ddx, ddy, ddz)
+                t, vx, vy, vz, tmx, tmy, tmz, d = dda_step(vx, vy, vz, tmx, tmy, tmz, d, steps)
     return offsets[offsets.shape[0] - 1]
