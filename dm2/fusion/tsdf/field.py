@@ -50,7 +50,7 @@ import os
 import numpy as np
 
 from dm2.fusion.tsdf import kernels as K
-from dm2.fusion.tsdf.bundles import BlockHash, FusionParams, profile_batch, ray_batch
+from dm2.fusion.tsdf.bundles import FusionParams, profile_batch, ray_batch
 from dm2.fusion.tsdf.dense import gather_dense
 from dm2.fusion.tsdf.deposit import cap_near_axis
 from dm2.fusion.tsdf.threads import SplitBuffers, fuse_split
@@ -164,14 +164,15 @@ class SparseTSDF:
             np.ascontiguousarray(active, dtype=np.bool_)
         if a.shape != (p.shape[0],):
             raise ValueError(f"SparseTSDF.integrate: active {a.shape} != ({p.shape[0]},)")
-        batch = ray_batch(o, p, a)
-        params = self._params(0.0, _NO_BOUNDS, _NO_BOUNDS)
         if self.threads == 2 and p.shape[0] >= MIN_SPLIT_POINTS:
-            fuse_split(self, False, False, batch, params, np.zeros(2, dtype=np.int64))
+            fuse_split(self, False, False, ray_batch(o, p, a),
+                       self._params(0.0, _NO_BOUNDS, _NO_BOUNDS), np.zeros(2, dtype=np.int64))
             return
         start = 0
-        while start < p.shape[0]:
-            start = K.integrate_rays(batch, params, self._hash(), self.block_keys, self.voxels,
+        while start < p.shape[0]:  # flat arguments: a call from Python per batch of rays
+            start = K.integrate_rays(o, p, a, self.voxel_mm, self.truncation_mm,
+                                     self.weight_cap, self.inactive_weight_cap, self._table_keys,
+                                     self._table_slots, self.block_keys, self.voxels,
                                      self.touched, self._state, start)
             if start < p.shape[0]:
                 self._grow()
@@ -213,13 +214,14 @@ class SparseTSDF:
         counts = np.zeros(2, dtype=np.int64)
         r2 = float(active_radius_mm) ** 2
         start, n = 0, xz.shape[0]
-        batch = profile_batch(xz, off, T, spot, axis)
-        params = self._params(r2, lo, hi)
         if self.threads == 2 and n >= MIN_SPLIT_POINTS:
-            fuse_split(self, True, use_bounds, batch, params, counts)
+            fuse_split(self, True, use_bounds, profile_batch(xz, off, T, spot, axis),
+                       self._params(r2, lo, hi), counts)
             start = n
-        while start < n:
-            start = K.fuse_profiles(batch, params, use_bounds, start, self._hash(),
+        while start < n:  # flat arguments: a call from Python per profile (see bundles)
+            start = K.fuse_profiles(xz, off, T, spot, axis, self.voxel_mm, self.truncation_mm,
+                                    self.weight_cap, self.inactive_weight_cap, r2, lo, hi,
+                                    use_bounds, start, self._table_keys, self._table_slots,
                                     self.block_keys, self.voxels, self.touched, self._state,
                                     counts)
             if start < n:
@@ -230,10 +232,6 @@ class SparseTSDF:
         """The kernels' constants of one call (``bounds_lo, bounds_hi (3,)`` [mm, O])."""
         return FusionParams(self.voxel_mm, self.truncation_mm, self.weight_cap,
                             self.inactive_weight_cap, active_r2_mm2, bounds_lo, bounds_hi)
-
-    def _hash(self) -> BlockHash:
-        """The block hash table as the kernels take it (rebuilt by ``_grow``: take it anew)."""
-        return BlockHash(self._table_keys, self._table_slots)
 
     def cap_weights_near_axis(self, spot_O, axis_O, radius_mm: float, half_length_mm: float,
                               weight_cap: float) -> int:

@@ -26,15 +26,13 @@ from dm2.fusion.tsdf.carve import CARVE_RUN_VOXELS, CARVE_TRUNCATIONS, carve_vis
 from dm2.fusion.tsdf.kernels import (
     BLOCK_SHIFT,
     MAX_NEW_BLOCKS_PER_RAY,
-    dda_start,
-    dda_step,
     hash_find,
     hash_get_or_insert,
     pack_key,
     recent_slot,
-    update_voxel,
 )
 from dm2.fusion.tsdf.point_rays import NO_POSE, point_ray, profile_pose
+from dm2.fusion.tsdf.ray_walk import dda_start, dda_step, update_voxel
 
 
 @njit(cache=True, nogil=True)
@@ -62,9 +60,13 @@ def _found_slot(key, table, base, staging):
 def fuse_owned(tid, col_shift, start, register, use_bounds, batch, params, table, voxels,
                touched, counts, base, staging):
     """Thread ``tid`` (0 or 1): fuse its own voxels of the points of ``batch`` from ``start`` on
-    (``batch``, ``params``, ``table``, ``voxels``, ``touched`` as in
+    (``batch``: a :class:`~dm2.fusion.tsdf.bundles.Batch`, ``params``: the
+    :class:`~dm2.fusion.tsdf.bundles.FusionParams`, ``table``: the field's
+    :class:`~dm2.fusion.tsdf.bundles.BlockHash`, ``voxels``, ``touched`` and the flags as in
     :func:`dm2.fusion.tsdf.kernels.fuse_profiles`; ``counts`` as the serial kernel counts the
     points walked); ``col_shift``: the checkerboard's columns are ``2**col_shift`` blocks wide.
+    Bundled arguments: called twice per batch of thousands of points, whose typing by numba
+    (a few microseconds) does not count.
     Blocks the field lacks are staged in ``staging`` (the thread's
     :class:`~dm2.fusion.tsdf.bundles.Staging`), their voxels in rows
     ``base:base + len(staging.keys)`` of ``voxels`` (zero). Returns the index of the first point
@@ -166,9 +168,10 @@ def _owned(tid, col_shift, start, register, use_bounds, batch, params, table, vo
 def commit_staged(staging, base, table, block_keys, voxels, touched, state):
     """Serial: give a thread's staged blocks (``staging``, staged in rows from ``base`` on) the
     next field slots in staging order (their voxels move down from the thread's reserved rows,
-    which are zeroed again), mark them touched, and empty the staging area. ``table``,
-    ``block_keys``, ``voxels``, ``touched``, ``state``: the field's, as in
-    :func:`dm2.fusion.tsdf.kernels.fuse_profiles`. The caller makes room first."""
+    which are zeroed again), mark them touched, and empty the staging area. ``table``: the
+    field's :class:`~dm2.fusion.tsdf.bundles.BlockHash`; ``block_keys``, ``voxels``,
+    ``touched``, ``state``: the field's, as in :func:`dm2.fusion.tsdf.kernels.fuse_profiles`.
+    The caller makes room first."""
     st_keys, st_state = staging.keys, staging.state
     for j in range(st_state[0]):
         s = hash_get_or_insert(st_keys[j], table.keys, table.slots, block_keys, state)
