@@ -25,7 +25,7 @@ from pathlib import Path
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).parent.resolve()]
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from dm2.report import write_report  # noqa: E402
+from dm2.report import ReportContent, write_report  # noqa: E402
 from dm2.report.synthetic import synthetic_run  # noqa: E402
 
 GOAL_S = 20.0
@@ -49,8 +49,9 @@ def main() -> None:
         for k in range(args.runs):
             t0, c0 = time.perf_counter(), time.process_time()
             rep = write_report(Path(tmp) / "report", results, tracks,
-                               sections={"realtime": realtime},
-                               meta={"scenario": "synthetic", "layers": len(results)})
+                               ReportContent(sections={"realtime": realtime},
+                                             meta={"scenario": "synthetic",
+                                                   "layers": len(results)}))
             times.append(time.perf_counter() - t0)
             cpu.append(time.process_time() - c0)
             print(f"run {k + 1}: {times[-1]:.2f} s wall, {cpu[-1]:.2f} s CPU "

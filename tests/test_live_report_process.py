@@ -6,7 +6,7 @@ import json
 import pytest
 
 from dm2.live.report_process import ReportProcess, ReportProcessError
-from dm2.report import write_report
+from dm2.report import ReportContent, write_report
 
 
 def _json(folder):
@@ -20,15 +20,15 @@ def test_child_writes_the_report_the_parent_would(tmp_path):
     dropped = {"queue_full": 3, "empty_profile": 7}
     child = ReportProcess()
     try:
-        seconds = child.write(tmp_path / "child", [], [], meta=meta, dropped=dropped,
-                              timing={"fusion_s": 1.5}, config_toml="schema = 1\n")
+        content = ReportContent(meta=meta, dropped=dropped, timing={"fusion_s": 1.5},
+                                config_toml="schema = 1\n")
+        seconds = child.write(tmp_path / "child", [], [], content)
         assert seconds > 0
-        write_report(tmp_path / "here", [], [], meta=meta, dropped=dropped,
-                     timing={"fusion_s": 1.5}, config_toml="schema = 1\n")
+        write_report(tmp_path / "here", [], [], content)
         assert _json(tmp_path / "child") == _json(tmp_path / "here")
         assert _json(tmp_path / "child")["dropped"] == dropped
         # a second write replaces the folder
-        child.write(tmp_path / "child", [], [], meta={"mode": "second"})
+        child.write(tmp_path / "child", [], [], ReportContent(meta={"mode": "second"}))
         assert _json(tmp_path / "child")["meta"]["mode"] == "second"
     finally:
         child.close()
@@ -42,11 +42,11 @@ def test_child_errors_are_raised_and_a_dead_child_is_replaced(tmp_path):
         with pytest.raises(ReportProcessError, match="exists and is not a folder"):
             child.write(tmp_path / "a_file", [], [])
         first = child._proc
-        child.write(tmp_path / "ok", [], [], meta={"n": 1})  # the same child goes on
+        child.write(tmp_path / "ok", [], [], ReportContent(meta={"n": 1}))  # the same child
         assert child._proc is first
         first.kill()
         first.wait()
-        child.write(tmp_path / "ok", [], [], meta={"n": 2})
+        child.write(tmp_path / "ok", [], [], ReportContent(meta={"n": 2}))
         assert child._proc is not first and child._proc.poll() is None
         assert _json(tmp_path / "ok")["meta"]["n"] == 2
     finally:

@@ -12,7 +12,7 @@ from test_deviation import CELL, MON, gaussian, pad_heights, top_surface
 from dm2.core.config import ExpectConfig, ExpectTrack
 from dm2.defects.layer_analysis import LayerAnalysis
 from dm2.reference.height_map import ReferenceMap
-from dm2.report import REPORT_SCHEMA, check_output_dir, write_report
+from dm2.report import REPORT_SCHEMA, ReportContent, check_output_dir, write_report
 from dm2.report.meshes import read_ply_vertex_fields
 
 CENTRE = (50.0, 70.0)
@@ -39,8 +39,9 @@ def test_report_folder_contents(tmp_path, monitored):
                          "region_O": {"bbox": [45.0, 66.0, 48.0, 75.0], "centers": []}}]}
     expect = ExpectConfig(tracks=(ExpectTrack(kind="overbuild", near_mm=(52.0, 68.0)),))
     rep = write_report(out, monitored.results, monitored.tracker.tracks,
-                       config_toml='name = "x"\n', dropped={"stale_pose": 3},
-                       timing={"monitor_s": 1.5}, fault_truth=truth, expect=expect)
+                       ReportContent(config_toml='name = "x"\n', dropped={"stale_pose": 3},
+                                     timing={"monitor_s": 1.5}, fault_truth=truth,
+                                     expect=expect))
     on_disk = json.loads((out / "report.json").read_text())
     assert on_disk == rep
     assert {"schema", "layers", "tracks", "dropped", "timing"} <= set(rep)
@@ -101,16 +102,16 @@ def test_rewrite_replaces_its_own_files_keeps_a_users_and_failure_leaves_nothing
                                                                                    monitored):
     out = tmp_path / "rep"
     first = write_report(out, monitored.results, monitored.tracker.tracks)
-    write_report(out, monitored.results[:2], [], map_layers=[1])  # an earlier dm2 report
+    write_report(out, monitored.results[:2], [], ReportContent(map_layers=[1]))  # earlier run
     assert json.loads((out / "report.json").read_text())["tracks"] == []
     for name in set(first["files"]["meshes"]) - {f"meshes/layer_{r.layer:03d}.ply"
                                                  for r in monitored.results[:2]}:
         assert not (out / name).exists()  # the earlier report's files are gone
     (out / "thesis.tex").write_text("mine")
     with pytest.raises(ValueError, match="thesis.tex.*--force"):
-        write_report(out, monitored.results[:2], [], map_layers=[1])
-    write_report(out, monitored.results[:1], [], map_layers=[monitored.results[0].layer],
-                 force=True)
+        write_report(out, monitored.results[:2], [], ReportContent(map_layers=[1]))
+    write_report(out, monitored.results[:1], [],
+                 ReportContent(map_layers=[monitored.results[0].layer]), force=True)
     assert (out / "thesis.tex").read_text() == "mine"
     assert json.loads((out / "report.json").read_text())["meta"] is not None
     assert len(list((out / "meshes").glob("layer_*.ply"))) == 1
@@ -122,7 +123,7 @@ def test_rewrite_replaces_its_own_files_keeps_a_users_and_failure_leaves_nothing
     assert (mine / "report.json").read_text() == "a user's file"
     shutil.rmtree(mine)
     with pytest.raises(ValueError, match="map layer 9"):
-        write_report(tmp_path / "bad", monitored.results, [], map_layers=[9])
+        write_report(tmp_path / "bad", monitored.results, [], ReportContent(map_layers=[9]))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["rep"]
 
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 import json
 import re
 
-from dm2.report import write_report
+from dm2.report import ReportContent, write_report
 from dm2.report.contents import MAP_LAYERS, PLOTTED_TRACKS
 from dm2.report.summary import by_severity, is_defect, severity
 from dm2.report.synthetic import synthetic_run
@@ -17,7 +17,8 @@ def test_many_tracks_get_bounded_figures_and_a_ranked_verdict(tmp_path):
     results, tracks, realtime = synthetic_run(n_layers=14, n_tracks=80, size_mm=40.0)
     assert len(tracks) >= 80
     stages = []
-    rep = write_report(tmp_path / "r", results, tracks, sections={"realtime": realtime},
+    rep = write_report(tmp_path / "r", results, tracks,
+                       ReportContent(sections={"realtime": realtime}),
                        stage=lambda name, k, n: stages.append(name))
     files = rep["files"]
     assert len(files["track_plots"]) == PLOTTED_TRACKS

@@ -9,7 +9,7 @@ from test_deviation import CELL, MON, gaussian, pad_heights, top_surface
 from dm2.defects.layer_analysis import LayerAnalysis
 from dm2.io.spill import Spilled
 from dm2.reference.height_map import ReferenceMap
-from dm2.report import write_report
+from dm2.report import ReportContent, write_report
 
 CENTRE = (50.0, 70.0)
 
@@ -58,7 +58,7 @@ def test_report_from_spilled_layers_is_the_same(tmp_path):
     reports = []
     for name, mon in (("kept", kept), ("spilled", spilled)):
         reports.append(write_report(tmp_path / name, mon.results, mon.tracker.tracks,
-                                    config_toml='name = "x"\n', timing={}))
+                                    ReportContent(config_toml='name = "x"\n', timing={})))
     for rep in reports:
         rep.pop("files", None)
         rep.get("meta", {}).pop("written_at", None)

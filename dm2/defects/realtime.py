@@ -21,7 +21,7 @@ flagged for at least ``realtime_persist_s`` of process time and in
 the same TSDF compared again). A transient at the deposition front or a single noisy frame
 set raises nothing.
 
-The comparison follows the measurement (:func:`~dm2.defects.realtime_kernels.compare_columns`):
+The comparison follows the measurement (:func:`~dm2.defects.realtime_compare.compare_columns`):
 a column is judged again only when its measured crossing changed, never because the
 reference grew over a surface measured earlier; and the TSDF's running average lags a surface
 under deposition, so a column's measurement is held against the interval from the reference at
@@ -38,14 +38,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dm2.defects.realtime_curvature import window_curvatures
-from dm2.defects.realtime_kernels import (
-    OVER,
-    UNDER,
+from dm2.defects.realtime_compare import (
+    NO_WINDOW_TERMS,
+    ColumnMaps,
+    CompareParams,
     compare_columns,
-    patch_alarms,
-    window_reference_heights,
 )
+from dm2.defects.realtime_curvature import window_curvatures
+from dm2.defects.realtime_kernels import OVER, UNDER, patch_alarms, window_reference_heights
 
 KIND_NAMES = {OVER: "overbuild", UNDER: "underbuild"}
 
@@ -146,6 +146,15 @@ class RealtimeDeviation:
         yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
         self._link = xx * xx + yy * yy <= r * r
         self.alarms: list[RealtimeAlarm] = []
+        # compare_columns' constant bundles, as plain tuples (dm2.defects.realtime_compare):
+        # built once, the maps' arrays are never replaced
+        self._maps = tuple(ColumnMaps(self.deviation_map_mm, self.flag_map, self.first_flag_s,
+                                      self._alarmed, self.flag_count, self._weight_map,
+                                      self.strong_map, self.measured_map_mm,
+                                      self.expected_map_mm))
+        self._params = tuple(CompareParams(np.float32(monitor_cfg.min_weight), self.voxel_mm,
+                                           float(monitor_cfg.delta_global_mm), self._bound,
+                                           self._edge_mm))
 
     def flagged_area_mm2(self, kind: int = OVER) -> float:
         """Projected area [mm^2] of all columns currently flagged ``kind`` (1 over, 2 under)."""
@@ -192,19 +201,17 @@ class RealtimeDeviation:
             hw = window_reference_heights(np.asarray(reference.heights_mm, np.float64),
                                           float(reference.cell_mm), i0, j0, i0 + d.shape[0],
                                           j0 + d.shape[1], v)
-        curv = lap = None
+        curv = lap = NO_WINDOW_TERMS
         plume_mm2 = self._plume_rel * float(getattr(reference, "plume_sigma_mm", 0.0)) ** 2
         if self._edge_mm > 0.0 or plume_mm2 > 0.0:
             ny, nx = self.flag_map.shape
             curv, lap = window_curvatures(np.asarray(reference.heights_mm, np.float64),
                                           float(reference.cell_mm), i0, j0, i0 + d.shape[0],
                                           j0 + d.shape[1], v, nx, ny)
+        window = (hw, curv, lap, plume_mm2)  # a ReferenceWindow's fields, as a plain tuple
         gi, gj, dev, flag, newly = compare_columns(
-            d, np.asarray(weight, np.float32), np.float32(self.cfg.min_weight), i0, j0, k0, hw,
-            v, float(self.cfg.delta_global_mm), float(stamp_s), self.deviation_map_mm,
-            self.flag_map, self.first_flag_s, self._alarmed, self.flag_count, self._bound,
-            self._weight_map, self.strong_map, self.measured_map_mm, self.expected_map_mm, curv,
-            self._edge_mm, lap, plume_mm2)
+            d, np.asarray(weight, np.float32), (i0, j0, k0), window, self._maps, self._params,
+            float(stamp_s))
         self.strong_map[gj, gi] &= ~self._overspray[gj, gi]  # overspray: no alarm of its own
         n_over = int(np.count_nonzero(flag == OVER))
         n_under = int(np.count_nonzero(flag == UNDER))

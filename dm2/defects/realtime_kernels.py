@@ -5,9 +5,10 @@ voxels). As numpy calls it took about 2 ms of CPU but 5-30 ms of wall time on a 
 releases the interpreter lock in every call on more than a few hundred elements, and on a busy
 live process (socket, recorder and analysis threads) each release could wait up to a switch
 interval to take it back. Here the whole comparison is one compiled call that holds the lock
-throughout and runs in well under a millisecond. The arithmetic is numpy's, operation for
-operation (bilinear heights by :func:`dm2.reference.height_map.bilinear_at`, slopes as
-``np.gradient``).
+throughout and runs in well under a millisecond
+(:func:`dm2.defects.realtime_compare.compare_columns`, over the crossings found here). The
+arithmetic is numpy's, operation for operation (bilinear heights by
+:func:`dm2.reference.height_map.bilinear_at`, slopes as ``np.gradient``).
 The alarm patches (:func:`patch_alarms`) are likewise one call: the closing and 8-connected
 labelling of ``scipy.ndimage`` (``binary_closing``, ``label``), with the same result.
 """
@@ -17,8 +18,6 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from dm2.defects.classify import LOCAL_CURVATURE_RADIUS_MM
-from dm2.defects.uncertainty import EDGE_RADIUS_MM, HEIGHT_SCALE_MM
 from dm2.reference.height_map import bilinear_at
 
 OVER, UNDER = 1, 2
@@ -60,154 +59,6 @@ def window_reference_heights(heights_mm, cell_mm, i0, j0, i1, j1, voxel_mm):
         for ii in range(i1 - i0):
             out[jj, ii] = bilinear_at(heights_mm, cell_mm, (i0 + ii + 0.5) * voxel_mm, y)
     return out
-
-
-@njit(cache=True, inline="always")
-def _slope(h, a, n, v, along_rows, fixed):
-    """``np.gradient`` of ``h`` along one axis at index ``a`` of ``n`` (spacing ``v``)."""
-    if along_rows:
-        if a == 0:
-            return (h[1, fixed] - h[0, fixed]) / v
-        if a == n - 1:
-            return (h[n - 1, fixed] - h[n - 2, fixed]) / v
-        return (h[a + 1, fixed] - h[a - 1, fixed]) / (2.0 * v)
-    if a == 0:
-        return (h[fixed, 1] - h[fixed, 0]) / v
-    if a == n - 1:
-        return (h[fixed, n - 1] - h[fixed, n - 2]) / v
-    return (h[fixed, a + 1] - h[fixed, a - 1]) / (2.0 * v)
-
-
-@njit(cache=True)
-def compare_columns(d, w, min_weight, i0, j0, k0, hw, voxel_mm, delta_mm, stamp_s,
-                    deviation_map, flag_map, first_flag_s, alarmed, flag_count=None,
-                    bound=(0.0, 0.0, 0.0, 0.0, 0.0), weight_map=None, strong_map=None,
-                    measured_map=None, expected_map=None, curvature=None, edge_mm=0.0,
-                    laplacian=None, plume_mm2=0.0):
-    """Compare a dense TSDF box with the reference and update the column maps in place.
-
-    ``d, w (nx, ny, nz)``: the box's signed distance [mm] and weight, voxel ``(i0, j0, k0)`` at
-    index 0; ``hw (ny, nx)``: the reference [mm] at its columns. Each column with an observed
-    zero crossing inside the maps gets its deviation: height above the reference projected on
-    the reference normal, ``(z - h) / sqrt(1 + |grad h|^2)`` [mm]; beyond ``+-delta_mm`` it is
-    flagged over (1) or under (2), and marked in ``strong_map`` where beyond the confidence
-    bound ``k * sigma`` too, with ``bound
-    = (k, floor_mm, range_mm, wall_mm, height_mm)`` and ``sigma^2 = floor^2 + range^2 / weight +
-    (wall * (1 - n_z))^2 + (height * h / HEIGHT_SCALE_MM)^2`` (the column's weight at its
-    crossing; ``n_z`` and the height ``h`` of the reference there; the terms of
-    :mod:`dm2.defects.uncertainty` but the foot and gap, which default to zero; the edge term
-    with ``curvature``, below).
-    ``flag_count`` counts each column's observations in a row with the same flag, an observation
-    being a comparison whose crossing weight (kept in ``weight_map``) or deviation changed since
-    the last: new measurement, not the same TSDF compared again. Returns ``gi, gj`` (map column
-    indices), ``dev`` [mm] and ``flag`` of those columns, in ``np.nonzero`` order, and how many
-    columns were newly flagged (flag changed to over or under) or, with ``flag_count``, observed
-    flagged again.
-
-    With ``measured_map`` and ``expected_map`` (and ``weight_map``) the comparison follows the
-    measurement, not the reference: an observation is a comparison whose measured crossing
-    (height, kept in ``measured_map``, or weight) changed since the last; a column compared
-    again without one keeps its deviation and flag (the reference has grown over a surface
-    measured before: no new evidence). The measured height is a running average of the
-    column's observations (the TSDF's weights), so while deposition goes on over the column it
-    lags the surface; the reference only grows, so the measurement of a part that follows it
-    lies between the reference at the column's previous observation (kept in
-    ``expected_map``) and the reference now. The deviation is the distance beyond that
-    interval: overbuild above the reference now, underbuild below the reference as it stood at
-    the previous observation, zero inside. Once the deposition over a column has ended the
-    interval closes and the deviation is the plain one.
-
-    With ``curvature`` (ny, nx) [1/mm], the reference's mean curvature at the columns
-    (:func:`dm2.defects.realtime_curvature.window_mean_curvature`), the bound holds the edge
-    term of :mod:`dm2.defects.uncertainty` too, ``edge_mm * min(1, max(0, |H| - 1 /
-    LOCAL_CURVATURE_RADIUS_MM) * EDGE_RADIUS_MM)``: the Gaussian model's known mismatch at the
-    reference's rounded edges and corners, as the layer analysis judges them. With
-    ``laplacian`` (ny, nx) [1/mm] of the same smoothed reference it holds the plume term too,
-    ``plume_mm2 * laplacian`` with ``plume_mm2 = plume_rel * sigma^2``: how far the reference
-    moves when its plume width is off by ``plume_rel``.
-    """
-    cross, wcross = column_crossings_weights(d, w, min_weight)
-    kb, fl2, rg2, wl2 = bound[0], bound[1] ** 2, bound[2] ** 2, bound[3] ** 2
-    ht = bound[4]
-    nx, ny = cross.shape
-    mny, mnx = flag_map.shape
-    hy, hx = hw.shape
-    slopes = hy > 1 and hx > 1
-    n = 0
-    newly = 0
-    gi = np.empty(nx * ny, np.int64)
-    gj = np.empty(nx * ny, np.int64)
-    dev = np.empty(nx * ny)
-    flag = np.empty(nx * ny, np.int8)
-    for ii in range(nx):
-        for jj in range(ny):
-            c = cross[ii, jj]
-            x, y = ii + i0, jj + j0
-            if not np.isfinite(c) or x < 0 or x >= mnx or y < 0 or y >= mny:
-                continue
-            z = (k0 + c + 0.5) * voxel_mm
-            if slopes:
-                gx = _slope(hw, ii, hx, voxel_mm, False, jj)
-                gy = _slope(hw, jj, hy, voxel_mm, True, ii)
-                g2 = gx ** 2 + gy ** 2
-            else:
-                g2 = 0.0
-            target = hw[jj, ii]
-            if measured_map is not None:
-                wo, wn = weight_map[y, x], wcross[ii, jj]
-                if wn == wo and z == measured_map[y, x]:  # the same TSDF compared again
-                    gi[n], gj[n], dev[n], flag[n] = x, y, deviation_map[y, x], flag_map[y, x]
-                    n += 1
-                    continue
-                r = expected_map[y, x]
-                lo = min(r, target) if wo > 0.0 and np.isfinite(r) else target
-                expected_map[y, x] = target
-                measured_map[y, x] = z
-                if z < lo:  # below the reference as it stood at the previous observation
-                    target = lo
-                elif z <= target:  # within the lag: no deviation
-                    target = z
-            e = (z - target) / np.sqrt(1.0 + g2)
-            lim = 0.0
-            if kb > 0.0:
-                tilt = 1.0 - 1.0 / np.sqrt(1.0 + g2)
-                hgt = ht * max(hw[jj, ii], 0.0) / HEIGHT_SCALE_MM
-                edge = 0.0
-                if curvature is not None:
-                    excess = max(abs(curvature[jj, ii]) - 1.0 / LOCAL_CURVATURE_RADIUS_MM, 0.0)
-                    edge = edge_mm * min(1.0, excess * EDGE_RADIUS_MM)
-                plume = plume_mm2 * laplacian[jj, ii] if laplacian is not None else 0.0
-                sig = np.sqrt(fl2 + rg2 / max(wcross[ii, jj], 1.0) + wl2 * tilt * tilt
-                              + hgt * hgt + edge * edge + plume * plume)
-                lim = kb * sig
-            f = OVER if e > delta_mm else (UNDER if e < -delta_mm else 0)
-            if strong_map is not None:
-                strong_map[y, x] = f != 0 and abs(e) > lim
-            fresh = True
-            if weight_map is not None:
-                fresh = (measured_map is not None or wcross[ii, jj] != weight_map[y, x]
-                         or e != deviation_map[y, x])
-                weight_map[y, x] = wcross[ii, jj]
-            deviation_map[y, x] = e
-            if f != 0 and flag_map[y, x] != f:
-                first_flag_s[y, x] = stamp_s
-                newly += 1
-            elif f != 0 and fresh and flag_count is not None:
-                newly += 1  # observed flagged again: the column's evidence grew
-            if flag_count is not None:
-                if f == 0:
-                    flag_count[y, x] = 0
-                elif flag_map[y, x] == f:
-                    if fresh:
-                        flag_count[y, x] += 1
-                else:
-                    flag_count[y, x] = 1
-            flag_map[y, x] = f
-            if f == 0:
-                alarmed[y, x] = False
-            gi[n], gj[n], dev[n], flag[n] = x, y, e, f
-            n += 1
-    return gi[:n], gj[:n], dev[:n], flag[:n], newly
 
 
 @njit(cache=True)

@@ -160,14 +160,17 @@ class LiveAnalysis:
     def _write_interim(self, results, tracks, dropped, timing, meta, maps) -> None:
         """An interim report, written by the report child process (falls back to this
         thread when the child cannot run)."""
+        from dm2.report.report_content import ReportContent
+
         if self._child is None:
             from dm2.live.report_process import ReportProcess
 
             self._child = ReportProcess()
         try:
             self.report_s += self._child.write(
-                self.out_dir, results, tracks, config_toml=self.config_toml, dropped=dropped,
-                timing=timing, map_layers=maps, meta=meta)
+                self.out_dir, results, tracks,
+                ReportContent(config_toml=self.config_toml, dropped=dropped, timing=timing,
+                              map_layers=maps, meta=meta))
         except OSError as exc:  # the child could not be started
             log.warning("report process unavailable (%s): writing in this process", exc)
             self._write(results, tracks, dropped, timing, meta, maps)

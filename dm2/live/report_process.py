@@ -7,7 +7,8 @@ the socket threads stall behind it. :class:`ReportProcess` hands each snapshot t
 Python process (``python -m dm2.live.report_process``, lower CPU priority; a live run starts it
 before the stream, else it starts on first use) over a pipe. The child first answers
 ``("ready", None)`` once it has loaded the report code; then each request is a length-prefixed
-pickle of ``(out_dir, results, tracks, kwargs)`` for :func:`dm2.report.write_report`, and its
+pickle of ``(out_dir, results, tracks, content, kwargs)`` for :func:`dm2.report.write_report`
+(``content`` a :class:`~dm2.report.report_content.ReportContent`), and its
 answer a pickle of ``("ok", seconds)`` or ``("error", text)``. Requests are answered in order,
 one at a time, so two writes never touch the folder together. The pipe only ever carries our
 own objects between our own processes.
@@ -69,14 +70,15 @@ class ReportProcess:
         self._proc = proc
         return proc
 
-    def write(self, out_dir: str | Path, results, tracks, **kwargs) -> float:
-        """Write one report (blocks until the child is done); the child's seconds.
+    def write(self, out_dir: str | Path, results, tracks, content=None, **kwargs) -> float:
+        """Write one report (blocks until the child is done); the child's seconds. Arguments
+        as :func:`dm2.report.write_report` takes them.
 
         Raises ReportProcessError when the child failed; a dead child is restarted at the
         next call."""
         proc = self._proc if self._proc is not None and self._proc.poll() is None \
             else self._start()
-        data = pickle.dumps((str(out_dir), results, tracks, kwargs),
+        data = pickle.dumps((str(out_dir), results, tracks, content, kwargs),
                             protocol=pickle.HIGHEST_PROTOCOL)
         try:
             proc.stdin.write(_LEN.pack(len(data)) + data)
@@ -130,8 +132,8 @@ def serve(stdin, stdout) -> None:
             return
         t0 = time.perf_counter()
         try:
-            out_dir, results, tracks, kwargs = pickle.loads(request)
-            write_report(out_dir, results, tracks, **kwargs)
+            out_dir, results, tracks, content, kwargs = pickle.loads(request)
+            write_report(out_dir, results, tracks, content, **kwargs)
             answer = ("ok", time.perf_counter() - t0)
         except Exception as exc:  # noqa: BLE001 - reported to the parent, which logs it
             answer = ("error", f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}")

@@ -150,15 +150,16 @@ class Pipeline:
         """Write the run folder ``out_dir`` and return the report.json content.
 
         ``full``: report.json, tracks.csv, per-layer deviation meshes and maps, plots and
-        index.html (:func:`dm2.report.write_report`, whose keyword arguments ``report_args``
-        passes on: timing, meta, fault_truth, expect, inputs, force, stage, map_layers;
-        ``toolpath`` defaults to the pipeline's);
+        index.html (:func:`dm2.report.write_report`; ``report_args`` are the folder's
+        ``inputs``, ``force`` and ``stage`` and fields of its
+        :class:`~dm2.report.report_content.ReportContent`: timing, meta, fault_truth, expect,
+        map_layers, limit_mm, toolpath, which defaults to the pipeline's);
         otherwise config.toml, report.json and tracks.csv only. ``results``/``tracks``
         default to the pipeline's own (a snapshot of them for interim reports), ``dropped``
         to :attr:`dropped`, ``sections`` to :meth:`sections`; ``include`` moves further files
         (name -> path) into the folder.
         """
-        from dm2.report import write_report
+        from dm2.report import ReportContent, write_report
         from dm2.report.report_json import build_report
 
         results = self.results if results is None else results
@@ -166,15 +167,18 @@ class Pipeline:
         dropped = self.dropped if dropped is None else dropped
         sections = self.sections() if sections is None else sections
         out_dir = Path(out_dir)
+        folder = {name: report_args.pop(name) for name in ("inputs", "force", "stage")
+                  if name in report_args}
         if full:
             report_args.setdefault("toolpath", self.toolpath)
-            return write_report(out_dir, results, tracks, config_toml=config_toml,
-                                dropped=dropped, sections=sections, include=include,
-                                command=command, **report_args)
-        for name in ("inputs", "force", "stage", "map_layers", "limit_mm", "toolpath"):
-            report_args.pop(name, None)
+        content = ReportContent(config_toml=config_toml, dropped=dropped, sections=sections,
+                                **report_args)
+        if full:
+            return write_report(out_dir, results, tracks, content, include=include,
+                                command=command, **folder)
         report = build_report(results, tracks, dropped=dropped, sections=sections,
-                              **report_args)
+                              timing=content.timing, meta=content.meta,
+                              fault_truth=content.fault_truth, expect=content.expect)
         _write_lite_report(out_dir, report, tracks, config_toml or "", include or {},
                            command)
         return report

@@ -26,21 +26,19 @@ from dm2.report.outdir import (
     install_folder,
     write_manifest,
 )
+from dm2.report.report_content import ReportContent
 from dm2.report.report_json import REPORT_SCHEMA, build_report, report_track
 from dm2.report.summary import by_severity
 
 log = logging.getLogger(__name__)
 
-__all__ = ["REPORT_SCHEMA", "OutputRefused", "check_output_dir", "rerender_index",
-           "write_report"]
+__all__ = ["REPORT_SCHEMA", "OutputRefused", "ReportContent", "check_output_dir",
+           "rerender_index", "write_report"]
 
 
-def write_report(out_dir: str | Path, results, tracks, *, config_toml: str | None = None,
-                 dropped: dict | None = None, timing: dict | None = None,
-                 fault_truth=None, expect=None, map_layers=None, limit_mm: float = 1.0,
-                 meta: dict | None = None, sections: dict | None = None,
+def write_report(out_dir: str | Path, results, tracks, content: ReportContent | None = None, *,
                  force: bool = False, inputs=(), command: str = "",
-                 include: dict | None = None, toolpath=None, stage: Stage | None = None) -> dict:
+                 include: dict | None = None, stage: Stage | None = None) -> dict:
     """Write the whole run folder; returns the report dict.
 
     Parameters
@@ -49,24 +47,16 @@ def write_report(out_dir: str | Path, results, tracks, *, config_toml: str | Non
         :func:`dm2.report.outdir.check_output_dir` for ``force`` and ``inputs``)
     results : list of dm2.defects.layer_analysis.LayerResult
     tracks : list of dm2.defects.track.Track
-    config_toml : the resolved configuration text (``dm2.core.toml_write.dump_toml``), written as-is
-    dropped, timing : dicts copied into report.json
-    fault_truth : dict/list of injected faults to compare the tracks with (or None)
-    expect : dm2.core.config.ExpectConfig to check (or None)
-    map_layers : layers to render as PNG deviation maps (default: see
-        dm2.report.contents.default_map_layers)
-    limit_mm : colour range of the deviation maps and PLY colours [mm]
-    meta : run description copied into report.json
-    sections : further top-level report.json sections, e.g. ``realtime`` (alarms, latency)
-        and ``reconstruction`` (distance to the true surface per layer)
+    content : :class:`~dm2.report.report_content.ReportContent`, the rest of what the report
+        says (configuration, drops, timing, meta, sections, injected faults, expectations) and
+        how its maps are drawn; None: all defaults
     force, inputs : see :func:`dm2.report.outdir.check_output_dir`
     command : the dm2 command, recorded in the folder's manifest
     include : name -> path of further files or folders (e.g. the recording) moved into the
         folder with the report, listed in its manifest
-    toolpath : dm2.core.messages.Toolpath for the planned outline on the maps (else the
-        reference's half-height contour)
     stage : called with (stage name, steps done, steps in stage) as the report is written
     """
+    content = ReportContent() if content is None else content
     out = check_output_dir(out_dir, force=force, inputs=inputs)
     out.parent.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -77,18 +67,18 @@ def write_report(out_dir: str | Path, results, tracks, *, config_toml: str | Non
         tmp.chmod(0o777 & ~umask)  # mkdtemp makes it private; the report folder is not
         ranked = by_severity([report_track(t) for t in tracks])
         stub = {"layers": [{"layer": r.layer, "stamp_s": r.deviation.stamp_s} for r in results],
-                "realtime": (sections or {}).get("realtime")}
-        files = write_contents(tmp, results, tracks, ranked, config_toml=config_toml,
-                               map_layers=map_layers, limit_mm=limit_mm,
-                               outline=_outline(results, toolpath), report_stub=stub,
+                "realtime": (content.sections or {}).get("realtime")}
+        files = write_contents(tmp, results, tracks, ranked, config_toml=content.config_toml,
+                               map_layers=content.map_layers, limit_mm=content.limit_mm,
+                               outline=_outline(results, content.toolpath), report_stub=stub,
                                stage=stage)
         if stage is not None:
             stage("report.json and index.html", 0, 1)
-        report = build_report(results, tracks, dropped=dropped,
-                              timing={**(timing or {}),
+        report = build_report(results, tracks, dropped=content.dropped,
+                              timing={**(content.timing or {}),
                                       "report_write_s": time.perf_counter() - t0},
-                              fault_truth=fault_truth, expect=expect, files=files, meta=meta,
-                              sections=sections)
+                              fault_truth=content.fault_truth, expect=content.expect, files=files,
+                              meta=content.meta, sections=content.sections)
         (tmp / "report.json").write_text(json.dumps(report, indent=1), encoding="utf-8")
         (tmp / "index.html").write_text(render_index(report, root=tmp), encoding="utf-8")
         for name, path in (include or {}).items():

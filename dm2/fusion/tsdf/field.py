@@ -50,6 +50,7 @@ import os
 import numpy as np
 
 from dm2.fusion.tsdf import kernels as K
+from dm2.fusion.tsdf.bundles import FusionParams, profile_batch, ray_batch
 from dm2.fusion.tsdf.dense import gather_dense
 from dm2.fusion.tsdf.deposit import cap_near_axis
 from dm2.fusion.tsdf.threads import SplitBuffers, fuse_split
@@ -164,14 +165,11 @@ class SparseTSDF:
         if a.shape != (p.shape[0],):
             raise ValueError(f"SparseTSDF.integrate: active {a.shape} != ({p.shape[0]},)")
         if self.threads == 2 and p.shape[0] >= MIN_SPLIT_POINTS:
-            off = np.array([0, p.shape[0]], dtype=np.int64)
-            none = np.zeros((0, 3))
-            fuse_split(self, False, o, p, a, p, off, np.zeros((0, 4, 4)), none, none, 0.0,
-                       _NO_BOUNDS, _NO_BOUNDS, False, np.zeros(2, dtype=np.int64),
-                       self.inactive_weight_cap)
+            fuse_split(self, False, False, ray_batch(o, p, a),
+                       self._params(0.0, _NO_BOUNDS, _NO_BOUNDS), np.zeros(2, dtype=np.int64))
             return
         start = 0
-        while start < p.shape[0]:
+        while start < p.shape[0]:  # flat arguments: a call from Python per batch of rays
             start = K.integrate_rays(o, p, a, self.voxel_mm, self.truncation_mm,
                                      self.weight_cap, self.inactive_weight_cap, self._table_keys,
                                      self._table_slots, self.block_keys, self.voxels,
@@ -217,19 +215,23 @@ class SparseTSDF:
         r2 = float(active_radius_mm) ** 2
         start, n = 0, xz.shape[0]
         if self.threads == 2 and n >= MIN_SPLIT_POINTS:
-            none = np.zeros((0, 3))
-            fuse_split(self, True, none, none, np.zeros(0, np.bool_), xz, off, T, spot, axis,
-                       r2, lo, hi, use_bounds, counts, self.inactive_weight_cap)
+            fuse_split(self, True, use_bounds, profile_batch(xz, off, T, spot, axis),
+                       self._params(r2, lo, hi), counts)
             start = n
-        while start < n:
-            start = K.fuse_profiles(xz, off, T, spot, axis, r2, lo, hi, use_bounds, start,
-                                    self.voxel_mm, self.truncation_mm, self.weight_cap,
-                                    self.inactive_weight_cap, self._table_keys, self._table_slots,
+        while start < n:  # flat arguments: a call from Python per profile (see bundles)
+            start = K.fuse_profiles(xz, off, T, spot, axis, self.voxel_mm, self.truncation_mm,
+                                    self.weight_cap, self.inactive_weight_cap, r2, lo, hi,
+                                    use_bounds, start, self._table_keys, self._table_slots,
                                     self.block_keys, self.voxels, self.touched, self._state,
                                     counts)
             if start < n:
                 self._grow()
         return int(counts[1]), int(counts[0])
+
+    def _params(self, active_r2_mm2: float, bounds_lo, bounds_hi) -> FusionParams:
+        """The kernels' constants of one call (``bounds_lo, bounds_hi (3,)`` [mm, O])."""
+        return FusionParams(self.voxel_mm, self.truncation_mm, self.weight_cap,
+                            self.inactive_weight_cap, active_r2_mm2, bounds_lo, bounds_hi)
 
     def cap_weights_near_axis(self, spot_O, axis_O, radius_mm: float, half_length_mm: float,
                               weight_cap: float) -> int:

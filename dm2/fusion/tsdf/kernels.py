@@ -10,8 +10,9 @@ keeps each voxel's signed distance [mm] and weight side by side (one cache line 
 
 The integrator walks each sensor ray through the voxel grid with a 3-D DDA (Amanatides & Woo)
 from ``truncation`` in front of the measured point to ``truncation`` behind it and updates every
-voxel it crosses with the projective signed distance (eqs 2-3 of the paper). ``fuse_profiles``
-also registers the profiles (eq 1) and decides each point's active region in the same pass.
+voxel it crosses with the projective signed distance (eqs 2-3 of the paper; the walk and the
+update: :mod:`dm2.fusion.tsdf.ray_walk`). ``fuse_profiles`` also registers the profiles (eq 1)
+and decides each point's active region in the same pass.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from dm2.fusion.tsdf.bundles import BlockHash, FusionParams, profile_batch, ray_batch
 from dm2.fusion.tsdf.carve import (
     CARVE_RUN_VOXELS,
     CARVE_TRUNCATIONS,
@@ -26,6 +28,7 @@ from dm2.fusion.tsdf.carve import (
     carve_visit,
 )
 from dm2.fusion.tsdf.point_rays import NO_POSE, point_ray, profile_pose
+from dm2.fusion.tsdf.ray_walk import dda_start, dda_step, update_voxel
 
 BLOCK = 8  # voxels per block edge
 BLOCK_SHIFT = 3
@@ -132,94 +135,38 @@ def recent_slot(bx, by, bz, a, b):
     return -1
 
 
-@njit(cache=True, inline="always")
-def dda_start(ox, oy, oz, dx, dy, dz, r, truncation_mm, voxel_mm, inv_vox):
-    """First voxel and DDA state (Amanatides & Woo) of the band ``r +- truncation_mm``: voxel
-    ``vx, vy, vz``, the band's length ``span`` [voxels], steps ``st*``, crossing increments
-    ``td*`` and next crossings ``tm*`` [voxels], and the projective signed distance ``d`` [mm]
-    of the first voxel's centre (``r`` minus its distance from the origin along the ray) with
-    its change ``dd*`` [mm] per step along each axis."""
-    t0 = r - truncation_mm
-    t1 = r + truncation_mm
-    sx0, sy0, sz0 = (ox + dx * t0) * inv_vox, (oy + dy * t0) * inv_vox, \
-        (oz + dz * t0) * inv_vox
-    vx, vy, vz = int(np.floor(sx0)), int(np.floor(sy0)), int(np.floor(sz0))
-    span = (t1 - t0) * inv_vox
-    stx = 1 if dx > 0 else -1
-    sty = 1 if dy > 0 else -1
-    stz = 1 if dz > 0 else -1
-    big = 1e30
-    tdx = abs(1.0 / dx) if dx != 0 else big
-    tdy = abs(1.0 / dy) if dy != 0 else big
-    tdz = abs(1.0 / dz) if dz != 0 else big
-    tmx = ((vx + 1 - sx0) if dx > 0 else (sx0 - vx)) * tdx if dx != 0 else big
-    tmy = ((vy + 1 - sy0) if dy > 0 else (sy0 - vy)) * tdy if dy != 0 else big
-    tmz = ((vz + 1 - sz0) if dz > 0 else (sz0 - vz)) * tdz if dz != 0 else big
-    d = r - (((vx + 0.5) * voxel_mm - ox) * dx + ((vy + 0.5) * voxel_mm - oy) * dy
-             + ((vz + 0.5) * voxel_mm - oz) * dz)
-    return (vx, vy, vz, span, stx, sty, stz, tdx, tdy, tdz, tmx, tmy, tmz, d,
-            stx * voxel_mm * dx, sty * voxel_mm * dy, stz * voxel_mm * dz)
-
-
-@njit(cache=True, inline="always")
-def dda_step(vx, vy, vz, stx, sty, stz, tdx, tdy, tdz, tmx, tmy, tmz, d, ddx, ddy, ddz):
-    """Step to the next voxel along the axis whose boundary the ray crosses first; returns the
-    new ray parameter ``t`` (voxel units), voxel, crossing parameters and signed distance."""
-    if tmx < tmy:
-        if tmx < tmz:
-            return tmx, vx + stx, vy, vz, tmx + tdx, tmy, tmz, d - ddx
-        return tmz, vx, vy, vz + stz, tmx, tmy, tmz + tdz, d - ddz
-    if tmy < tmz:
-        return tmy, vx, vy + sty, vz, tmx, tmy + tdy, tmz, d - ddy
-    return tmz, vx, vy, vz + stz, tmx, tmy, tmz + tdz, d - ddz
-
-
-@njit(cache=True, inline="always")
-def update_voxel(voxels, slot, vx, vy, vz, d, truncation_mm, inv_trunc, act, active_weight_cap,
-                 max_weight):
-    """One voxel's update along a ray (paper eqs 2-5): projective signed distance ``d`` [mm]
-    clamped to +-truncation, weight ``w_A = 1`` in the active region and ``w_I`` (1 in front,
-    falling linearly behind the surface) elsewhere, the stored weight capped in the active
-    region."""
-    if d > truncation_mm:
-        d = truncation_mm
-    elif d < -truncation_mm:
-        d = -truncation_mm
-    w = 1.0 if (act or d >= 0.0) else 1.0 + d * inv_trunc
-    if w > 0.0:
-        li = (vx & 7) + 8 * ((vy & 7) + 8 * (vz & 7))
-        w_prev = voxels[slot, li, 1]
-        if act and w_prev > active_weight_cap:
-            w_prev = active_weight_cap
-        w_new = w_prev + w
-        voxels[slot, li, 0] = (w_prev * voxels[slot, li, 0] + w * d) / w_new
-        voxels[slot, li, 1] = min(w_new, max_weight)
-
-
 @njit(cache=True, error_model="numpy")
 def integrate_rays(origins_O, points_O, active, voxel_mm, truncation_mm, active_weight_cap,
                    max_weight, table_keys, table_slots, block_keys, voxels, touched, state,
                    start):
-    """Fuse rays ``origins_O[i] -> points_O[i]`` into the sparse TSDF, from index ``start``.
+    """Fuse the rays ``origins_O[i] -> points_O[i]`` (``(n, 3)`` float64 [mm, O], ``active
+    (n,)`` bool) into the sparse TSDF, from index ``start``.
 
-    ``state[0]`` is the number of allocated blocks. Returns the index of the first ray that was
-    not integrated because the block arrays or the hash table need to grow (``n`` when done).
+    ``voxel_mm, truncation_mm, active_weight_cap, max_weight``: as in
+    :class:`~dm2.fusion.tsdf.bundles.FusionParams`; ``table_keys, table_slots``: the field's
+    :class:`~dm2.fusion.tsdf.bundles.BlockHash`; ``block_keys (capacity,)`` int64, ``voxels
+    (capacity, 512, 2)`` float32, ``touched (capacity,)`` bool the field's block rows;
+    ``state[0]`` is the number of allocated blocks. Flat arguments, called from Python: the
+    bundles are built here (see :mod:`dm2.fusion.tsdf.bundles`). Returns the index of the
+    first ray that was not integrated because the block arrays or the hash table need to grow
+    (``n`` when done).
     """
-    n = points_O.shape[0]
-    offsets = np.array([0, n], dtype=np.int64)
-    none3 = np.zeros((0, 3))
+    no_bounds = np.zeros(0)
+    params = FusionParams(voxel_mm, truncation_mm, active_weight_cap, max_weight, 0.0,
+                          no_bounds, no_bounds)
     counts = np.zeros(2, dtype=np.int64)
-    return _fuse(False, origins_O, points_O, active, points_O, offsets, np.zeros((0, 4, 4)),
-                 none3, none3, 0.0, none3[0:0, 0], none3[0:0, 0], False, start, voxel_mm,
-                 truncation_mm, active_weight_cap, max_weight, table_keys, table_slots,
-                 block_keys, voxels, touched, state, counts)
+    return _fuse(False, False, ray_batch(origins_O, points_O, active), params, start,
+                 BlockHash(table_keys, table_slots), block_keys, voxels, touched, state, counts)
 
 
 @njit(cache=True, error_model="numpy")
-def fuse_profiles(xz_S, offsets, T_O_S, spot_O, axis_O, active_r2_mm2, bounds_lo, bounds_hi,
-                  use_bounds, start, voxel_mm, truncation_mm, active_weight_cap, max_weight,
-                  table_keys, table_slots, block_keys, voxels, touched, state, counts):
-    """Register and fuse a batch of profiles (paper eq 1, then eqs 2-5), from point ``start``.
+def fuse_profiles(xz_S, offsets, T_O_S, spot_O, axis_O, voxel_mm, truncation_mm,
+                  active_weight_cap, max_weight, active_r2_mm2, bounds_lo, bounds_hi, use_bounds,
+                  start, table_keys, table_slots, block_keys, voxels, touched, state, counts):
+    """Register and fuse a batch of profiles (paper eq 1, then eqs 2-5), from point ``start``
+    (the profiles' arrays as in :func:`~dm2.fusion.tsdf.bundles.profile_batch`, the constants
+    as in :class:`~dm2.fusion.tsdf.bundles.FusionParams`, the field's arrays as in
+    :func:`integrate_rays`; flat, built into the bundles here).
 
     Profile ``k`` owns points ``xz_S[offsets[k]:offsets[k + 1]]``; its point ``(x, z)`` lies at
     ``p = t + x * R[:, 0] + z * R[:, 2]`` in ``O`` with ``R, t`` of ``T_O_S[k]`` and its ray
@@ -230,23 +177,20 @@ def fuse_profiles(xz_S, offsets, T_O_S, spot_O, axis_O, active_r2_mm2, bounds_lo
     counted in ``counts[1]``. Returns the index of the first point not handled because the
     block arrays or the hash table need to grow (``len(xz_S)`` when done).
     """
-    none3 = np.zeros((0, 3))
+    batch = profile_batch(xz_S, offsets, T_O_S, spot_O, axis_O)
+    params = FusionParams(voxel_mm, truncation_mm, active_weight_cap, max_weight, active_r2_mm2,
+                          bounds_lo, bounds_hi)
+    table = BlockHash(table_keys, table_slots)
     if use_bounds:  # literal flags: each variant is compiled without the other's tests
-        return _fuse(True, none3, none3, np.zeros(0, np.bool_), xz_S, offsets, T_O_S, spot_O,
-                     axis_O, active_r2_mm2, bounds_lo, bounds_hi, True, start, voxel_mm,
-                     truncation_mm, active_weight_cap, max_weight, table_keys, table_slots,
-                     block_keys, voxels, touched, state, counts)
-    return _fuse(True, none3, none3, np.zeros(0, np.bool_), xz_S, offsets, T_O_S, spot_O,
-                 axis_O, active_r2_mm2, bounds_lo, bounds_hi, False, start, voxel_mm,
-                 truncation_mm, active_weight_cap, max_weight, table_keys, table_slots,
-                 block_keys, voxels, touched, state, counts)
+        return _fuse(True, True, batch, params, start, table, block_keys, voxels, touched,
+                     state, counts)
+    return _fuse(True, False, batch, params, start, table, block_keys, voxels, touched, state,
+                 counts)
 
 
 @njit(cache=True, inline="always")
-def _fuse(register, origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, axis_O,
-          active_r2_mm2, bounds_lo, bounds_hi, use_bounds, start, voxel_mm, truncation_mm,
-          active_weight_cap, max_weight, table_keys, table_slots, block_keys, voxels, touched,
-          state, counts):
+def _fuse(register, use_bounds, batch, params, start, table, block_keys, voxels, touched, state,
+          counts):
     """The one integration loop behind :func:`integrate_rays` (``register=False``: rays given
     in ``O``) and :func:`fuse_profiles` (``register=True``: profiles registered here), inlined
     into each with ``register`` and ``use_bounds`` as constants.
@@ -260,6 +204,11 @@ def _fuse(register, origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, a
     ends where the walk enters another two-thread column, as the two-thread kernel sees it).
     ``voxels[slot, li, 0]`` is the signed distance, ``voxels[slot, li, 1]`` the weight.
     """
+    # the bundles' fields, read once here: a field read in a loop would be reference-counted
+    origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, axis_O = batch
+    voxel_mm, truncation_mm, active_weight_cap, max_weight, active_r2_mm2, bounds_lo, \
+        bounds_hi = params
+    table_keys, table_slots = table.keys, table.slots
     capacity = voxels.shape[0]
     table_limit = table_keys.shape[0] // 2
     inv_vox = 1.0 / voxel_mm
@@ -283,7 +232,7 @@ def _fuse(register, origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, a
                 bounds_hi, use_bounds, truncation_mm, counts)
             if not ok:
                 continue
-            vx, vy, vz, span, stx, sty, stz, tdx, tdy, tdz, tmx, tmy, tmz, d, ddx, ddy, ddz = \
+            vx, vy, vz, span, tmx, tmy, tmz, d, steps = \
                 dda_start(ox, oy, oz, dx, dy, dz, r, truncation_mm, voxel_mm, inv_vox)
             last_bx, last_by, last_bz, slot = 1 << 40, 0, 0, -1
             t = 0.0
@@ -298,8 +247,7 @@ def _fuse(register, origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, a
                     last_bx, last_by, last_bz = bx, by, bz
                 update_voxel(voxels, slot, vx, vy, vz, d, truncation_mm, inv_trunc, act,
                              active_weight_cap, max_weight)
-                t, vx, vy, vz, tmx, tmy, tmz, d = dda_step(vx, vy, vz, stx, sty, stz, tdx, tdy,
-                                                           tdz, tmx, tmy, tmz, d, ddx, ddy, ddz)
+                t, vx, vy, vz, tmx, tmy, tmz, d = dda_step(vx, vy, vz, tmx, tmy, tmz, d, steps)
             if not act:
                 continue
             # beyond the band: allocated blocks only; a free run ends at a column edge
@@ -318,6 +266,5 @@ def _fuse(register, origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, a
                     last_bx, last_by, last_bz = bx, by, bz
                 n_run = carve_visit(voxels, slot, vx, vy, vz, truncation_mm, run, n_run,
                                     touched, capacity)
-                t, vx, vy, vz, tmx, tmy, tmz, d = dda_step(vx, vy, vz, stx, sty, stz, tdx, tdy,
-                                                           tdz, tmx, tmy, tmz, d, ddx, ddy, ddz)
+                t, vx, vy, vz, tmx, tmy, tmz, d = dda_step(vx, vy, vz, tmx, tmy, tmz, d, steps)
     return offsets[offsets.shape[0] - 1]

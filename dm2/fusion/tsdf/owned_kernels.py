@@ -26,91 +26,79 @@ from dm2.fusion.tsdf.carve import CARVE_RUN_VOXELS, CARVE_TRUNCATIONS, carve_vis
 from dm2.fusion.tsdf.kernels import (
     BLOCK_SHIFT,
     MAX_NEW_BLOCKS_PER_RAY,
-    dda_start,
-    dda_step,
     hash_find,
     hash_get_or_insert,
     pack_key,
     recent_slot,
-    update_voxel,
 )
 from dm2.fusion.tsdf.point_rays import NO_POSE, point_ray, profile_pose
-
-
-class Staging:
-    """One thread's blocks allocated during a run: ``keys (capacity,)`` int64 in allocation
-    order, their hash (``table_keys``/``table_slots``, twice the capacity, a power of two) and
-    ``state`` (``state[0]``: blocks staged). The staged blocks' voxels live in the field's own
-    voxel array, in rows reserved for the thread (``base + s`` for staged block ``s``)."""
-
-    def __init__(self, capacity: int = 1024):
-        self.capacity = int(capacity)
-        self.keys = np.full(capacity, -1, dtype=np.int64)
-        self.table_keys = np.full(2 * capacity, -1, dtype=np.int64)
-        self.table_slots = np.full(2 * capacity, -1, dtype=np.int32)
-        self.state = np.zeros(1, dtype=np.int64)
+from dm2.fusion.tsdf.ray_walk import dda_start, dda_step, update_voxel
 
 
 @njit(cache=True, nogil=True)
-def _staged_slot(key, base, st_keys, st_table_keys, st_table_slots, st_state):
+def _staged_slot(key, base, staging):
     """Field row of a block the field lacks: its row in the thread's reserved rows (staged
-    now when new). Not inlined: the fusion loop stays small, and this path is rare."""
-    return base + hash_get_or_insert(key, st_table_keys, st_table_slots, st_keys, st_state)
+    now when new; ``staging``: the thread's :class:`~dm2.fusion.tsdf.bundles.Staging`). Not
+    inlined: the fusion loop stays small, and this path is rare."""
+    return base + hash_get_or_insert(key, staging.table_keys, staging.table_slots, staging.keys,
+                                     staging.state)
 
 
 @njit(cache=True, nogil=True)
-def _found_slot(key, table_keys, table_slots, base, st_table_keys, st_table_slots):
-    """Field row of an allocated or staged block, -1 for neither (the carve beyond a ray's
-    band allocates nothing)."""
-    s = hash_find(table_keys, table_slots, key)
+def _found_slot(key, table, base, staging):
+    """Field row of an allocated (``table``: the field's
+    :class:`~dm2.fusion.tsdf.bundles.BlockHash`) or staged block, -1 for neither (the carve
+    beyond a ray's band allocates nothing)."""
+    s = hash_find(table.keys, table.slots, key)
     if s >= 0:
         return s
-    s = hash_find(st_table_keys, st_table_slots, key)
+    s = hash_find(staging.table_keys, staging.table_slots, key)
     return base + s if s >= 0 else -1
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def fuse_owned(tid, col_shift, start, register, origins_O, points_O, active, xz_S, offsets,
-               T_O_S, spot_O, axis_O, active_r2_mm2, bounds_lo, bounds_hi, use_bounds, voxel_mm,
-               truncation_mm, active_weight_cap, max_weight, table_keys, table_slots, voxels,
-               touched, counts, base, st_keys, st_table_keys, st_table_slots, st_state):
-    """Thread ``tid`` (0 or 1): fuse its own voxels of the points from ``start`` on (arguments
-    as in :func:`dm2.fusion.tsdf.kernels._fuse`; ``counts`` as the serial kernel counts the points
-    walked). Blocks the field lacks are staged in rows ``base:base + len(st_keys)`` of
-    ``voxels`` (zero). Returns the index of the first point not handled because the staging
-    area is full (``len(xz_S)`` when done)."""
+def fuse_owned(tid, col_shift, start, register, use_bounds, batch, params, table, voxels,
+               touched, counts, base, staging):
+    """Thread ``tid`` (0 or 1): fuse its own voxels of the points of ``batch`` from ``start`` on
+    (``batch``: a :class:`~dm2.fusion.tsdf.bundles.Batch`, ``params``: the
+    :class:`~dm2.fusion.tsdf.bundles.FusionParams`, ``table``: the field's
+    :class:`~dm2.fusion.tsdf.bundles.BlockHash`, ``voxels``, ``touched`` and the flags as in
+    :func:`dm2.fusion.tsdf.kernels.fuse_profiles`; ``counts`` as the serial kernel counts the
+    points walked); ``col_shift``: the checkerboard's columns are ``2**col_shift`` blocks wide.
+    Bundled arguments: called twice per batch of thousands of points, whose typing by numba
+    (a few microseconds) does not count.
+    Blocks the field lacks are staged in ``staging`` (the thread's
+    :class:`~dm2.fusion.tsdf.bundles.Staging`), their voxels in rows
+    ``base:base + len(staging.keys)`` of ``voxels`` (zero). Returns the index of the first point
+    not handled because the staging area is full (``len(xz_S)`` when done)."""
     if not register:  # literal flags: each variant is compiled without the other's tests
-        return _owned(tid, col_shift, start, False, origins_O, points_O, active, xz_S, offsets,
-                      T_O_S, spot_O, axis_O, active_r2_mm2, bounds_lo, bounds_hi, False, voxel_mm,
-                      truncation_mm, active_weight_cap, max_weight, table_keys, table_slots,
-                      voxels, touched, counts, base, st_keys, st_table_keys, st_table_slots,
-                      st_state)
+        return _owned(tid, col_shift, start, False, False, batch, params, table, voxels,
+                      touched, counts, base, staging)
     if use_bounds:
-        return _owned(tid, col_shift, start, True, origins_O, points_O, active, xz_S, offsets,
-                      T_O_S, spot_O, axis_O, active_r2_mm2, bounds_lo, bounds_hi, True, voxel_mm,
-                      truncation_mm, active_weight_cap, max_weight, table_keys, table_slots,
-                      voxels, touched, counts, base, st_keys, st_table_keys, st_table_slots,
-                      st_state)
-    return _owned(tid, col_shift, start, True, origins_O, points_O, active, xz_S, offsets, T_O_S,
-                  spot_O, axis_O, active_r2_mm2, bounds_lo, bounds_hi, False, voxel_mm,
-                  truncation_mm, active_weight_cap, max_weight, table_keys, table_slots, voxels,
-                  touched, counts, base, st_keys, st_table_keys, st_table_slots, st_state)
+        return _owned(tid, col_shift, start, True, True, batch, params, table, voxels, touched,
+                      counts, base, staging)
+    return _owned(tid, col_shift, start, True, False, batch, params, table, voxels, touched,
+                  counts, base, staging)
 
 
 @njit(cache=True, inline="always")
-def _owned(tid, col_shift, start, register, origins_O, points_O, active, xz_S, offsets,
-           T_O_S, spot_O, axis_O, active_r2_mm2, bounds_lo, bounds_hi, use_bounds, voxel_mm,
-           truncation_mm, active_weight_cap, max_weight, table_keys, table_slots, voxels,
-           touched, counts, base, st_keys, st_table_keys, st_table_slots, st_state):
+def _owned(tid, col_shift, start, register, use_bounds, batch, params, table, voxels, touched,
+           counts, base, staging):
     """The loop of :func:`fuse_owned`, inlined with ``register`` and ``use_bounds`` as
     constants."""
+    # the bundles' fields, read once here: a field read in a loop would be reference-counted
+    origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, axis_O = batch
+    voxel_mm, truncation_mm, active_weight_cap, max_weight, active_r2_mm2, bounds_lo, \
+        bounds_hi = params
+    table_keys, table_slots = table.keys, table.slots
+    st_state = staging.state
     inv_vox = 1.0 / voxel_mm
     inv_trunc = 1.0 / truncation_mm
     carve_mm = CARVE_TRUNCATIONS * truncation_mm
     carve_vox = carve_mm * inv_vox
     cs = BLOCK_SHIFT + col_shift
     run = np.empty((CARVE_RUN_VOXELS, 2), dtype=np.int64)
-    st_capacity = st_keys.shape[0]
+    st_capacity = staging.keys.shape[0]
     pose = NO_POSE
     ra = rb = (1 << 40, 0, 0, -1)  # the two blocks looked up last (bx, by, bz, slot)
     for k in range(offsets.shape[0] - 1):
@@ -132,7 +120,7 @@ def _owned(tid, col_shift, start, register, origins_O, points_O, active, xz_S, o
             mine = cx0 == cx1 and cy0 == cy1
             if mine and ((cx0 + cy0) & 1) != tid:
                 continue  # the other thread's column
-            vx, vy, vz, span, stx, sty, stz, tdx, tdy, tdz, tmx, tmy, tmz, d, ddx, ddy, ddz = \
+            vx, vy, vz, span, tmx, tmy, tmz, d, steps = \
                 dda_start(ox, oy, oz, dx, dy, dz, r, truncation_mm, voxel_mm, inv_vox)
             last_bx, last_by, last_bz, slot = 1 << 40, 0, 0, -1
             t = 0.0
@@ -147,14 +135,12 @@ def _owned(tid, col_shift, start, register, origins_O, points_O, active, xz_S, o
                             if slot >= 0:
                                 touched[slot] = True
                             else:
-                                slot = _staged_slot(key, base, st_keys, st_table_keys,
-                                                    st_table_slots, st_state)
+                                slot = _staged_slot(key, base, staging)
                             ra, rb = (bx, by, bz, slot), ra
                         last_bx, last_by, last_bz = bx, by, bz
                     update_voxel(voxels, slot, vx, vy, vz, d, truncation_mm, inv_trunc, act,
                                  active_weight_cap, max_weight)
-                t, vx, vy, vz, tmx, tmy, tmz, d = dda_step(vx, vy, vz, stx, sty, stz, tdx, tdy,
-                                                           tdz, tmx, tmy, tmz, d, ddx, ddy, ddz)
+                t, vx, vy, vz, tmx, tmy, tmz, d = dda_step(vx, vy, vz, tmx, tmy, tmz, d, steps)
             if not act:
                 continue
             # beyond the band: runs end at column edges, as in the serial walk
@@ -168,30 +154,31 @@ def _owned(tid, col_shift, start, register, origins_O, points_O, active, xz_S, o
                     if bx != last_bx or by != last_by or bz != last_bz:
                         slot = recent_slot(bx, by, bz, ra, rb)
                         if slot < 0:
-                            slot = _found_slot(pack_key(bx, by, bz), table_keys, table_slots,
-                                               base, st_table_keys, st_table_slots)
+                            slot = _found_slot(pack_key(bx, by, bz), table, base, staging)
                             if slot >= 0:
                                 ra, rb = (bx, by, bz, slot), ra
                         last_bx, last_by, last_bz = bx, by, bz
                     n_run = carve_visit(voxels, slot, vx, vy, vz, truncation_mm, run, n_run,
                                         touched, base)
-                t, vx, vy, vz, tmx, tmy, tmz, d = dda_step(vx, vy, vz, stx, sty, stz, tdx, tdy,
-                                                           tdz, tmx, tmy, tmz, d, ddx, ddy, ddz)
+                t, vx, vy, vz, tmx, tmy, tmz, d = dda_step(vx, vy, vz, tmx, tmy, tmz, d, steps)
     return offsets[offsets.shape[0] - 1]
 
 
 @njit(cache=True)
-def commit_staged(st_keys, st_state, base, table_keys, table_slots, block_keys, voxels, touched,
-                  state, st_table_keys, st_table_slots):
-    """Serial: give a thread's staged blocks the next field slots in staging order (their
-    voxels move down from the thread's reserved rows, which are zeroed again), mark them
-    touched, and empty the staging area. The caller makes room first."""
+def commit_staged(staging, base, table, block_keys, voxels, touched, state):
+    """Serial: give a thread's staged blocks (``staging``, staged in rows from ``base`` on) the
+    next field slots in staging order (their voxels move down from the thread's reserved rows,
+    which are zeroed again), mark them touched, and empty the staging area. ``table``: the
+    field's :class:`~dm2.fusion.tsdf.bundles.BlockHash`; ``block_keys``, ``voxels``,
+    ``touched``, ``state``: the field's, as in :func:`dm2.fusion.tsdf.kernels.fuse_profiles`.
+    The caller makes room first."""
+    st_keys, st_state = staging.keys, staging.state
     for j in range(st_state[0]):
-        s = hash_get_or_insert(st_keys[j], table_keys, table_slots, block_keys, state)
+        s = hash_get_or_insert(st_keys[j], table.keys, table.slots, block_keys, state)
         if s != base + j:
             voxels[s, :, :] = voxels[base + j, :, :]
             voxels[base + j, :, :] = 0.0
         touched[s] = True
         st_keys[j] = -1
-    st_table_keys[:] = -1
+    staging.table_keys[:] = -1
     st_state[0] = 0

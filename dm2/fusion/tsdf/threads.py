@@ -21,6 +21,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from dm2.fusion.tsdf import owned_kernels as OK
+from dm2.fusion.tsdf.bundles import BlockHash, new_staging
 from dm2.fusion.tsdf.carve import COL_SHIFT  # the checkerboard of block columns in x, y
 
 STAGING_BLOCKS = 1024  # blocks a thread may stage per run before its staged blocks are committed
@@ -38,36 +39,37 @@ class SplitBuffers:
     """The two threads' staging areas, reused across batches."""
 
     def __init__(self, capacity: int = STAGING_BLOCKS):
-        self.staging = (OK.Staging(capacity), OK.Staging(capacity))
+        self.capacity = int(capacity)
+        self.staging = (new_staging(self.capacity), new_staging(self.capacity))
 
 
-def fuse_split(field, register, o, p, a, xz, off, T, spot, axis, r2, lo, hi, use_bounds,
-               counts, max_weight: float) -> None:
-    """Fuse one batch into ``field`` with two threads (arguments as in
-    :func:`dm2.fusion.tsdf.kernels._fuse`); ``counts`` (skipped, fused) is added to and
+def fuse_split(field, register: bool, use_bounds: bool, batch, params, counts) -> None:
+    """Fuse one batch into ``field`` with two threads (``batch``: a
+    :class:`~dm2.fusion.tsdf.bundles.Batch`, ``params``: the
+    :class:`~dm2.fusion.tsdf.bundles.FusionParams`, the flags as in
+    :func:`dm2.fusion.tsdf.kernels.fuse_profiles`); ``counts`` (skipped, fused) is added to and
     ``field.split_cpu_s`` receives the phases' CPU seconds."""
-    n = xz.shape[0]
-    staging = field._split_buffers.staging
+    n = batch.xz_S.shape[0]
+    buffers = field._split_buffers
+    staging = buffers.staging
     starts = [0, 0]
     # each thread counts into its own cache line (a shared line would bounce between the
     # cores at every point); thread 0's counts are the batch's, as the serial kernel counts
     lines = np.zeros((2, 16), dtype=np.int64)
     while starts[0] < n or starts[1] < n:
         # rows for the blocks each thread may stage, beyond the allocated ones
-        field._grow(sum(st.capacity for st in staging))
-        bases = (field.n_blocks, field.n_blocks + staging[0].capacity)
-        args = (register, o, p, a, xz, off, T, spot, axis, r2, lo, hi, use_bounds,
-                field.voxel_mm, field.truncation_mm, field.weight_cap, max_weight,
-                field._table_keys, field._table_slots, field.voxels, field.touched)
+        field._grow(2 * buffers.capacity)
+        bases = (field.n_blocks, field.n_blocks + buffers.capacity)
+        table = BlockHash(field._table_keys, field._table_slots)
+        args = (register, use_bounds, batch, params, table, field.voxels, field.touched)
         other = _pool().submit(_timed_run, 1, starts[1], n, args, lines[1], bases[1],
                                staging[1])
         stop0, cpu0 = _timed_run(0, starts[0], n, args, lines[0], bases[0], staging[0])
         stop1, cpu1 = other.result()
         c0 = time.thread_time()
         for st, base in zip(staging, bases, strict=True):  # thread 0's first: fixed slots
-            OK.commit_staged(st.keys, st.state, base, field._table_keys, field._table_slots,
-                             field.block_keys, field.voxels, field.touched, field._state,
-                             st.table_keys, st.table_slots)
+            OK.commit_staged(st, base, table, field.block_keys, field.voxels, field.touched,
+                             field._state)
         starts = [stop0, stop1]
         field.split_cpu_s += (time.thread_time() - c0, cpu0, cpu1, max(cpu0, cpu1))
     counts += lines[0, :2]
@@ -80,6 +82,7 @@ def _timed_run(tid: int, start: int, n: int, args: tuple, counts, base: int,
     if start >= n:
         return n, 0.0
     c = time.thread_time()
-    stop = OK.fuse_owned(tid, COL_SHIFT, start, *args, counts, base, st.keys, st.table_keys,
-                         st.table_slots, st.state)
+    register, use_bounds, batch, params, table, voxels, touched = args
+    stop = OK.fuse_owned(tid, COL_SHIFT, start, register, use_bounds, batch, params, table,
+                         voxels, touched, counts, base, st)
     return stop, time.thread_time() - c
