@@ -1,7 +1,9 @@
 """The part's planned outline in ``O`` (xy polylines) for the report's maps.
 
 From the toolpath when there is one: the sprayed moves of the layer, widened by half a line
-spacing, merged, their outer boundary. Without a toolpath: the contour of the near-net
+spacing, merged, their outer boundary and the boundaries of the holes they leave (a hole wide enough
+to hold a disk of ``OUTLINE_HALF_WIDTH_MM``: narrower gaps are slots between lines, not holes
+in the part). Without a toolpath: the contour of the near-net
 reference at half its peak height.
 """
 
@@ -13,9 +15,10 @@ OUTLINE_HALF_WIDTH_MM = 1.0  # half the deposited track width assumed around eac
 
 
 def planned_outline(toolpath, layer: int | None = None) -> list[np.ndarray]:
-    """Outer boundaries ``[(k, 2) float64 mm, ...]`` of the sprayed moves of ``layer`` (the
-    last layer of the toolpath at or below it; default the last layer)."""
-    from shapely.geometry import LineString, Point
+    """Boundaries ``[(k, 2) float64 mm, ...]`` of the sprayed moves of ``layer`` (the last
+    layer of the toolpath at or below it; default the last layer): each outer boundary, then
+    the holes inside it."""
+    from shapely.geometry import LineString, Point, Polygon
     from shapely.ops import unary_union
 
     layers = np.asarray(toolpath.layer)
@@ -45,7 +48,13 @@ def planned_outline(toolpath, layer: int | None = None) -> list[np.ndarray]:
         return []
     merged = unary_union([s.buffer(OUTLINE_HALF_WIDTH_MM) for s in shapes])
     polys = getattr(merged, "geoms", [merged])
-    return [np.asarray(p.exterior.coords) for p in polys if p.area > 1.0]
+    out = []
+    for p in polys:
+        if p.area > 1.0:
+            out.append(np.asarray(p.exterior.coords))
+            out += [np.asarray(h.coords) for h in p.interiors
+                    if not Polygon(h).buffer(-OUTLINE_HALF_WIDTH_MM).is_empty]
+    return out
 
 
 def reference_outline(reference) -> list[np.ndarray]:
