@@ -90,7 +90,9 @@ def test_first_run_says_the_kernels_are_being_compiled(tmp_path, monkeypatch):
     with common.console.capture() as cap:
         common.note_cold_kernel_cache()
     assert "compiling the numeric kernels" in cap.get()
-    (fake / "__pycache__" / "tsdf_kernels.fuse_profiles-211.py311.nbi").write_bytes(b"")
+    (fake / "fusion" / "tsdf" / "__pycache__").mkdir(parents=True)
+    (fake / "fusion" / "tsdf" / "__pycache__" / "kernels.fuse_profiles-163.py311.nbi"
+     ).write_bytes(b"")  # where the package keeps its kernels
     with common.console.capture() as cap:
         common.note_cold_kernel_cache()
     assert cap.get() == ""

@@ -91,7 +91,7 @@ def note_cold_kernel_cache() -> None:
     root = Path(dm2.__file__).parent
     if os.environ.get("NUMBA_CACHE_DIR") or not os.access(root, os.W_OK):
         return
-    if not any((root / "__pycache__").glob("*.nbi")):
+    if next(root.glob("**/__pycache__/*.nbi"), None) is None:  # (kernels live in subfolders)
         console.print("first run: compiling the numeric kernels (about a minute; cached for "
                       "later runs)")
 
