@@ -126,10 +126,10 @@ def _closest_on_heightmap(points, h, cell, max_r):
                 for t in range(2):
                     if t == 0:
                         cx_, cy_, cz_ = closest_on_triangle(px, py, pz, x0, y0, a, x1, y0, b,
-                                                             x1, y1, d)
+                                                            x1, y1, d)
                     else:
                         cx_, cy_, cz_ = closest_on_triangle(px, py, pz, x0, y0, a, x1, y1, d,
-                                                             x0, y1, c)
+                                                            x0, y1, c)
                     d2 = (cx_ - px) ** 2 + (cy_ - py) ** 2 + (cz_ - pz) ** 2
                     if d2 < best2:
                         best2 = d2
