@@ -300,3 +300,25 @@ def test_twin_process_scale_is_feed_times_efficiency_over_the_dense_fraction():
     twin = {"efficiency_factor": 1.15, "porosity": 0.04, "feed_g_min": sc.process.feed_g_min * 0.9}
     sc = sc.model_copy(update={"twin_process": sc.twin_process.model_copy(update=twin)})
     assert twin_process_scale(sc) == pytest.approx(0.9 * 1.15 / 0.96, rel=1e-12)
+
+
+def test_a_finding_before_the_track_sets_the_detection_onset():
+    """A feed step from layer 2 (FEED_STEP_DEV) tracked only from layer 3 but reported as a
+    process finding since layer 2 is detected at layer 2; a finding after the track changes
+    nothing."""
+    tracks = {1: ("overbuild", {3: PART})}
+    base = score_run(report(tracks), truth("feed_step", 1), truth_maps=maps(FEED_STEP_DEV),
+                     footprints=footprints(tracks))
+    (f,) = base["faults"]
+    assert f["detected"] and f["first_layer_detected"] == 3 and f["onset_delay_layers"] == 1
+    early = score_run(_with_findings(report(tracks), ("offset", 1.3, 1, 2)), truth("feed_step", 1),
+                      truth_maps=maps(FEED_STEP_DEV), footprints=footprints(tracks))
+    (f,) = early["faults"]
+    assert f["first_layer_detected"] == 2 and f["onset_delay_layers"] == 0
+    assert f["detected_by"] == "process finding" and f["track_ids"] == [1]
+    assert early["findings"][0]["verdict"] == "true" and early["false_tracks"] == []
+    late = score_run(_with_findings(report(tracks), ("change", 1.3, 1, 3)), truth("feed_step", 1),
+                     truth_maps=maps(FEED_STEP_DEV), footprints=footprints(tracks))
+    (f,) = late["faults"]
+    assert f["first_layer_detected"] == 3 and f["onset_delay_layers"] == 1
+    assert "detected_by" not in f or f["detected_by"] != "process finding"

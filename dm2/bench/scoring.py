@@ -232,9 +232,9 @@ def score_run(report: dict, fault_truth: dict | None, *, truth_maps: dict,
 
 
 def _score_findings(report, faults, scores, expected_scale) -> list[dict]:
-    """Each process finding's verdict (see the definitions); a finding that detects an
-    undetected fault marks the fault's score ``detected`` (``detected_by`` "process finding",
-    onset delay from the finding's first layer)."""
+    """Each process finding's verdict (see the definitions); a finding that detects a fault
+    before any track does (or where none does) marks the fault's score ``detected`` from the
+    finding's first layer (``detected_by`` "process finding", the onset delay from there)."""
     out = []
     for fd in ((report.get("process") or {}).get("finding_details") or []):
         since, sign = int(fd["since_layer"]), int(fd["sign"])
@@ -244,10 +244,11 @@ def _score_findings(report, faults, scores, expected_scale) -> list[dict]:
                 continue
             if int(f.get("sign") or 1) == sign and abs(since - sc["onset_layer"]) <= 1:
                 verdict = "true"
-                if not sc["detected"]:
+                first = sc["first_layer_detected"]
+                if not sc["detected"] or first is None or since < first:  # the earliest counts
                     sc.update(detected=True, detected_by="process finding", sign_ok=True,
                               detected_global=True, first_layer_detected=since,
-                              onset_delay_layers=since - sc["onset_layer"])
+                              onset_delay_layers=since - sc["onset_layer"], onset_delay_s=None)
         if verdict is None:
             ok = fd.get("kind", "offset") == "offset" and expected_scale is not None and \
                 abs(float(fd["estimate"]) - expected_scale) <= FINDING_TOLERANCE
