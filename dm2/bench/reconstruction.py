@@ -3,24 +3,21 @@
 The twin writes each layer's true top surface as ``truth/layer_NNN.ply``: its height field's
 cell centres as a regular grid of vertices (row-major, x fastest), each quad split into the
 triangles a-b-d and a-d-c along the diagonal from (i, j) to (i + 1, j + 1)
-(``twin.world.heightfield.HeightField.to_mesh``). Such a grid mesh is searched in place: the
-exact closest point-triangle distance over the quads in rings around the point's own quad,
-each quad skipped when its bounding box is farther than the best distance so far, rings stopped
-once they are farther (:func:`grid_mesh_distance`, numba, parallel over points). Any other
-mesh goes through Open3D's ``RaycastingScene.compute_distance`` (a BVH; it holds the GIL and
-builds a tree per layer, ``benchmarks/reconstruction_check.py`` measures both).
+(``twin.world.heightfield.HeightField.to_mesh``). Such a grid mesh is searched in place by
+the exact search the deviation from the reference uses (:func:`grid_mesh_distance`:
+:func:`dm2.defects.deviation.closest_on_grid`, unbounded). Any other mesh goes through
+Open3D's ``RaycastingScene.compute_distance`` (a BVH; it holds the GIL and builds a tree per
+layer, ``benchmarks/reconstruction_check.py`` measures both).
 """
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np
-from numba import njit, prange
 
 from dm2.defects.classify import CLASS_NAMES
-from dm2.defects.deviation import closest_on_triangle
+from dm2.defects.deviation import closest_on_grid
 from dm2.io.ply import read_mesh_ply
 
 CROP_MM = 1.0  # vertices this close to the truth's xy extent are not compared (it is cropped)
@@ -55,56 +52,14 @@ def grid_of_mesh(vertices: np.ndarray, faces: np.ndarray):
     return np.ascontiguousarray(g[:, :, 2]), float(x0), float(y0), float(cell)
 
 
-@njit(cache=True, inline="always")
-def _quad_best(px, py, pz, h, x0, y0, cell, i, j, best2):
-    """``best2`` lowered to the squared distance of p to quad (i, j)'s two triangles where one
-    is closer; the quad is skipped when its bounding box is no closer."""
-    qx0 = x0 + i * cell
-    qy0 = y0 + j * cell
-    a, b = h[j, i], h[j, i + 1]
-    c, d = h[j + 1, i], h[j + 1, i + 1]
-    ex = max(qx0 - px, 0.0, px - qx0 - cell)
-    ey = max(qy0 - py, 0.0, py - qy0 - cell)
-    ez = max(min(a, b, c, d) - pz, 0.0, pz - max(a, b, c, d))
-    if ex * ex + ey * ey + ez * ez >= best2:
-        return best2
-    qx1, qy1 = qx0 + cell, qy0 + cell
-    cx, cy, cz = closest_on_triangle(px, py, pz, qx0, qy0, a, qx1, qy0, b, qx1, qy1, d)
-    best2 = min(best2, (cx - px) ** 2 + (cy - py) ** 2 + (cz - pz) ** 2)
-    cx, cy, cz = closest_on_triangle(px, py, pz, qx0, qy0, a, qx1, qy1, d, qx0, qy1, c)
-    return min(best2, (cx - px) ** 2 + (cy - py) ** 2 + (cz - pz) ** 2)
-
-
-@njit(cache=True, parallel=True)
 def grid_mesh_distance(points, h, x0, y0, cell):
     """Unsigned distance [mm] (n,) of ``points`` (n, 3) [mm] to the grid mesh of heights ``h``
-    (H, W) with vertex (i, j) at (x0 + i cell, y0 + j cell, h[j, i]), exact."""
-    ny, nx = h.shape
-    n = points.shape[0]
-    dist = np.empty(n)
-    for k in prange(n):
-        px, py, pz = points[k, 0], points[k, 1], points[k, 2]
-        fi = min(max(int(math.floor((px - x0) / cell)), 0), nx - 2)
-        fj = min(max(int(math.floor((py - y0) / cell)), 0), ny - 2)
-        best2 = np.inf
-        r = 0
-        while True:
-            if r >= 2 and ((r - 1) * cell) ** 2 >= best2:
-                break  # every quad of this ring lies farther in xy alone
-            if fi - r < 0 and fj - r < 0 and fi + r > nx - 2 and fj + r > ny - 2:
-                break  # the ring lies wholly outside the grid
-            for j in range(max(fj - r, 0), min(fj + r, ny - 2) + 1):
-                if j == fj - r or j == fj + r:  # the ring's bottom and top rows: all quads
-                    for i in range(max(fi - r, 0), min(fi + r, nx - 2) + 1):
-                        best2 = _quad_best(px, py, pz, h, x0, y0, cell, i, j, best2)
-                else:  # its sides: the two end quads (r >= 1 here)
-                    if fi - r >= 0:
-                        best2 = _quad_best(px, py, pz, h, x0, y0, cell, fi - r, j, best2)
-                    if fi + r <= nx - 2:
-                        best2 = _quad_best(px, py, pz, h, x0, y0, cell, fi + r, j, best2)
-            r += 1
-        dist[k] = math.sqrt(best2)
-    return dist
+    (H, W) with vertex (i, j) at (x0 + i cell, y0 + j cell, h[j, i]), exact (the deviation's
+    own search, :func:`dm2.defects.deviation.closest_on_grid`, unbounded)."""
+    p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+    dist, _ = closest_on_grid(p, np.ascontiguousarray(h, np.float64), x0 / cell, y0 / cell,
+                              cell, np.inf)
+    return np.abs(dist)
 
 
 def mesh_distance(points_O: np.ndarray, vertices_O: np.ndarray, faces: np.ndarray) -> np.ndarray:

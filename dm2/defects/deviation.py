@@ -81,19 +81,52 @@ def closest_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
     return ax + abx * v + acx * w, ay + aby * v + acy * w, az + abz * v + acz * w
 
 
+@njit(cache=True, inline="always")
+def _quad_closest(px, py, pz, h, ox, oy, cell, i, j, best):
+    """``best`` (squared distance, closest x, y, z) lowered by quad ``(i, j)`` of the grid
+    (:func:`closest_on_grid`) where one of its triangles a-b-d, a-d-c is closer; the quad is
+    skipped when its bounding box is no closer."""
+    x0 = (i + ox) * cell
+    y0 = (j + oy) * cell
+    x1 = x0 + cell
+    y1 = y0 + cell
+    a, b = h[j, i], h[j, i + 1]
+    c, d = h[j + 1, i], h[j + 1, i + 1]
+    ex = max(x0 - px, 0.0, px - x1)
+    ey = max(y0 - py, 0.0, py - y1)
+    ez = max(min(a, b, c, d) - pz, 0.0, pz - max(a, b, c, d))
+    if ex * ex + ey * ey + ez * ez >= best[0]:
+        return best
+    for t in range(2):
+        if t == 0:
+            cx, cy, cz = closest_on_triangle(px, py, pz, x0, y0, a, x1, y0, b, x1, y1, d)
+        else:
+            cx, cy, cz = closest_on_triangle(px, py, pz, x0, y0, a, x1, y1, d, x0, y1, c)
+        d2 = (cx - px) ** 2 + (cy - py) ** 2 + (cz - pz) ** 2
+        if d2 < best[0]:
+            best = (d2, cx, cy, cz)
+    return best
+
+
 @njit(cache=True, parallel=True)
-def _closest_on_heightmap(points, h, cell, max_r):
-    """Signed closest distance and closest points of ``points`` (n, 3) to the triangulated
-    height map (cell centres; squares split a-b-d / a-d-c). The vertical distance to the
-    surface bounds the search; the sign is the side of the surface (+ above)."""
+def closest_on_grid(points, h, ox, oy, cell, max_r):
+    """Signed closest distance (n,) and closest points (n, 3) of ``points`` (n, 3) [mm] to
+    the grid mesh of heights ``h`` (ny, nx): vertex ``(i, j)`` at ``((i + ox) cell,
+    (j + oy) cell, h[j, i])`` [mm], each square split a-b-d / a-d-c (a = (i, j), b = (i + 1,
+    j), c = (i, j + 1), d = (i + 1, j + 1)); the sign is the side of the surface (+ above).
+
+    Exact within ``max_r`` [mm] of the point's vertical distance to the surface (the search
+    square; ``np.inf``: exact): the squares are searched in rings around the point's own, each
+    skipped where its bounding box is no closer than the best so far, the rings stopped once
+    they lie farther in xy alone."""
     ny, nx = h.shape
     n = points.shape[0]
     dist = np.empty(n)
     foot = np.empty((n, 3))
     for k in prange(n):
         px, py, pz = points[k, 0], points[k, 1], points[k, 2]
-        fx = min(max(px / cell - 0.5, 0.0), nx - 1.0)
-        fy = min(max(py / cell - 0.5, 0.0), ny - 1.0)
+        fx = min(max(px / cell - ox, 0.0), nx - 1.0)
+        fy = min(max(py / cell - oy, 0.0), ny - 1.0)
         i0 = min(int(fx), nx - 2)
         j0 = min(int(fy), ny - 2)
         tx, ty = fx - i0, fy - j0
@@ -103,39 +136,33 @@ def _closest_on_heightmap(points, h, cell, max_r):
         else:  # triangle a-d-c
             hz = ha + ty * (hc - ha) + tx * (hd - hc)
         side = 1.0 if pz >= hz else -1.0
-        qx = (fx + 0.5) * cell
-        qy = (fy + 0.5) * cell
+        qx = (fx + ox) * cell
+        qy = (fy + oy) * cell
         off = math.sqrt((qx - px) ** 2 + (qy - py) ** 2)  # outside the map: clamp distance
-        best2 = (pz - hz) ** 2 + off * off
-        bx, by, bz = qx, qy, hz
-        r = min(math.sqrt(best2), max_r)
-        ia = max(int(math.floor((px - r) / cell - 0.5)), 0)
-        ib = min(int(math.floor((px + r) / cell - 0.5)), nx - 2)
-        ja = max(int(math.floor((py - r) / cell - 0.5)), 0)
-        jb = min(int(math.floor((py + r) / cell - 0.5)), ny - 2)
-        for j in range(ja, jb + 1):
-            y0 = (j + 0.5) * cell
-            y1 = y0 + cell
-            for i in range(ia, ib + 1):
-                x0 = (i + 0.5) * cell
-                x1 = x0 + cell
-                a = h[j, i]
-                b = h[j, i + 1]
-                c = h[j + 1, i]
-                d = h[j + 1, i + 1]
-                for t in range(2):
-                    if t == 0:
-                        cx_, cy_, cz_ = closest_on_triangle(px, py, pz, x0, y0, a, x1, y0, b,
-                                                            x1, y1, d)
-                    else:
-                        cx_, cy_, cz_ = closest_on_triangle(px, py, pz, x0, y0, a, x1, y1, d,
-                                                            x0, y1, c)
-                    d2 = (cx_ - px) ** 2 + (cy_ - py) ** 2 + (cz_ - pz) ** 2
-                    if d2 < best2:
-                        best2 = d2
-                        bx, by, bz = cx_, cy_, cz_
-        dist[k] = side * math.sqrt(best2)
-        foot[k, 0], foot[k, 1], foot[k, 2] = bx, by, bz
+        best = ((pz - hz) ** 2 + off * off, qx, qy, hz)  # a point of the surface
+        r = min(math.sqrt(best[0]), max_r)
+        ia = max(int(math.floor((px - r) / cell - ox)), 0)
+        ib = min(int(math.floor((px + r) / cell - ox)), nx - 2)
+        ja = max(int(math.floor((py - r) / cell - oy)), 0)
+        jb = min(int(math.floor((py + r) / cell - oy)), ny - 2)
+        ring = 0
+        while True:
+            if ring >= 2 and ((ring - 1) * cell) ** 2 >= best[0]:
+                break  # every square of this ring lies farther in xy alone
+            if i0 - ring < ia and j0 - ring < ja and i0 + ring > ib and j0 + ring > jb:
+                break  # the ring lies wholly outside the search square
+            for j in range(max(j0 - ring, ja), min(j0 + ring, jb) + 1):
+                if j == j0 - ring or j == j0 + ring:  # the ring's bottom and top rows
+                    for i in range(max(i0 - ring, ia), min(i0 + ring, ib) + 1):
+                        best = _quad_closest(px, py, pz, h, ox, oy, cell, i, j, best)
+                else:  # its two sides (ring >= 1 here)
+                    if i0 - ring >= ia:
+                        best = _quad_closest(px, py, pz, h, ox, oy, cell, i0 - ring, j, best)
+                    if i0 + ring <= ib:
+                        best = _quad_closest(px, py, pz, h, ox, oy, cell, i0 + ring, j, best)
+            ring += 1
+        dist[k] = side * math.sqrt(best[0])
+        foot[k, 0], foot[k, 1], foot[k, 2] = best[1], best[2], best[3]
     return dist, foot
 
 
@@ -148,7 +175,7 @@ def closest_on_reference(points_O: np.ndarray, reference: ReferenceMap):
     p = np.ascontiguousarray(points_O, dtype=np.float64).reshape(-1, 3)
     if len(p) == 0:
         return np.zeros(0), np.zeros((0, 3))
-    return _closest_on_heightmap(p, reference.heights_mm, reference.cell_mm, MAX_SEARCH_MM)
+    return closest_on_grid(p, reference.heights_mm, 0.5, 0.5, reference.cell_mm, MAX_SEARCH_MM)
 
 
 def signed_deviation(surface, reference: ReferenceMap) -> np.ndarray:
