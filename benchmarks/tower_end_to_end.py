@@ -44,7 +44,6 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-CROP_MM = 1.0          # as dm2.bench.reconstruction.reconstruction_errors
 BUILT_MM = 1e-3        # a truth cell with material (as twin.world.truth.write_layer_surface)
 UNOBSERVED = 5.0       # dm2.defects.classify.CLASS_NAMES.index("unobserved")
 SAME_MM = 1e-4         # a vertex this close to an earlier mesh's vertex stood still
@@ -96,7 +95,7 @@ def layer_errors(run_dir: Path, layer: int, cover_mm: float, stale_layers: int):
     files; ``stale``: the vertex is bit-identical to one ``stale_layers`` layers earlier."""
     from scipy.spatial import cKDTree
 
-    from dm2.bench.reconstruction import mesh_distance
+    from dm2.bench.reconstruction import CROP_MM, mesh_distance
     from dm2.io.ply import read_mesh_ply
 
     truth_path = run_dir / "truth" / f"layer_{layer:03d}.ply"

@@ -169,10 +169,8 @@ class Pipeline:
         out_dir = Path(out_dir)
         folder = {name: report_args.pop(name) for name in ("inputs", "force", "stage")
                   if name in report_args}
-        if full:
-            report_args.setdefault("toolpath", self.toolpath)
         content = ReportContent(config_toml=config_toml, dropped=dropped, sections=sections,
-                                **report_args)
+                                **{"toolpath": self.toolpath, **report_args})
         if full:
             return write_report(out_dir, results, tracks, content, include=include,
                                 command=command, **folder)

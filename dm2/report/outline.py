@@ -1,10 +1,10 @@
 """The part's planned outline in ``O`` (xy polylines) for the report's maps.
 
 From the toolpath when there is one: the sprayed moves of the layer, widened by half a line
-spacing, merged, their outer boundary and the boundaries of the holes they leave (a hole wide enough
-to hold a disk of ``OUTLINE_HALF_WIDTH_MM``: narrower gaps are slots between lines, not holes
-in the part). Without a toolpath: the contour of the near-net
-reference at half its peak height.
+spacing, merged, their outer boundary and the boundaries of the holes they leave (a hole wide
+enough to hold a disk of ``OUTLINE_HALF_WIDTH_MM``: narrower gaps are slots between lines, not
+holes in the part). Without a toolpath: the contour of the near-net reference at half its peak
+height.
 """
 
 from __future__ import annotations
