@@ -215,7 +215,7 @@ def open_view(cell, profile: Path, client: str):
          f"--user-data-dir={profile}", "--remote-debugging-port=0", view.url],
         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 60
-    while not view.server.get_clients():
+    while not view.state()["clients"]:
         if time.monotonic() > deadline:
             raise RuntimeError("the headless browser never connected to the 3D view")
         time.sleep(0.2)

@@ -1,15 +1,17 @@
 """The live 3D view: the newest layer is shown, the nozzle and sensor frames sit where the
-calibration and the robot pose put them in O, and on_layer only keeps the result."""
+calibration and the robot pose put them in O, on_layer only keeps the result, and the scene
+is served by a child process (the fusion process only pickles the layer's arrays)."""
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from chromium import free_port
 
 from dm2.core.messages import Calibration
+from dm2.io.child_process import ChildError
 from dm2.report.synthetic import synthetic_run
 from dm2.view.live import LiveView
-from dm2.view.scene import MM
 
 
 def _pose(t_mm, yaw):
@@ -30,17 +32,31 @@ def test_live_view_shows_the_newest_layer_and_places_the_frames():
         results, _, _ = synthetic_run(n_layers=3, n_tracks=6, size_mm=20.0)
         view._stop.set()  # drive the updates by hand
         view._thread.join()
+        results[-1].track_ids[0] = None  # a region no track holds gets a box of its own
         for r in results:
             view.on_layer(r)  # only the newest counts
         assert view._pending is results[-1] and view.updates == 0
         view._update()
         view._update()  # nothing new: no second scene update
         assert view.updates == 1 and view._shown is results[-1]
-        assert "Layer 2" in view.status.content
+        state = view.state()
+        assert state["updates"] == 1 and state["clients"] == 0
+        assert state["status"].startswith("**Layer 2** analysed")
+        assert f"{len(results[-1].regions)} region(s)" in state["status"]
         T_O_B = np.linalg.inv(T_B_F @ cal.T_F_O)
+        names = ["nozzle", *sorted(cal.T_B_S)]
+        assert sorted(state["poses"]) == sorted(names)
         for name, T_B_X in [("nozzle", cal.T_B_N)] + sorted(cal.T_B_S.items()):
-            frame = view._frames[name]
-            np.testing.assert_allclose(np.asarray(frame.position) / MM, (T_O_B @ T_B_X)[:3, 3],
-                                       atol=1e-6)
+            np.testing.assert_allclose(state["poses"][name], T_O_B @ T_B_X, atol=1e-9)
+        child = view._child.proc
     finally:
         view.stop_server()
+    assert child.poll() is not None  # the child ended with the view
+
+
+def test_live_view_names_the_reason_it_cannot_start():
+    with pytest.raises(ChildError, match="3D view did not start: ValueError: port 70000"):
+        LiveView(Calibration(T_B_S={}, T_F_O=np.eye(4), T_B_N=np.eye(4)), port=70000)
+    with pytest.raises(ChildError, match="3D view did not start: ValueError: host '192.0.2.1'"):
+        LiveView(Calibration(T_B_S={}, T_F_O=np.eye(4), T_B_N=np.eye(4)), host="192.0.2.1",
+                 port=free_port())

@@ -18,8 +18,21 @@ BOX_RGB = {"overbuild": (178, 24, 43), "underbuild": (33, 102, 172),
 
 
 def start_server(host: str = "127.0.0.1", port: int = 8080):
-    """A viser server on ``host:port`` (port 0 is not supported by viser: pick a free one)."""
+    """A viser server on ``host:port`` (port 0 is not supported: pick a free one; a port in
+    use is skipped for the next free one). Raises ValueError for a port outside 1-65535 or a
+    host this machine cannot serve on (viser would retry those forever)."""
+    import socket
+
     import viser
+
+    if not 1 <= int(port) <= 65535:
+        raise ValueError(f"port {port}: not in 1-65535")
+    try:
+        family, kind, _, _, address = socket.getaddrinfo(host, 0, type=socket.SOCK_STREAM)[0]
+        with socket.socket(family, kind) as s:
+            s.bind(address)
+    except OSError as exc:
+        raise ValueError(f"host {host!r}: cannot serve there ({exc})") from None
 
     server = viser.ViserServer(host=host, port=port, verbose=False)
     server.scene.set_up_direction("+z")
@@ -48,12 +61,9 @@ class Scene:
         self._camera_set = False
 
     def surface_chunked(self, name: str, vertices_O_mm, faces, signed_mm, class_code,
-                        chunk_faces: int = 12_000, pause_s: float = 0.002) -> None:
-        """:meth:`surface` sent as several meshes of at most ``chunk_faces`` faces, pausing
-        ``pause_s`` between them so other threads (the fusion loop) get the interpreter in
-        between; the chunks of the previous call under ``name`` are replaced."""
-        import time
-
+                        chunk_faces: int = 12_000) -> None:
+        """:meth:`surface` sent as several meshes of at most ``chunk_faces`` faces (the browser
+        takes them one by one); the chunks of the previous call under ``name`` are replaced."""
         faces = np.asarray(faces)
         n = max(int(np.ceil(len(faces) / chunk_faces)), 1)
         handles = []
@@ -63,7 +73,6 @@ class Scene:
             handles.append(self.surface(f"{name}/{k}", np.asarray(vertices_O_mm)[used],
                                         inverse.reshape(-1, 3), np.asarray(signed_mm)[used],
                                         np.asarray(class_code)[used]))
-            time.sleep(pause_s)
         for h in self._chunks.get(name, [])[n:]:
             h.remove()
         self._chunks[name] = handles
@@ -96,20 +105,23 @@ class Scene:
 
     def tracks(self, boxes) -> None:
         """``boxes`` = ``[(track_id, kind, bbox_min_O_mm, bbox_max_O_mm), ...]``: wireframe
-        boxes with their track number above them (earlier boxes are removed)."""
+        boxes with their track number above them, or only their kind for a region no track
+        holds (track_id None); earlier boxes are removed."""
         for h in self._boxes:
             h.remove()
         self._boxes = []
-        for tid, kind, lo, hi in list(boxes)[:MAX_BOXES]:
+        for k, (tid, kind, lo, hi) in enumerate(list(boxes)[:MAX_BOXES]):
             lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+            name, label = (f"/tracks/{tid}", f"#{tid} ") if tid is not None else \
+                (f"/regions/{k}", "")
             dims = np.maximum(hi - lo, 0.2) * MM
             centre = (lo + hi) / 2 * MM
             rgb = BOX_RGB.get(kind, (0, 0, 0))
             self._boxes.append(self.server.scene.add_box(
-                f"/tracks/{tid}", color=rgb, dimensions=tuple(dims), position=tuple(centre),
+                name, color=rgb, dimensions=tuple(dims), position=tuple(centre),
                 wireframe=True))
             self._boxes.append(self.server.scene.add_label(
-                f"/tracks/{tid}_label", f"#{tid} {kind.replace('_', ' ')}",
+                f"{name}_label", f"{label}{kind.replace('_', ' ')}",
                 position=(centre[0], centre[1], hi[2] * MM + 0.002)))
 
     def frame(self, name: str, T_O_X: np.ndarray, label: str | None = None,
