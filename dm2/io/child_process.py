@@ -43,10 +43,12 @@ def child_env() -> dict:
 
 
 class PickleChild:
-    """One child process ``python -m module *args`` (see the module docstring)."""
+    """One child process ``python -m module *args`` (see the module docstring); its failures
+    are raised as ``error`` (ChildError or a subclass of it)."""
 
-    def __init__(self, module: str, args: tuple[str, ...] = (), what: str = "child process"):
-        self.module, self.args, self.what = module, tuple(args), what
+    def __init__(self, module: str, args: tuple[str, ...] = (), what: str = "child process",
+                 error: type[ChildError] = ChildError):
+        self.module, self.args, self.what, self.error = module, tuple(args), what, error
         self.proc: subprocess.Popen | None = None
         self.ready_value = None
 
@@ -56,7 +58,7 @@ class PickleChild:
 
     def start(self) -> PickleChild:
         """Start the child and wait for its ready answer (it loads its code first, so that cost
-        is paid now); raises ChildError with the child's reason when it cannot start."""
+        is paid now); raises :attr:`error` with the child's reason when it cannot start."""
         proc = subprocess.Popen([sys.executable, "-m", self.module, *self.args],
                                 stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=child_env())
         try:
@@ -66,16 +68,16 @@ class PickleChild:
         if status != "ready":
             proc.kill()
             proc.wait()
-            raise ChildError(f"{self.what} did not start: {value}")
+            raise self.error(f"{self.what} did not start: {value}")
         self.proc, self.ready_value = proc, value
         return self
 
     def request(self, request):
-        """Send ``request``, wait for its answer and return its value; raises ChildError when
-        the child answered an error or is gone (then :attr:`alive` is False)."""
+        """Send ``request``, wait for its answer and return its value; raises :attr:`error`
+        when the child answered an error or is gone (then :attr:`alive` is False)."""
         proc = self.proc
         if proc is None:
-            raise ChildError(f"{self.what} is not running")
+            raise self.error(f"{self.what} is not running")
         data = pickle.dumps(request, protocol=pickle.HIGHEST_PROTOCOL)
         try:
             proc.stdin.write(_LEN.pack(len(data)) + data)
@@ -83,10 +85,10 @@ class PickleChild:
             answer = read_frame(proc.stdout)
         except (OSError, EOFError) as exc:
             self.proc = None
-            raise ChildError(f"{self.what} ended: {exc}") from None
+            raise self.error(f"{self.what} ended: {exc}") from None
         status, value = pickle.loads(answer)
         if status != "ok":
-            raise ChildError(f"{self.what}: {value}")
+            raise self.error(f"{self.what}: {value}")
         return value
 
     def close(self, timeout_s: float = 30.0) -> None:

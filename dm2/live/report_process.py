@@ -28,7 +28,8 @@ class ReportProcess:
     """One child process writing reports on request (see the module docstring)."""
 
     def __init__(self):
-        self._child = PickleChild("dm2.live.report_process", what="report process")
+        self._child = PickleChild("dm2.live.report_process", what="report process",
+                                  error=ReportProcessError)
 
     @property
     def _proc(self):
@@ -38,14 +39,8 @@ class ReportProcess:
         """Start the child now and wait until it has loaded the report code (about a second
         of CPU), so that cost is paid before a stream starts rather than at its first layer."""
         if not self._child.alive:
-            self._start()
-        return self
-
-    def _start(self) -> None:
-        try:
             self._child.start()
-        except ChildError as exc:
-            raise ReportProcessError(str(exc)) from None
+        return self
 
     def write(self, out_dir: str | Path, results, tracks, content=None, **kwargs) -> float:
         """Write one report (blocks until the child is done); the child's seconds. Arguments
@@ -53,12 +48,8 @@ class ReportProcess:
 
         Raises ReportProcessError when the child failed; a dead child is restarted at the
         next call."""
-        if not self._child.alive:
-            self._start()
-        try:
-            return float(self._child.request((str(out_dir), results, tracks, content, kwargs)))
-        except ChildError as exc:
-            raise ReportProcessError(str(exc)) from None
+        self.start()
+        return float(self._child.request((str(out_dir), results, tracks, content, kwargs)))
 
     def close(self) -> None:
         """End the child (after the request in progress, if any)."""
