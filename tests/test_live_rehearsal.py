@@ -83,6 +83,11 @@ def test_loopback_rehearsal_matches_in_process_run(tmp_path):
         assert a.track_ids == b.track_ids
     assert live.fusion.profiles_fused == session.fusion.profiles_fused
     assert live.dropped == session.dropped
+    # the gates held each profiler's first stamp_seed - 1 profiles for the clock seed (the
+    # seed's last one passes on arrival), nothing else: these latencies carry that hold
+    n_sensors = len(ref_sim.calibration.T_B_S)
+    assert len(runner.held_by_gates) == len(runner.latencies_s)
+    assert sum(runner.held_by_gates) == (sc.monitor.gates.stamp_seed - 1) * n_sensors
     report = json.loads((runner.report_dir / "report.json").read_text())
     assert [(t["id"], t["kind"]) for t in report["tracks"]] == [(1, "overbuild")]
     assert report["meta"]["complete"] is True

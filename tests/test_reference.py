@@ -267,3 +267,28 @@ def test_feed_gives_the_same_reference_for_any_arrival_order_and_slicing():
                                   ref_b.snapshot().heights_mm)
     assert ref_a.snapshot().heights_mm.max() > 0.05
     assert ref_a.deposited_mm3 == pytest.approx(ref_b.deposited_mm3, rel=1e-12)
+
+
+@pytest.mark.parametrize("factor", [1.3, 0.8])
+def test_plume_calibration_on_the_deposit_box_equals_the_whole_plate_filter(factor):
+    """set_plume_factor filters only the deposit's box (plus the kernel's reach); the heights
+    are bit-identical to filtering the whole plate, also for a deposit at the plate's edge."""
+    from scipy.ndimage import gaussian_filter, laplace
+
+    proc = ProcessConfig()
+    ref = NearNetReference(proc, MonitorConfig(), CAL, cell_mm=0.25, angle_from_surface=False)
+    ts, T = straight_pass(proc)
+    ref.add_states(ts, T)
+    ny, nx = ref.heights_mm.shape
+    ref.heights_mm[:40, nx // 2:nx // 2 + 30] += 0.5  # a deposit touching the plate's edge
+    h, sigma = ref.heights_mm.copy(), ref.sigma_mm
+    if factor > 1.0:
+        want = gaussian_filter(h, sigma * math.sqrt(factor ** 2 - 1.0) / ref.cell_mm,
+                               mode="nearest")
+    else:
+        want = np.maximum(h + (factor - 1.0) * sigma ** 2
+                          * laplace(h, mode="nearest") / ref.cell_mm ** 2, 0.0)
+    ref.set_plume_factor(factor)
+    assert np.array_equal(ref.heights_mm, want)
+    assert ref.sigma_mm == pytest.approx(sigma * factor)
+    assert np.count_nonzero(h) < 0.2 * h.size  # the box is a small part of the plate

@@ -27,6 +27,9 @@ stream runs (matched by sensor and stamp, so dropped profiles never count), and
 :attr:`LiveRunner.inbox_waits_s` the part of it spent in the inbox (the loop busy with other
 messages or deferred work; the rest is waiting for a robot state after the profile's stamp or
 for its batch, and fusion);
+:attr:`LiveRunner.held_by_gates` flags, for each of them, a profile the plausibility gates held
+before releasing it (a source's first ``stamp_seed`` messages wait for the clock seed; messages
+of a clock step wait for its confirmation), so its latency includes that deliberate hold;
 :attr:`LiveRunner.fused_at_end` counts those fused only when the run ended (the last profiles
 of a stream wait for a robot state after their stamp, which never comes),
 :attr:`LiveRunner.busy_s` the time spent handling messages and catching up.
@@ -107,6 +110,7 @@ class LiveRunner:
         self.latencies_s: list[float] = []  # socket arrival -> fused, per fused profile
         # of which socket arrival -> taken from the inbox and released by the clock aligner
         self.inbox_waits_s: list[float] = []
+        self.held_by_gates: list[bool] = []  # per latency: held by the gates before release
         self.fused_at_end = 0  # profiles fused only by finish()
         # (sensor_id, stamp_s) -> (arrival_s, released by the clock aligner [s, monotonic])
         self._arrivals: OrderedDict = OrderedDict()
@@ -172,16 +176,16 @@ class LiveRunner:
         """Handle one inbox item: plausibility gates, align clocks, record, analyse."""
         self.messages_in += 1
         for m, arrival in self.gates.admit(msg, arrival_s):
-            self._aligned(m, arrival)
+            self._aligned(m, arrival, held=m is not msg)  # an earlier message, held till now
 
-    def _aligned(self, msg, arrival_s: float) -> None:
+    def _aligned(self, msg, arrival_s: float, held: bool = False) -> None:
         if isinstance(msg, RobotState):
             self.aligner.pose(msg.stamp_s, arrival_s)
             self._deliver(msg)
         elif isinstance(msg, Profile):
             taken = time.monotonic()
             for p in self.aligner.profile(msg, arrival_s):
-                self._arrivals[(p.sensor_id, p.stamp_s)] = (arrival_s, taken)
+                self._arrivals[(p.sensor_id, p.stamp_s)] = (arrival_s, taken, held)
                 if len(self._arrivals) > MAX_UNFUSED:  # dropped ones are never fused
                     self._arrivals.popitem(last=False)
                 self._deliver(p)
@@ -209,6 +213,7 @@ class LiveRunner:
             if times is not None:
                 self.latencies_s.append(now - times[0])
                 self.inbox_waits_s.append(times[1] - times[0])
+                self.held_by_gates.append(times[2])
 
     def run(self, stop: threading.Event | None = None, max_duration_s: float | None = None,
             idle_stop_s: float | None = None) -> dict | None:
@@ -287,7 +292,7 @@ class LiveRunner:
             s.close()
         self.drain()
         for m, arrival in self.gates.flush():
-            self._aligned(m, arrival)
+            self._aligned(m, arrival, held=True)
         for p in self.aligner.flush():
             self._deliver(p)
         fused = self.analysis.fusion.profiles_fused
