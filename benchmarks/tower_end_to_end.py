@@ -22,6 +22,10 @@ Printed:
   to a vertex of that many layers' earlier mesh: no profile has touched their voxels since, e.g.
   ledges far below the top of a tall part), the RMS over them and over the others (the surface
   the profilers still see), so that what the TSDF could not follow is told from what it got wrong;
+  and the RMS of the stale vertices against the true surface of ``--stale-layers`` layers
+  earlier ("then", when they were already written as they are): a stale vertex far from the
+  truth now but near it then lies where the true surface moved while no profile looked there
+  (on the twin, overspray that later layers' tilted contour jets put on the walls below);
 - the track count of the report.
 
     .venv/bin/python benchmarks/tower_end_to_end.py [--duration S] [--band 8] [--out DIR]
@@ -91,8 +95,11 @@ def observed_vertices(run_dir: Path, layer: int):
 
 
 def layer_errors(run_dir: Path, layer: int, cover_mm: float, stale_layers: int):
-    """``(distances (n,), covered share, stale (n,) bool)`` of one layer, or None without its
-    files; ``stale``: the vertex is bit-identical to one ``stale_layers`` layers earlier."""
+    """``(distances (n,), covered share, stale (n,) bool, distances then (n,))`` of one layer,
+    or None without its files; ``stale``: the vertex is bit-identical to one ``stale_layers``
+    layers earlier; ``distances then``: a stale vertex's distance to the true surface of that
+    earlier layer (NaN for the others), so a truth that moved under a vertex no profile has
+    touched since is told from a vertex the TSDF got wrong."""
     from scipy.spatial import cKDTree
 
     from dm2.bench.reconstruction import CROP_MM, mesh_distance
@@ -115,11 +122,17 @@ def layer_errors(run_dir: Path, layer: int, cover_mm: float, stale_layers: int):
     else:
         covered = 0.0
     stale = np.zeros(len(v), bool)
+    d_then = np.full(len(v), np.nan)
     earlier = observed_vertices(run_dir, layer - stale_layers) if layer >= stale_layers else None
     if earlier is not None and len(earlier) and len(v):
         gap, _ = cKDTree(earlier).query(v, distance_upper_bound=SAME_MM)
         stale = np.isfinite(gap)
-    return d, covered, stale
+        then_path = run_dir / "truth" / f"layer_{layer - stale_layers:03d}.ply"
+        if stale.any() and then_path.exists():
+            fields, faces = read_mesh_ply(then_path)
+            tv = np.column_stack([fields[k] for k in "xyz"]).astype(np.float64)
+            d_then[stale] = mesh_distance(v[stale], tv, faces)
+    return d, covered, stale, d_then
 
 
 def main() -> None:
@@ -190,28 +203,30 @@ def report(run_dir: Path, wall: float, rss_mib: float, args) -> None:
           f"surface at each layer's end; coverage: true built surface within {args.cover_mm:g} "
           "mm of a written vertex)")
     print(f"{'layers':>9} {'RMS mm':>7} {'p95 mm':>7} {'max mm':>7} {'cover':>6} {'vertices':>9}"
-          f" {'stale':>6} {'RMS stale':>9} {'RMS rest':>8}   (stale: unchanged for "
-          f"{args.stale_layers} layers)")
+          f" {'stale':>6} {'RMS stale':>9} {'then':>6} {'RMS rest':>8}   (stale: unchanged for "
+          f"{args.stale_layers} layers; then: the stale vertices against the true surface of "
+          f"{args.stale_layers} layers earlier)")
     worst = [0.0, 0.0, 1.0]
     for b0 in range(0, (max(layers) + 1) if layers else 0, args.band):
-        ds, cov, stale = [], [], []
+        ds, cov, stale, then = [], [], [], []
         for k in range(b0, b0 + args.band):
             r = layer_errors(run_dir, k, args.cover_mm, args.stale_layers)
             if r is not None:
                 ds.append(r[0])
                 cov.append(r[1])
                 stale.append(r[2])
+                then.append(r[3])
         if not ds:
             continue
-        d, old = np.concatenate(ds), np.concatenate(stale)
+        d, old, d_then = np.concatenate(ds), np.concatenate(stale), np.concatenate(then)
         rms, p95, c = float(np.sqrt(np.mean(d ** 2))), float(np.percentile(d, 95)), \
             float(np.mean(cov))
-        rms_stale, rms_rest = (float(np.sqrt(np.mean(x ** 2))) if x.size else float("nan")
-                               for x in (d[old], d[~old]))
+        rms_stale, rms_then, rms_rest = (float(np.sqrt(np.mean(x ** 2))) if x.size else
+                                         float("nan") for x in (d[old], d_then[old], d[~old]))
         worst = [max(worst[0], rms), max(worst[1], p95), min(worst[2], c)]
         print(f"{b0:4d}-{b0 + len(ds) - 1:<4d} {rms:7.3f} {p95:7.3f} {d.max():7.2f} "
               f"{100 * c:5.1f}% {d.size:9d} {100 * old.mean():5.1f}% {rms_stale:9.3f} "
-              f"{rms_rest:8.3f}")
+              f"{rms_then:6.3f} {rms_rest:8.3f}")
     print(f"worst band: RMS {worst[0]:.3f} mm, p95 {worst[1]:.3f} mm, coverage "
           f"{100 * worst[2]:.1f}% (targets: <= 0.25 mm, <= 0.5 mm, >= 95 %)")
 
