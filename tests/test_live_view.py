@@ -60,3 +60,43 @@ def test_live_view_names_the_reason_it_cannot_start():
     with pytest.raises(ChildError, match="3D view did not start: ValueError: host '192.0.2.1'"):
         LiveView(Calibration(T_B_S={}, T_F_O=np.eye(4), T_B_N=np.eye(4)), host="192.0.2.1",
                  port=free_port())
+
+
+def test_live_view_keeps_the_console_quiet_for_unused_browser_connections(capfd):
+    """A browser's spare connection, opened and closed unused, logs nothing, and viser's
+    banner is not printed: the engineer's console shows only what the monitor says."""
+    import socket
+    import time
+
+    port = free_port()
+    view = LiveView(Calibration(T_B_S={}, T_F_O=np.eye(4), T_B_N=np.eye(4)), port=port)
+    try:
+        for _ in range(3):
+            socket.create_connection(("127.0.0.1", port), timeout=5).close()
+        time.sleep(1.0)  # the server notices the closed connections
+        assert view.state()["clients"] == 0  # the child still answers
+    finally:
+        view.stop_server()
+    err = capfd.readouterr()
+    text = err.out + err.err
+    assert "handshake" not in text and "Traceback" not in text and "viser" not in text
+
+
+def test_unused_connection_filter_keeps_other_handshake_failures():
+    import logging
+
+    from dm2.view.scene import UnusedConnections
+
+    def record(exc):
+        try:
+            raise exc
+        except Exception as caught:  # noqa: BLE001
+            info = (type(caught), caught, caught.__traceback__)
+        return logging.LogRecord("websockets.server", logging.ERROR, __file__, 1,
+                                 "opening handshake failed", None, info)
+
+    closed = ValueError("did not receive a valid HTTP request")
+    closed.__cause__ = EOFError("connection closed while reading HTTP request line")
+    f = UnusedConnections()
+    assert not f.filter(record(closed))  # closed before a request: dropped
+    assert f.filter(record(ValueError("invalid Sec-WebSocket-Key")))  # a real failure: kept

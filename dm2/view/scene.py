@@ -7,6 +7,8 @@ millimetres in the work-object frame ``O``.
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 
 from dm2.report.meshes import deviation_colours
@@ -17,10 +19,31 @@ BOX_RGB = {"overbuild": (178, 24, 43), "underbuild": (33, 102, 172),
            "local_overbuild": (244, 165, 130), "local_underbuild": (146, 197, 222)}
 
 
+class UnusedConnections(logging.Filter):
+    """Drop websockets' "opening handshake failed" error for a connection that closed before
+    it sent a request: browsers open spare connections ahead and close them unused (Chromium
+    does at every page load), and each one printed a traceback on the engineer's console. A
+    handshake that fails on what the client did send is still logged."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.getMessage() != "opening handshake failed" or not record.exc_info:
+            return True
+        exc = record.exc_info[1]
+        while exc is not None:
+            if isinstance(exc, EOFError):
+                return False
+            exc = exc.__cause__
+        return True
+
+
 def start_server(host: str = "127.0.0.1", port: int = 8080):
     """A viser server on ``host:port`` (port 0 is not supported: pick a free one; a port in
     use is skipped for the next free one). Raises ValueError for a port outside 1-65535 or a
-    host this machine cannot serve on (viser would retry those forever)."""
+    host this machine cannot serve on (viser would retry those forever). viser's own banner
+    is not printed (the caller prints the URL), nor are browsers' unused connections logged
+    (:class:`UnusedConnections`)."""
+    import contextlib
+    import io
     import socket
 
     import viser
@@ -34,7 +57,11 @@ def start_server(host: str = "127.0.0.1", port: int = 8080):
     except OSError as exc:
         raise ValueError(f"host {host!r}: cannot serve there ({exc})") from None
 
-    server = viser.ViserServer(host=host, port=port, verbose=False)
+    server_log = logging.getLogger("websockets.server")
+    if not any(isinstance(f, UnusedConnections) for f in server_log.filters):
+        server_log.addFilter(UnusedConnections())
+    with contextlib.redirect_stdout(io.StringIO()):  # viser prints a banner even when quiet
+        server = viser.ViserServer(host=host, port=port, verbose=False)
     server.scene.set_up_direction("+z")
     return server
 

@@ -11,6 +11,7 @@ layers shown and of connected browsers). Its ready answer is the view's URL.
 
 from __future__ import annotations
 
+import os
 import sys
 
 import numpy as np
@@ -77,6 +78,7 @@ if __name__ == "__main__":
 
     def _start():
         host, port, limit_mm = sys.argv[1], int(sys.argv[2]), float(sys.argv[3])
+        sys.stdout = open(os.devnull, "w")  # viser prints status lines; the child only logs
         shown.append(ViewScene(host, port, limit_mm))
         return shown[0].handle, shown[0].url
 
