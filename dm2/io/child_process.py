@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 import os
 import pickle
+import signal
 import struct
 import subprocess
 import sys
@@ -130,7 +131,10 @@ def serve(name: str, start: Callable[[], tuple[Callable, object]]) -> None:
     """The child's main: lower its priority, keep the protocol on the original stdout (anything
     printed goes to stderr), call ``start()`` for ``(handler, ready_value)`` and answer each
     request with ``handler(request)`` until stdin closes. An exception from ``start`` is the
-    "error" answer instead of "ready"."""
+    "error" answer instead of "ready". Ctrl-C, which the terminal sends to the child too, is
+    left to the parent: it ends the child by closing its stdin (or by exiting), so the
+    console shows no traceback of the child's."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     logging.basicConfig(level=logging.WARNING, format=f"{name}: %(message)s")
     try:
         os.nice(CHILD_NICE)
