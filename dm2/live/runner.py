@@ -112,7 +112,7 @@ class LiveRunner:
         self.inbox_waits_s: list[float] = []
         self.held_by_gates: list[bool] = []  # per latency: held by the gates before release
         self.fused_at_end = 0  # profiles fused only by finish()
-        # (sensor_id, stamp_s) -> (arrival_s, released by the clock aligner [s, monotonic])
+        # (sensor_id, stamp_s) -> (arrival_s, released by the gates [s, monotonic], held by them)
         self._arrivals: OrderedDict = OrderedDict()
         self.analysis.fusion.fused_log = deque()
         self.messages_in = 0
