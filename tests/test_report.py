@@ -34,7 +34,9 @@ def test_report_folder_contents(tmp_path, monitored):
     truth = {"faults": [{"kind": "bump", "center_O_mm": list(CENTRE), "layers": [2, 5]},
                         {"kind": "dent", "center_O_mm": [90.0, 20.0], "layers": [1, 3]},
                         {"id": 2, "kind": "feed_step", "sign": 1, "layers": [2, 3, 4],
-                         "region_O": {"bbox": [45.0, 66.0, 48.0, 75.0], "centers": []}},
+                         "region_O": {"bbox": [45.0, 66.0, 48.0, 75.0], "centers": []},
+                         "deviation_by_layer_mm": {"0": 0.0, "1": 0.0, "2": 0.3, "3": 0.6,
+                                                   "4": 0.9}},
                         {"id": 3, "kind": "clog", "sign": -1, "layers": [3],
                          "region_O": {"bbox": [45.0, 66.0, 48.0, 75.0], "centers": []}}]}
     expect = ExpectConfig(tracks=(ExpectTrack(kind="overbuild", near_mm=(52.0, 68.0)),))
@@ -60,6 +62,12 @@ def test_report_folder_contents(tmp_path, monitored):
     assert rep["fault_truth"][2]["detected"] and rep["fault_truth"][2]["distance_mm"] == \
         pytest.approx(2.0, abs=0.3)
     assert rep["fault_truth"][2]["detection_delay_layers"] == 0
+    # the truth reached 0.5 mm only at layer 3: found a layer before it (the bump's entry has
+    # no per-layer truth, so no onset)
+    assert rep["fault_truth"][2]["truth_onset_layer"] == 3
+    assert rep["fault_truth"][2]["onset_delay_layers"] == -1
+    assert rep["fault_truth"][0]["truth_onset_layer"] is None
+    assert rep["fault_truth"][0]["onset_delay_layers"] is None
     assert not rep["fault_truth"][3]["detected"]  # wrong sign
     assert rep["expectations"] == [{"expect": "overbuild track near [52.0, 68.0]",
                                     "passed": True, "track_ids": [1]}]
@@ -93,6 +101,7 @@ def test_report_folder_contents(tmp_path, monitored):
     html = (out / "index.html").read_text()
     assert "Overbuild at (50.0, 70.0) mm, from layer 2 to 5" in html
     assert "mm², +1.5" in html and "growing 0.20 mm/layer (track 1)" in html
+    assert "truth ≥ 0.5 mm from" in html and "delay after truth ≥ 0.5 mm [layers]" in html
     for name in rep["files"]["track_plots"] + rep["files"]["meshes"] + ["report.json"]:
         assert f'"{name}"' in html
     assert [p.name for p in out.parent.iterdir()] == ["report"]  # no temp folders left

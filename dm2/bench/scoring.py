@@ -55,7 +55,8 @@ from __future__ import annotations
 
 import numpy as np
 
-DEFECT_MIN_HEIGHT_MM = 0.5
+from dm2.report.report_json import DEFECT_MIN_HEIGHT_MM  # the report's onset height too
+
 DEFECT_MIN_AREA_MM2 = 4.0
 NEUTRAL_MIN_HEIGHT_MM = 0.2
 DILATION_MM = 1.0

@@ -11,6 +11,7 @@ from html import escape
 from pathlib import Path
 
 from dm2.report import summary
+from dm2.report.report_json import DEFECT_MIN_HEIGHT_MM
 
 STYLE = (
     "body{font-family:system-ui,sans-serif;margin:1.2em 2em;max-width:1250px;color:#222}"
@@ -63,23 +64,28 @@ def _verdict(report: dict) -> str:
             + (f"<ol>{items}</ol>" if items else "") + more + "</section>")
 
 
+def _blank(value) -> str:
+    return "" if value is None else str(value)
+
+
 def _truth(report: dict) -> str:
     parts = []
     if report.get("fault_truth"):
+        onset_mm = f"{DEFECT_MIN_HEIGHT_MM:g} mm"
         rows = []
         for r in report["fault_truth"]:
             f = r["fault"]
             layers = f.get("layers") or []
             rows.append([f.get("kind"), r.get("expected_kind") or "",
                          f"{min(layers)}–{max(layers)}" if layers else "",
+                         _blank(r.get("truth_onset_layer")),
                          "yes" if r["detected"] else "NO", r.get("track_id") or "",
-                         "" if r.get("first_layer_detected") is None
-                         else r["first_layer_detected"],
-                         "" if r.get("detection_delay_layers") is None
-                         else r["detection_delay_layers"]])
+                         _blank(r.get("first_layer_detected")),
+                         _blank(r.get("onset_delay_layers"))])
         parts.append("<h2>Injected faults (the twin's truth)</h2>" + _table(
-            rows, ["fault", "expected track", "layers", "found", "track", "first layer found",
-                   "delay [layers]"], left=(0, 1)))
+            rows, ["fault", "expected track", "layers", f"truth ≥ {onset_mm} from", "found",
+                   "track", "first layer found", f"delay after truth ≥ {onset_mm} [layers]"],
+            left=(0, 1)))
     if report.get("expectations"):
         rows = [[e["expect"], "met" if e["passed"] else "MISSED",
                  ", ".join(str(i) for i in e.get("track_ids") or [])]

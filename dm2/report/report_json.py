@@ -13,6 +13,7 @@ from dm2.defects.track import Track
 # 2: a track's and a region's ``height_mm`` is the largest |deviation| from the reference (was
 # the z extent of the region's box, now ``box_extent_z_mm``); ``trend`` is judged on that height
 REPORT_SCHEMA = "dm2.report/2"
+DEFECT_MIN_HEIGHT_MM = 0.5  # a fault's onset: its first layer whose truth reaches this
 # which track kind an injected fault is expected to produce (sign of the fault's effect)
 _FAULT_KIND = {"bump": "overbuild", "dent": "underbuild", "corner_dwell": "overbuild",
                "clog": "underbuild", "feed_drop": "underbuild"}
@@ -77,6 +78,19 @@ def _first_layer(fault: dict):
     return min(layers) if layers else None
 
 
+def truth_onset_layer(fault: dict):
+    """The first layer whose truth deviation (``deviation_by_layer_mm``, the twin's peak for a
+    local fault, median for a global one) reaches ``DEFECT_MIN_HEIGHT_MM`` with the fault's
+    sign, or None (no per-layer truth, or it never does): a monitor can only be asked to see
+    a fault from there on."""
+    by_layer = fault.get("deviation_by_layer_mm") or {}
+    sign = fault.get("sign") or 1
+    for k in sorted(by_layer, key=int):
+        if sign * by_layer[k] >= DEFECT_MIN_HEIGHT_MM:
+            return int(k)
+    return None
+
+
 def compare_with_truth(tracks: list[Track], faults: list[dict], within_mm: float = 10.0) -> list:
     """For each injected fault: whether a track of the expected kind explains it.
 
@@ -89,7 +103,7 @@ def compare_with_truth(tracks: list[Track], faults: list[dict], within_mm: float
     out = []
     for f in faults:
         want = expected_kind(f)
-        first = _first_layer(f)
+        first, onset = _first_layer(f), truth_onset_layer(f)
         best, best_d = None, np.inf
         for t in tracks:
             if want is not None and t.kind.replace("local_", "") != want:
@@ -104,7 +118,10 @@ def compare_with_truth(tracks: list[Track], faults: list[dict], within_mm: float
                     "distance_mm": None if best is None else best_d,
                     "first_layer_detected": None if best is None else best.first_layer,
                     "detection_delay_layers": None if best is None or first is None
-                    else best.first_layer - first})
+                    else best.first_layer - first,
+                    "truth_onset_layer": onset,
+                    "onset_delay_layers": None if best is None or onset is None
+                    else best.first_layer - onset})
     return out
 
 
