@@ -107,8 +107,13 @@ class Open3DFusion:
             self.points += n
 
     def extract(self, min_weight: float):
-        """``(vertices (n, 3), faces (m, 3))`` of the zero level set [mm]."""
-        mesh = self.vbg.extract_triangle_mesh(weight_threshold=float(min_weight))
+        """``(vertices (n, 3), faces (m, 3))`` of the zero level set [mm] over voxels of weight
+        ``>= min_weight``, as ours meshes. Open3D keeps a voxel only when its weight is strictly
+        above ``weight_threshold`` (at 1.0 it dropped every voxel seen by exactly one profile:
+        12,872 vertices against 256,798 on the benchmark's stream), so the threshold passed is
+        the float32 just below ``min_weight``."""
+        below = float(np.nextafter(np.float32(min_weight), np.float32(0.0)))
+        mesh = self.vbg.extract_triangle_mesh(weight_threshold=below)
         return mesh.vertex.positions.numpy(), mesh.triangle.indices.numpy()
 
 
