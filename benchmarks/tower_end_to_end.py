@@ -94,6 +94,18 @@ def observed_vertices(run_dir: Path, layer: int):
     return v[f["scalar_class"] != UNOBSERVED]
 
 
+def true_surface(run_dir: Path, layer: int):
+    """``(vertices (n, 3) [mm], faces)`` of the twin's true surface when ``layer`` closed, or
+    None without the file."""
+    from dm2.io.ply import read_mesh_ply
+
+    path = run_dir / "truth" / f"layer_{layer:03d}.ply"
+    if not path.exists():
+        return None
+    fields, faces = read_mesh_ply(path)
+    return np.column_stack([fields[k] for k in "xyz"]).astype(np.float64), faces
+
+
 def layer_errors(run_dir: Path, layer: int, cover_mm: float, stale_layers: int):
     """``(distances (n,), covered share, stale (n,) bool, distances then (n,))`` of one layer,
     or None without its files; ``stale``: the vertex is bit-identical to one ``stale_layers``
@@ -103,14 +115,12 @@ def layer_errors(run_dir: Path, layer: int, cover_mm: float, stale_layers: int):
     from scipy.spatial import cKDTree
 
     from dm2.bench.reconstruction import CROP_MM, mesh_distance
-    from dm2.io.ply import read_mesh_ply
 
-    truth_path = run_dir / "truth" / f"layer_{layer:03d}.ply"
+    truth = true_surface(run_dir, layer)
     v = observed_vertices(run_dir, layer)
-    if not truth_path.exists() or v is None:
+    if truth is None or v is None:
         return None
-    fields, faces = read_mesh_ply(truth_path)
-    tv = np.column_stack([fields[k] for k in "xyz"]).astype(np.float64)
+    tv, faces = truth
     lo, hi = tv[:, :2].min(axis=0) + CROP_MM, tv[:, :2].max(axis=0) - CROP_MM
     v = v[np.all((v[:, :2] >= lo) & (v[:, :2] <= hi), axis=1)]
     d = mesh_distance(v, tv, faces)  # (as dm2 run's own reconstruction check)
@@ -127,11 +137,9 @@ def layer_errors(run_dir: Path, layer: int, cover_mm: float, stale_layers: int):
     if earlier is not None and len(earlier) and len(v):
         gap, _ = cKDTree(earlier).query(v, distance_upper_bound=SAME_MM)
         stale = np.isfinite(gap)
-        then_path = run_dir / "truth" / f"layer_{layer - stale_layers:03d}.ply"
-        if stale.any() and then_path.exists():
-            fields, faces = read_mesh_ply(then_path)
-            tv = np.column_stack([fields[k] for k in "xyz"]).astype(np.float64)
-            d_then[stale] = mesh_distance(v[stale], tv, faces)
+        then = true_surface(run_dir, layer - stale_layers) if stale.any() else None
+        if then is not None:
+            d_then[stale] = mesh_distance(v[stale], *then)
     return d, covered, stale, d_then
 
 

@@ -32,7 +32,7 @@ def test_child_writes_the_report_the_parent_would(tmp_path):
         assert _json(tmp_path / "child")["meta"]["mode"] == "second"
     finally:
         child.close()
-    assert child._proc is None
+    assert child._child.proc is None
 
 
 def test_child_errors_are_raised_and_a_dead_child_is_replaced(tmp_path):
@@ -41,13 +41,13 @@ def test_child_errors_are_raised_and_a_dead_child_is_replaced(tmp_path):
     try:
         with pytest.raises(ReportProcessError, match="exists and is not a folder"):
             child.write(tmp_path / "a_file", [], [])
-        first = child._proc
+        first = child._child.proc
         child.write(tmp_path / "ok", [], [], ReportContent(meta={"n": 1}))  # the same child
-        assert child._proc is first
+        assert child._child.proc is first
         first.kill()
         first.wait()
         child.write(tmp_path / "ok", [], [], ReportContent(meta={"n": 2}))
-        assert child._proc is not first and child._proc.poll() is None
+        assert child._child.proc is not first and child._child.proc.poll() is None
         assert _json(tmp_path / "ok")["meta"]["n"] == 2
     finally:
         child.close()

@@ -31,10 +31,6 @@ class ReportProcess:
         self._child = PickleChild("dm2.live.report_process", what="report process",
                                   error=ReportProcessError)
 
-    @property
-    def _proc(self):
-        return self._child.proc
-
     def start(self) -> ReportProcess:
         """Start the child now and wait until it has loaded the report code (about a second
         of CPU), so that cost is paid before a stream starts rather than at its first layer."""
