@@ -18,7 +18,8 @@ from numba import njit, prange
 
 from dm2.defects.classify import classify_vertices, curvature_and_areas
 from dm2.defects.footprint import mark_overspray
-from dm2.defects.uncertainty import uncertainty_features, vertex_sigma_mm
+from dm2.defects.uncertainty import coefficients, uncertainty_features
+from dm2.defects.uncertainty_online import inflated_sigma_mm, model_inflation
 from dm2.reference.height_map import ReferenceMap
 
 log = logging.getLogger(__name__)
@@ -218,6 +219,8 @@ class LayerDeviation:
     unseen_mm : (n,) float64 [mm] or None, the reference's growth at each vertex since the
         profilers last saw it (dm2.pipeline.seen_reference): an underbuild that small is not
         measured, only not yet seen
+    model_inflation : {term: factor} or None, how far this layer's own deviations raised the
+        uncertainty's model-error terms (dm2.defects.uncertainty_online)
     """
 
     layer: int
@@ -235,6 +238,7 @@ class LayerDeviation:
     outside_mm: np.ndarray | None = None
     normals_O: np.ndarray | None = None
     unseen_mm: np.ndarray | None = None
+    model_inflation: dict | None = None
 
     @property
     def n_vertices(self) -> int:
@@ -266,11 +270,14 @@ def layer_deviation(surface, reference: ReferenceMap, monitor_cfg, layer: int | 
     normals = getattr(surface, "normals_O", None)
     curv = curvature_and_areas(v, f, normals, return_normals=True)
     ref_curv = reference.mean_curvature_at(foot[:, :2])
-    sigma = None
+    sigma = inflation = None
     if uncertainty:
         feats = uncertainty_features(v, w, curv[2], foot, reference, ref_curv,
                                      float(monitor_cfg.min_weight))
-        sigma = vertex_sigma_mm(feats, monitor_cfg.uncertainty)
+        coef = coefficients(monitor_cfg.uncertainty)
+        concave = reference.plume_sensitivity_at(foot[:, :2]) > 0.0
+        inflation = model_inflation(feats, d, coef, w >= float(monitor_cfg.min_weight), concave)
+        sigma = inflated_sigma_mm(feats, coef, inflation, concave)
     classes = classify_vertices(v, f, w, d, monitor_cfg, reference_curvature=ref_curv,
                                 sigma_mm=sigma, curvature=curv)
     code, outside = classes.class_code, None
@@ -283,4 +290,5 @@ def layer_deviation(surface, reference: ReferenceMap, monitor_cfg, layer: int | 
     return LayerDeviation(layer, v, f, w, d, foot, code, classes.local_metric,
                           classes.mean_curvature, classes.vertex_area_mm2,
                           float(reference.stamp_s if stamp_s is None else stamp_s), sigma,
-                          outside, curv[2], unseen_mm)
+                          outside, curv[2], unseen_mm,
+                          inflation)

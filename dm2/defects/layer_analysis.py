@@ -55,6 +55,8 @@ class LayerResult:
         stats = {"n_vertices": dev.n_vertices, "surface_area_mm2": float(areas.sum()),
                  "area_by_class_mm2": {name: float(areas[dev.class_code == k].sum())
                                        for k, name in enumerate(CLASS_NAMES)}}
+        if dev.model_inflation is not None:  # dm2.defects.uncertainty_online
+            stats["uncertainty_inflation"] = dict(dev.model_inflation)
         if d.size:
             w = areas[seen]
             stats.update({

@@ -130,6 +130,7 @@ class RealtimeDeviation:
         self.measured_map_mm = np.full((ny, nx), np.nan)
         self.expected_map_mm = np.full((ny, nx), np.nan)
         u = monitor_cfg.uncertainty
+        self._uncertainty = bool(uncertainty)
         self._edge_mm = float(u.edge_mm) if uncertainty else 0.0
         self._plume_rel = float(u.plume_rel) if uncertainty else 0.0
         self._overspray = np.zeros((ny, nx), bool)
@@ -154,6 +155,22 @@ class RealtimeDeviation:
                                       self.expected_map_mm))
         self._params = tuple(CompareParams(np.float32(monitor_cfg.min_weight), self.voxel_mm,
                                            float(monitor_cfg.delta_global_mm), self._bound,
+                                           self._edge_mm))
+
+    def set_model_inflation(self, by_term: dict | None) -> None:
+        """Raise the bound's model-error terms (wall, edge, plume) by a layer's factors
+        (:mod:`dm2.defects.uncertainty_online`; None or an empty dict: the configured bound).
+        Without the uncertainty bound this does nothing."""
+        if not self._uncertainty:
+            return
+        f = by_term or {}
+        u = self.cfg.uncertainty
+        self._edge_mm = float(u.edge_mm) * float(f.get("edge", 1.0))
+        self._plume_rel = float(u.plume_rel) * float(f.get("plume", 1.0))
+        k, floor, rng, _, height = self._bound
+        self._bound = (k, floor, rng, float(u.wall_mm) * float(f.get("wall", 1.0)), height)
+        self._params = tuple(CompareParams(np.float32(self.cfg.min_weight), self.voxel_mm,
+                                           float(self.cfg.delta_global_mm), self._bound,
                                            self._edge_mm))
 
     def flagged_area_mm2(self, kind: int = OVER) -> float:

@@ -43,7 +43,8 @@ A vertex is called over- or underbuilt only where ``|d| > delta_global_mm`` and
 bound are ``uncertain`` (local over/underbuild keeps the paper's rule; it is an early warning
 that opens no track on its own).
 The coefficients can be refitted from a fault-free run of one's own cell with
-:func:`dm2.defects.uncertainty_fit.fit_uncertainty`.
+:func:`dm2.defects.uncertainty_fit.fit_uncertainty`; each layer raises the model-error terms
+(wall, edge, foot, plume) to what its own deviations show (:mod:`dm2.defects.uncertainty_online`).
 
 Not modelled: the growth of the reference error with the layers since a region was last
 observed (the TSDF keeps no observation time per voxel).

@@ -51,6 +51,7 @@ from dm2.core.messages import Calibration, LayerMark, RobotState, Toolpath
 from dm2.defects.footprint import PlannedOutline
 from dm2.defects.layer_analysis import LayerAnalysis, LayerResult
 from dm2.defects.realtime import RealtimeDeviation
+from dm2.defects.uncertainty_online import live_factors
 from dm2.fusion.fusion import LayerSurface, TsdfFusion
 from dm2.pipeline.events import LayerClosed, LayerStarted, Observed, SessionTiming
 from dm2.pipeline.layer_worker import LayerWorker
@@ -119,7 +120,7 @@ class MonitoringSession:
         self.fusion.observed_points = []
         self.seen = SeenReference(self.reference.heights_mm.shape, self.reference.cell_mm,
                                   0.5 * monitor_cfg.voxel_mm)
-        self._pending_fit: tuple[float, float, float] | None = None
+        self._pending_fit: tuple | None = None  # (scale, rescale, plume, inflation)
         self._reobserved: ReobservedTop | None = None  # the calibration layer seen again
         self._fit_due_s: float | None = None  # stream time the pending fit is applied at
         self._no_wait = self._fit_waits = False  # catch_up: the fit waits for the worker
@@ -376,8 +377,10 @@ class MonitoringSession:
         if pending is None:
             return
         if top is not None:  # a calibration: from the top seen again, if enough was
-            pending = self.process_fit.recalibrate(top) or pending
-        scale, rescale, plume = pending
+            again = self.process_fit.recalibrate(top)
+            pending = pending if again is None else (*again, pending[3])
+        scale, rescale, plume, inflation = pending
+        self.realtime.set_model_inflation(live_factors(inflation))
         self.reference.set_process_scale(scale, rescale, analysed_to=self._taken_layer)
         self.seen.calibrated(self.reference, rescale, plume)
 
@@ -389,7 +392,9 @@ class MonitoringSession:
             return
         result = self.defects.analyse_layer(surface, ref, done.layer, stamp, unseen)
         if self.process_fit is not None:  # applied at _fit_due_s (_apply_fit)
-            self._pending_fit = self.process_fit.update(result)
+            # with the bound's model-error factors the layer measured, for the live columns
+            self._pending_fit = (*self.process_fit.update(result),
+                                 result.deviation.model_inflation)
         self.timing.analysis_s += time.perf_counter() - t0
         if self.on_layer is not None:
             self.on_layer(result)

@@ -114,12 +114,38 @@ def track_sentence(track: dict) -> str:
             f"{trend_phrase(track)} (track {track['id']})")
 
 
+MODEL_FINDING_FACTOR = 1.5  # a model-error term raised this much is said in the verdict
+MODEL_TERM_PLACES = {"wall": "on walls", "edge": "at the reference's edges and corners",
+                     "foot": "at the foot of walls",
+                     "plume_concave": "where the part is concave (wall feet, rims, holes)",
+                     "plume_convex": "where the part is convex (edges, ridges)"}
+
+
+def model_findings(report: dict) -> list[str]:
+    """Where the layers raised the uncertainty's model-error terms
+    (dm2.defects.uncertainty_online) by :data:`MODEL_FINDING_FACTOR` or more: the cell departs
+    from the monitor's deposition model there, so a defect there must stand out further, e.g.
+    "the deposit departs from the model where the part is convex (edges, ridges): its bound
+    raised up to 2.6x from layer 2"."""
+    out = []
+    for term, place in MODEL_TERM_PLACES.items():
+        seen = [(lay.get("layer"), (lay.get("statistics") or {}).get("uncertainty_inflation",
+                                                                     {}).get(term, 1.0))
+                for lay in report.get("layers", [])]
+        raised = [(layer, f) for layer, f in seen if f >= MODEL_FINDING_FACTOR]
+        if raised:
+            out.append(f"the deposit departs from the model {place}: its bound raised up to "
+                       f"{max(f for _, f in raised):.1f}x from layer {raised[0][0]}")
+    return out
+
+
 def verdict(report: dict) -> dict:
     """``{"headline", "sentences", "more", "defects", "uncertain", "layers", "findings"}``: the
     verdict of a report dict, from its tracks, layers and process findings (what the
     reference's process fit absorbed, dm2.pipeline.process_fit) only."""
     findings = [f"Process finding: {f}." for f in
                 (report.get("process") or {}).get("findings", [])]
+    findings += [f"Model finding: {f}." for f in model_findings(report)]
     tracks = by_severity(report.get("tracks", []))
     defects = [t for t in tracks if is_defect(t)]
     uncertain = len(tracks) - len(defects)
