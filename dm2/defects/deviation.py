@@ -290,5 +290,4 @@ def layer_deviation(surface, reference: ReferenceMap, monitor_cfg, layer: int | 
     return LayerDeviation(layer, v, f, w, d, foot, code, classes.local_metric,
                           classes.mean_curvature, classes.vertex_area_mm2,
                           float(reference.stamp_s if stamp_s is None else stamp_s), sigma,
-                          outside, curv[2], unseen_mm,
-                          inflation)
+                          outside, curv[2], unseen_mm, inflation)
