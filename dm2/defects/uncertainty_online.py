@@ -59,9 +59,29 @@ def model_inflation(features: np.ndarray, deviation_mm: np.ndarray, coefficients
     concave : (n,) bool, the reference's plume sensitivity is positive there (concave)
     """
     factors = dict.fromkeys(FACTORS, 1.0)
-    f = np.asarray(features, np.float64)[observed]
-    if f.shape[0] < MIN_BIN_VERTICES:
+    seen = np.asarray(observed, bool)
+    if np.count_nonzero(seen) < MIN_BIN_VERTICES:
         return factors
+    f = np.asarray(features, np.float64)
+    c = np.asarray(coefficients, np.float64)
+    var = f @ c
+    ok = seen & (var > 0.0)
+    d = np.asarray(deviation_mm, np.float64)
+    z2 = np.divide(d * d, var, out=np.zeros(var.shape), where=ok)
+    half = TERM_SHARE * var
+    cc = np.asarray(concave, bool)
+    for name in FACTORS:
+        k = FEATURES.index(name.split("_")[0])
+        in_bin = ok & (f[:, k] * c[k] > half)
+        if name == "plume_concave":
+            in_bin &= cc
+        elif name == "plume_convex":
+            in_bin &= ~cc
+        if np.count_nonzero(in_bin) < MIN_BIN_VERTICES:
+            continue
+        rms = float(np.sqrt(np.median(z2[in_bin]) / CHI2_1_MEDIAN))
+        factors[name] = min(max(rms, 1.0), MAX_INFLATION)
+    return factors
     contrib = f * np.asarray(coefficients, np.float64)
     var = contrib.sum(axis=1)
     ok = var > 0.0
