@@ -108,12 +108,17 @@ def mesh_volume(d: np.ndarray, w: np.ndarray, origin: np.ndarray, voxel_mm: floa
                                                   allow_degenerate=False)
     except (ValueError, RuntimeError):
         return None  # no zero crossing inside the observed cubes
-    # keep only triangles inside cubes whose eight corners were all observed
-    cube = seen[:-1, :-1, :-1] & seen[1:, :-1, :-1] & seen[:-1, 1:, :-1] & seen[:-1, :-1, 1:] \
-        & seen[1:, 1:, :-1] & seen[1:, :-1, 1:] & seen[:-1, 1:, 1:] & seen[1:, 1:, 1:]
-    centre = verts[faces].mean(axis=1) / vox
+    # keep only triangles inside cubes whose eight corners were all observed: the cube of a
+    # triangle's centre, its corners looked up for the triangles only
+    centre = (verts[faces[:, 0]] + verts[faces[:, 1]] + verts[faces[:, 2]]) / 3.0 / vox
     ijk = np.clip(np.floor(centre).astype(np.int64), 0, n - 1)
-    faces = faces[cube[ijk[:, 0], ijk[:, 1], ijk[:, 2]]]
+    s0, s1 = (n + 1) * (n + 1), n + 1  # flat index of the cube's low corner in ``seen``
+    at = ijk[:, 0] * s0 + ijk[:, 1] * s1 + ijk[:, 2]
+    flat = seen.ravel()
+    cube = flat[at]
+    for off in (s0, s1, 1, s0 + s1, s0 + 1, s1 + 1, s0 + s1 + 1):
+        cube &= flat[at + off]
+    faces = faces[cube]
     if not len(faces):
         return None
     keep = np.zeros(len(verts), dtype=np.bool_)
