@@ -25,7 +25,9 @@ The plume term has two bins, concave and convex reference (where the plume's tai
 where it leaves), because a plume of another width or shape errs there by different amounts
 and in opposite directions. The factors of each layer are in report.json
 (``layers[].statistics.uncertainty_inflation``), so what the bound absorbed is never hidden;
-the real-time columns take the last analysed layer's factors (:func:`live_factors`).
+the real-time columns take the last analysed layer's factors (:func:`live_factors`) where the
+process fit is applied (dm2.pipeline.session; with the process fit off they keep the configured
+bound).
 """
 
 from __future__ import annotations

@@ -141,8 +141,9 @@ def model_findings(report: dict) -> list[str]:
 
 def verdict(report: dict) -> dict:
     """``{"headline", "sentences", "more", "defects", "uncertain", "layers", "findings"}``: the
-    verdict of a report dict, from its tracks, layers and process findings (what the
-    reference's process fit absorbed, dm2.pipeline.process_fit) only."""
+    verdict of a report dict, from its tracks, layers, process findings (what the
+    reference's process fit absorbed, dm2.pipeline.process_fit) and model findings
+    (:func:`model_findings`) only."""
     findings = [f"Process finding: {f}." for f in
                 (report.get("process") or {}).get("findings", [])]
     findings += [f"Model finding: {f}." for f in model_findings(report)]
