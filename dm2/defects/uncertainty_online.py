@@ -84,24 +84,6 @@ def model_inflation(features: np.ndarray, deviation_mm: np.ndarray, coefficients
         rms = float(np.sqrt(np.median(z2[in_bin]) / CHI2_1_MEDIAN))
         factors[name] = min(max(rms, 1.0), MAX_INFLATION)
     return factors
-    contrib = f * np.asarray(coefficients, np.float64)
-    var = contrib.sum(axis=1)
-    ok = var > 0.0
-    z2 = np.zeros(var.shape)
-    z2[ok] = np.asarray(deviation_mm, np.float64)[observed][ok] ** 2 / var[ok]
-    cc = np.asarray(concave, bool)[observed]
-    for name in FACTORS:
-        k = FEATURES.index(name.split("_")[0])
-        in_bin = ok & (contrib[:, k] > TERM_SHARE * var)
-        if name == "plume_concave":
-            in_bin &= cc
-        elif name == "plume_convex":
-            in_bin &= ~cc
-        if np.count_nonzero(in_bin) < MIN_BIN_VERTICES:
-            continue
-        rms = float(np.sqrt(np.median(z2[in_bin]) / CHI2_1_MEDIAN))
-        factors[name] = min(max(rms, 1.0), MAX_INFLATION)
-    return factors
 
 
 def inflated_sigma_mm(features: np.ndarray, coefficients: np.ndarray, factors: dict,
