@@ -14,6 +14,14 @@ of the plane at the sensor's stand-off (``fy = 3 standoff / voxel``), the slab o
 updates. Blocks are allocated per profile from the same depth image, Open3D's documented
 integration path.
 
+The two grids are aligned: Open3D samples its field at ``i * voxel`` while ours holds voxel
+``v`` over ``[v, v + 1) * voxel`` with its centre at ``(v + 1/2) * voxel``, so Open3D is given
+the work-object frame shifted by half a voxel on each axis and its vertices are shifted back.
+Unaligned, a plane at a multiple of the voxel (the static scene's plate at z = 0 and the box top
+at z = 10 mm) runs through Open3D's sample points, where the interpolated vertices land on the
+plane whatever the noise: 52 % of its plate vertices had zero error, its RMS read 0.035 mm
+against 0.056 mm aligned.
+
 Poses are the ones our synchroniser interpolates (computed before the clock starts, so Open3D
 is timed on integration alone, ours end to end including sync and registration).
 
@@ -66,6 +74,8 @@ class Open3DFusion:
 
         self.o3d, self.o3c = o3d, o3c
         self.voxel_mm = float(voxel_mm)
+        self.T_grid_O = np.eye(4)  # Open3D's frame: O shifted by half a voxel (module doc)
+        self.T_grid_O[:3, 3] = 0.5 * self.voxel_mm
         self.trunc = float(truncation_voxels)
         self.vbg = o3d.t.geometry.VoxelBlockGrid(
             attr_names=("tsdf", "weight"), attr_dtypes=(o3c.float32, o3c.float32),
@@ -99,7 +109,7 @@ class Open3DFusion:
             if n == 0:  # Open3D refuses an image that touches no block
                 continue
             depth = o3d.t.geometry.Image(o3c.Tensor(image))
-            extrinsic = o3c.Tensor(invert(T_O_S), o3c.float64)
+            extrinsic = o3c.Tensor(invert(self.T_grid_O @ T_O_S), o3c.float64)
             blocks = self.vbg.compute_unique_block_coordinates(
                 depth, self.intrinsic, extrinsic, 1.0, depth_max, self.trunc)
             self.vbg.integrate(blocks, depth, self.intrinsic, extrinsic, 1.0, depth_max,
@@ -114,7 +124,8 @@ class Open3DFusion:
         the float32 just below ``min_weight``."""
         below = float(np.nextafter(np.float32(min_weight), np.float32(0.0)))
         mesh = self.vbg.extract_triangle_mesh(weight_threshold=below)
-        return mesh.vertex.positions.numpy(), mesh.triangle.indices.numpy()
+        vertices_O = mesh.vertex.positions.numpy() - self.T_grid_O[:3, 3].astype(np.float32)
+        return vertices_O, mesh.triangle.indices.numpy()
 
 
 def open3d_run(profiles, voxel_mm: float, truncation_voxels: float):
