@@ -144,7 +144,8 @@ def peer(cal, msgs, repeats: int) -> None:
     mon = run_once(cal, msgs, False)[0]
     ours_t, o3d_t = [], []
     # not interleaved: Open3D's OpenMP threads spin-wait after each call and took a core from
-    # ours (0.40 s against 0.18 s alone); they are given time to go idle first
+    # ours (an extraction timed between Open3D's took twice as long as alone); they are given
+    # time to go idle first
     time.sleep(OPENMP_IDLE_S)
     for _ in range(repeats):
         t = time.perf_counter()
