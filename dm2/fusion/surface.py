@@ -1,13 +1,14 @@
 """Surface extraction from the sparse TSDF: incremental marching cubes, per-vertex weight.
 
 The field is cut into chunks of ``CHUNK_BLOCKS**3`` blocks. Each chunk is gathered into a dense
-sub-volume with a one-voxel apron on its upper faces and triangulated with
-``skimage.measure.marching_cubes``, only in cubes whose eight corners were observed with weight
-``>= min_weight``. Chunk meshes are cached; an update re-meshes only the chunks whose blocks
-(or apron) were touched since the last extraction; :meth:`SurfaceExtractor.premesh` meshes
-touched chunks ahead of time (a live loop's idle moments) so the next update has less to do,
-with the same result. Vertices shared by neighbouring chunks are merged
-when the chunks are assembled (only vertices on chunk faces are compared).
+sub-volume with a one-voxel apron on its upper faces and triangulated with skimage's marching
+cubes (compiled: :mod:`dm2.fusion.marching_cubes`), only in cubes whose eight corners were
+observed with weight ``>= min_weight``. Chunk meshes are cached; an update re-meshes only the
+chunks whose blocks (or apron) were touched since the last extraction;
+:meth:`SurfaceExtractor.premesh` meshes touched chunks ahead of time (a live loop's idle
+moments) so the next update has less to do, with the same result. Vertices shared by
+neighbouring chunks are merged when the chunks are assembled (only vertices on chunk faces
+are compared).
 
 :meth:`SurfaceExtractor.gather` splits an update in two: on the fusion thread it only copies
 the small dense TSDF/weight boxes of the chunks to re-mesh (:class:`ChunkVolume`) and returns
@@ -27,6 +28,7 @@ import numpy as np
 from scipy.ndimage import map_coordinates
 
 from dm2.core.tolerances import DIVISOR_FLOOR, GRID_FRACTION_TOL
+from dm2.fusion.marching_cubes import observed_surface
 from dm2.fusion.surface_mesh import SurfaceMesh, read_ply
 from dm2.fusion.tsdf import kernels as K
 from dm2.fusion.tsdf.field import SparseTSDF
@@ -37,7 +39,7 @@ __all__ = ["CHUNK_BLOCKS", "ChunkVolume", "PendingSurface", "SurfaceExtractor", 
 
 CHUNK_BLOCKS = 4
 _MISSING = object()
-# Chunk volumes are meshed by this many threads (skimage's marching cubes releases the GIL)
+# Chunk volumes are meshed by this many threads (the marching-cubes kernel releases the GIL)
 # when a surface has at least MIN_PARALLEL_CHUNKS of them; the surface is the same.
 MESH_THREADS = 2 if (os.cpu_count() or 1) >= 2 else 1
 MIN_PARALLEL_CHUNKS = 8
@@ -94,39 +96,12 @@ def mesh_volume(d: np.ndarray, w: np.ndarray, origin: np.ndarray, voxel_mm: floa
     (vertices_O (k, 3) [mm], faces (f, 3) int64, weight (k,) float32, normals_O (k, 3),
     on_border (k,) bool) or None
     """
-    from skimage.measure import marching_cubes
-
     n = d.shape[0] - 1
-    d[w <= 0] = truncation_mm  # never updated: free space, never exactly level
-    seen = w >= min_weight  # skimage meshes a cube only if all 8 corners are masked
-    if not (np.any(d[seen] < 0) and np.any(d[seen] > 0)):
-        return None
     vox = voxel_mm
-    try:
-        verts, faces, normals, _ = marching_cubes(d, 0.0, spacing=(vox, vox, vox),
-                                                  gradient_direction="descent", mask=seen,
-                                                  allow_degenerate=False)
-    except (ValueError, RuntimeError):
-        return None  # no zero crossing inside the observed cubes
-    # keep only triangles inside cubes whose eight corners were all observed: the cube of a
-    # triangle's centre, its corners looked up for the triangles only
-    centre = (verts[faces[:, 0]] + verts[faces[:, 1]] + verts[faces[:, 2]]) / 3.0 / vox
-    ijk = np.clip(np.floor(centre).astype(np.int64), 0, n - 1)
-    s0, s1 = (n + 1) * (n + 1), n + 1  # flat index of the cube's low corner in ``seen``
-    at = ijk[:, 0] * s0 + ijk[:, 1] * s1 + ijk[:, 2]
-    flat = seen.ravel()
-    cube = flat[at]
-    for off in (s0, s1, 1, s0 + s1, s0 + 1, s1 + 1, s0 + s1 + 1):
-        cube &= flat[at + off]
-    faces = faces[cube]
-    if not len(faces):
+    mesh = observed_surface(d, w, truncation_mm, min_weight, vox)
+    if mesh is None:
         return None
-    keep = np.zeros(len(verts), dtype=np.bool_)
-    keep[faces] = True
-    used = np.flatnonzero(keep)  # np.unique(faces) without the sort
-    remap = np.full(len(verts), -1, dtype=np.int64)
-    remap[used] = np.arange(len(used))
-    verts, normals, faces = verts[used], normals[used], remap[faces]
+    verts, faces, normals = mesh
     wv = map_coordinates(w, (verts / vox).T, order=1, mode="nearest").astype(np.float32)
     verts_O = verts + (origin + 0.5) * vox  # voxel centres sit at (i + 0.5) * voxel
     # vertices on the chunk's faces are shared with a neighbour; only they are merged
