@@ -234,9 +234,33 @@ def marching_cubes(volume: np.ndarray, mask: np.ndarray, spacing_mm: float):
                                      np.ascontiguousarray(mask, np.bool_))
     if not len(verts):
         raise RuntimeError("No surface found at the given iso value.")
-    verts = (verts[:, ::-1] * np.float64(spacing_mm)).astype(np.float32)
-    keep, faces = _degenerate(verts, np.ascontiguousarray(faces[:, ::-1]))
-    return verts[keep], faces, np.ascontiguousarray(normals[:, ::-1][keep])
+    return _skimage_output(verts, faces, normals, np.float64(spacing_mm))
+
+
+@njit(cache=True, nogil=True)
+def _skimage_output(verts, faces, normals, spacing):
+    """skimage's finishing of the kernel's output: axes to (z, y, x), vertices times the
+    spacing (float64, back to float32), each triangle reversed (descent), degenerate ones out."""
+    k = verts.shape[0]
+    v = np.empty((k, 3), np.float32)
+    for i in range(k):
+        for a in range(3):
+            v[i, a] = np.float32(np.float64(verts[i, 2 - a]) * spacing)
+    f = np.empty_like(faces)
+    for j in range(faces.shape[0]):
+        f[j, 0], f[j, 1], f[j, 2] = faces[j, 2], faces[j, 1], faces[j, 0]
+    keep, f = _degenerate(v, f)
+    m = keep.sum()
+    v_out = np.empty((m, 3), np.float32)
+    n_out = np.empty((m, 3), np.float32)
+    j = 0
+    for i in range(k):
+        if keep[i]:
+            for a in range(3):
+                v_out[j, a] = v[i, a]
+                n_out[j, a] = normals[i, 2 - a]
+            j += 1
+    return v_out, f, n_out
 
 
 @njit(cache=True, nogil=True)
@@ -294,12 +318,38 @@ def observed_surface(d: np.ndarray, w: np.ndarray, truncation_mm: float, min_wei
         verts, faces, normals = marching_cubes(d, seen, voxel_mm)
     except RuntimeError:
         return None  # no zero crossing inside the visited cubes
-    faces = faces[_observed_faces(verts, faces, seen, np.float32(voxel_mm))]
-    if not len(faces):
-        return None
-    keep = np.zeros(len(verts), dtype=np.bool_)
-    keep[faces] = True
-    used = np.flatnonzero(keep)
-    remap = np.full(len(verts), -1, dtype=np.int64)
-    remap[used] = np.arange(len(used))
-    return verts[used], remap[faces], normals[used]
+    verts, faces, normals = _observed_only(verts, faces, normals, seen, np.float32(voxel_mm))
+    return (verts, faces, normals) if len(faces) else None
+
+
+@njit(cache=True, nogil=True)
+def _observed_only(verts, faces, normals, seen, voxel):
+    """The faces of :func:`_observed_faces` and the vertices they use, renumbered in order."""
+    keep_f = _observed_faces(verts, faces, seen, voxel)
+    used = np.zeros(verts.shape[0], np.bool_)
+    nf = 0
+    for j in range(faces.shape[0]):
+        if keep_f[j]:
+            nf += 1
+            for a in range(3):
+                used[faces[j, a]] = True
+    remap = np.full(verts.shape[0], -1, np.int64)
+    k = 0
+    for i in range(verts.shape[0]):
+        if used[i]:
+            remap[i] = k
+            k += 1
+    v_out = np.empty((k, 3), np.float32)
+    n_out = np.empty((k, 3), np.float32)
+    for i in range(verts.shape[0]):
+        if used[i]:
+            v_out[remap[i]] = verts[i]
+            n_out[remap[i]] = normals[i]
+    f_out = np.empty((nf, 3), np.int64)
+    m = 0
+    for j in range(faces.shape[0]):
+        if keep_f[j]:
+            for a in range(3):
+                f_out[m, a] = remap[faces[j, a]]
+            m += 1
+    return v_out, f_out, n_out

@@ -27,8 +27,9 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 from scipy.ndimage import map_coordinates
 
-from dm2.core.tolerances import DIVISOR_FLOOR, GRID_FRACTION_TOL
+from dm2.core.tolerances import GRID_FRACTION_TOL
 from dm2.fusion.marching_cubes import observed_surface
+from dm2.fusion.surface_assemble import assemble
 from dm2.fusion.surface_mesh import SurfaceMesh, read_ply
 from dm2.fusion.tsdf import kernels as K
 from dm2.fusion.tsdf.field import SparseTSDF
@@ -39,6 +40,8 @@ __all__ = ["CHUNK_BLOCKS", "ChunkVolume", "PendingSurface", "SurfaceExtractor", 
 
 CHUNK_BLOCKS = 4
 _MISSING = object()
+_CHUNK_OFFSET = 1 << 20  # chunk coordinates within +-2**20 pack into 21 bits each
+_CHUNK_MASK = (1 << 21) - 1
 # Chunk volumes are meshed by this many threads (the marching-cubes kernel releases the GIL)
 # when a surface has at least MIN_PARALLEL_CHUNKS of them; the surface is the same.
 MESH_THREADS = 2 if (os.cpu_count() or 1) >= 2 else 1
@@ -64,20 +67,19 @@ def _resolved_all(parts: list) -> list:
 
 
 def _chunks_of(blocks: np.ndarray) -> list[tuple[int, int, int]]:
-    """Chunks whose mesh depends on ``blocks (k, 3)``, in a fixed order (a block is also the
-    upper apron of the chunks below/behind it)."""
-    chunks: set = set()
-    if len(blocks):
-        base = np.floor_divide(blocks, CHUNK_BLOCKS)
-        at_low = (blocks - base * CHUNK_BLOCKS) == 0
-        for dx in (0, 1):
-            for dy in (0, 1):
-                for dz in (0, 1):
-                    shift = np.array([dx, dy, dz])
-                    sel = np.all(at_low | (shift == 0), axis=1)
-                    for c in map(tuple, (base[sel] - shift).tolist()):
-                        chunks.add(c)
-    return list(chunks)
+    """Chunks whose mesh depends on ``blocks (k, 3)``, sorted (a block is also the upper apron
+    of the chunks below/behind it)."""
+    if not len(blocks):
+        return []
+    base = np.floor_divide(blocks, CHUNK_BLOCKS)
+    at_low = (blocks - base * CHUNK_BLOCKS) == 0
+    found = [base]
+    for shift in np.array([(dx, dy, dz) for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)])[1:]:
+        found.append(base[np.all(at_low | (shift == 0), axis=1)] - shift)
+    c = np.concatenate(found) + _CHUNK_OFFSET  # packed into one int64, sorted, unpacked
+    key = np.unique((c[:, 0] << 42) | (c[:, 1] << 21) | c[:, 2])
+    c = np.stack([key >> 42, (key >> 21) & _CHUNK_MASK, key & _CHUNK_MASK], axis=1)
+    return list(map(tuple, (c - _CHUNK_OFFSET).tolist()))
 
 
 def mesh_volume(d: np.ndarray, w: np.ndarray, origin: np.ndarray, voxel_mm: float,
@@ -158,36 +160,6 @@ class PendingSurface:
                 self._surface = assemble(_resolved_all(self._parts), self._voxel_mm)
                 self._parts = None
             return self._surface
-
-
-def assemble(parts: list, voxel_mm: float) -> SurfaceMesh:
-    """Join chunk mesh tuples (None entries skipped) into one surface, merging the vertices
-    chunks share on their faces."""
-    parts = [m for m in parts if m is not None]
-    if not parts:
-        return SurfaceMesh.empty()
-    offs = np.cumsum([0] + [len(p[0]) for p in parts])
-    verts = np.concatenate([p[0] for p in parts])
-    faces = np.concatenate([p[1] + o for p, o in zip(parts, offs[:-1], strict=True)])
-    weight = np.concatenate([p[2] for p in parts])
-    normals = np.concatenate([p[3] for p in parts])
-    # merge vertices duplicated on chunk borders (only border vertices can be: a sort of
-    # that small subset, not of the whole surface)
-    on_border = np.flatnonzero(np.concatenate([p[4] for p in parts]))
-    key = np.round(verts[on_border] / (GRID_FRACTION_TOL * voxel_mm)).astype(np.int64)
-    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
-    target = np.arange(len(verts))
-    target[on_border] = on_border[first][inverse.ravel()]  # each copy -> its first copy
-    kept = np.ones(len(verts), dtype=bool)
-    kept[on_border] = False
-    kept[on_border[first]] = True
-    new_index = np.cumsum(kept) - 1
-    faces = new_index[target[faces]]
-    keep = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & \
-        (faces[:, 0] != faces[:, 2])
-    nrm = normals[kept]
-    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), DIVISOR_FLOOR)
-    return SurfaceMesh(verts[kept], faces[keep], weight[kept], nrm)
 
 
 class SurfaceExtractor:

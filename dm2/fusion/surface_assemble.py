@@ -1,0 +1,75 @@
+"""Joining chunk meshes into one surface: vertices that neighbouring chunks share on their
+faces are merged, triangles that the merge made degenerate dropped, normals renormalised.
+
+Runs over the whole surface at every update (the chunk meshes are cached, their union is not),
+so it is kept to a few passes: only the vertices on chunk faces are grouped (a stable sort of
+their rounded positions; each copy maps to its first copy), and the renumbering, the face remap
+and the normalisation are one compiled pass.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from dm2.core.tolerances import DIVISOR_FLOOR, GRID_FRACTION_TOL
+from dm2.fusion.surface_mesh import SurfaceMesh
+
+
+@njit(cache=True, nogil=True)
+def _compact(target, verts, faces, weight, normals, floor):
+    """Keep vertex i where ``target[i] == i`` (a first copy), renumber, remap the faces through
+    ``target`` and drop the degenerate ones; normals divided by ``max(|n|, floor)``."""
+    n = target.shape[0]
+    new = np.empty(n, np.int64)
+    k = 0
+    for i in range(n):
+        if target[i] == i:
+            new[i] = k
+            k += 1
+    v_out = np.empty((k, 3))
+    w_out = np.empty(k, np.float32)
+    n_out = np.empty((k, 3))
+    for i in range(n):
+        if target[i] == i:
+            j = new[i]
+            v_out[j, 0], v_out[j, 1], v_out[j, 2] = verts[i, 0], verts[i, 1], verts[i, 2]
+            w_out[j] = weight[i]
+            x, y, z = normals[i, 0], normals[i, 1], normals[i, 2]
+            s = np.sqrt(x * x + y * y + z * z)
+            s = max(s, floor)
+            n_out[j, 0], n_out[j, 1], n_out[j, 2] = x / s, y / s, z / s
+    f_out = np.empty_like(faces)
+    m = 0
+    for t in range(faces.shape[0]):
+        a = new[target[faces[t, 0]]]
+        b = new[target[faces[t, 1]]]
+        c = new[target[faces[t, 2]]]
+        if a != b and b != c and a != c:
+            f_out[m, 0], f_out[m, 1], f_out[m, 2] = a, b, c
+            m += 1
+    return v_out, f_out[:m].copy(), w_out, n_out
+
+
+def assemble(parts: list, voxel_mm: float) -> SurfaceMesh:
+    """Join chunk mesh tuples (None entries skipped; see :func:`dm2.fusion.surface.mesh_volume`)
+    into one surface, merging the vertices chunks share on their faces."""
+    parts = [m for m in parts if m is not None]
+    if not parts:
+        return SurfaceMesh.empty()
+    offs = np.cumsum([0] + [len(p[0]) for p in parts])
+    verts = np.concatenate([p[0] for p in parts])
+    faces = np.concatenate([p[1] + o for p, o in zip(parts, offs[:-1], strict=True)])
+    weight = np.concatenate([p[2] for p in parts])
+    normals = np.concatenate([p[3] for p in parts])
+    on_border = np.flatnonzero(np.concatenate([p[4] for p in parts]))
+    key = np.round(verts[on_border] / (GRID_FRACTION_TOL * voxel_mm)).astype(np.int64)
+    order = np.lexsort(key.T[::-1])  # stable: a group's first entry is its first copy
+    sorted_key = key[order]
+    starts = np.ones(len(order), dtype=bool)
+    starts[1:] = np.any(sorted_key[1:] != sorted_key[:-1], axis=1)
+    first = order[np.flatnonzero(starts)]
+    target = np.arange(len(verts))
+    target[on_border[order]] = on_border[first[np.cumsum(starts) - 1]]
+    v, f, w, nrm = _compact(target, verts, faces, weight, normals, DIVISOR_FLOOR)
+    return SurfaceMesh(v, f, w, nrm)
