@@ -98,6 +98,37 @@ def test_one_pass_kernel_equals_registration_then_ray_fusion(cal):
                                atol=1e-9)
 
 
+def test_deposit_capped_batch_equals_cap_then_fuse_per_profile_with_growth(cal):
+    msgs, _ = raster_run(Scene(boxes=[((50, 50, 0), (66, 66, 6))]), cal,
+                         [((40, 58, 0), (80, 58, 0))], step_mm=2.0, noise_mm=0.05, seed=4)
+    profiles = [m for m in msgs if isinstance(m, Profile)][:30] * 2  # seen twice: caps bite
+    xz = np.concatenate([p.xz_S[p.valid] for p in profiles])
+    offsets = np.concatenate([[0], np.cumsum([int(p.valid.sum()) for p in profiles])])
+    sensors = list(cal.T_B_S)
+    states = [m for m in msgs if isinstance(m, RobotState)]
+    T_B_F = np.stack([states[4 * (j % 30)].T_B_F for j in range(len(profiles))])
+    T_O_S, spots, axes = profile_frames(
+        T_B_F, cal.T_F_O, np.stack([cal.T_B_S[s] for s in sensors]),
+        np.array([sensors.index(p.sensor_id) for p in profiles]),
+        spot_B(cal, 30.0), cal.T_B_N[:3, 2].copy())
+    one = SparseTSDF(0.5, 1.5, 4.0, initial_blocks=8)  # grows many times inside the call
+    fused = one.integrate_profiles(xz, offsets, T_O_S, spots, axes, 3.0, deposit=(3.0, 3.0, 1.0))
+    two = SparseTSDF(0.5, 1.5, 4.0, initial_blocks=8)
+    capped, total = 0, [0, 0]
+    for j in range(len(profiles)):
+        capped += two.cap_weights_near_axis(spots[j], axes[j], 3.0, 3.0, 1.0)
+        a, b = offsets[j], offsets[j + 1]
+        got = two.integrate_profiles(xz[a:b], np.array([0, b - a]), T_O_S[j:j + 1],
+                                     spots[j:j + 1], axes[j:j + 1], 3.0)
+        total = [total[0] + got[0], total[1] + got[1]]
+    assert capped > 1000  # the second sight of each place found weights to cap
+    assert fused == tuple(total) and fused[0] == len(xz)
+    n = two.n_blocks
+    assert one.n_blocks == n > 8
+    np.testing.assert_array_equal(one.block_keys[:n], two.block_keys[:n])
+    np.testing.assert_array_equal(one.voxels[:n], two.voxels[:n])
+
+
 def test_integrate_profiles_rejects_mismatched_batches():
     tsdf = SparseTSDF(0.5, 1.5)
     with pytest.raises(ValueError, match="integrate_profiles"):

@@ -274,15 +274,13 @@ class TsdfFusion:
         decides where)."""
         if b <= a:
             return
-        if self.cfg.deposit_weight_cap is None:
-            self._fuse_profiles(xz, offsets, T_O_S, spots_O, axes_O, stamps, a, b)
-            return
-        for c in range(a, b):
-            self.tsdf.cap_weights_near_axis(spots_O[c], axes_O[c], self.active_radius_mm,
-                                            self.active_radius_mm, self.cfg.deposit_weight_cap)
-            self._fuse_profiles(xz, offsets, T_O_S, spots_O, axes_O, stamps, c, c + 1)
+        cap = self.cfg.deposit_weight_cap
+        self._fuse_profiles(xz, offsets, T_O_S, spots_O, axes_O, stamps, a, b,
+                            None if cap is None else
+                            (self.active_radius_mm, self.active_radius_mm, cap))
 
-    def _fuse_profiles(self, xz, offsets, T_O_S, spots_O, axes_O, stamps, a: int, b: int) -> None:
+    def _fuse_profiles(self, xz, offsets, T_O_S, spots_O, axes_O, stamps, a: int, b: int,
+                       deposit=None) -> None:
         if b <= a:
             return
         lo, hi = offsets[a], offsets[b]
@@ -292,7 +290,7 @@ class TsdfFusion:
                 self.observed_points.append((points_O, stamps[j]))
         fused, n_out = self.tsdf.integrate_profiles(
             xz[lo:hi], offsets[a: b + 1] - lo, T_O_S[a:b], spots_O[a:b], axes_O[a:b],
-            self.active_radius_mm, self.bounds_O)
+            self.active_radius_mm, self.bounds_O, deposit)
         if n_out:
             self._point_drops["out_of_range"] += n_out
         self.points_fused += fused

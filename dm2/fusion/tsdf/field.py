@@ -52,7 +52,7 @@ import numpy as np
 from dm2.fusion.tsdf import kernels as K
 from dm2.fusion.tsdf.bundles import FusionParams, profile_batch, ray_batch
 from dm2.fusion.tsdf.dense import gather_dense
-from dm2.fusion.tsdf.deposit import cap_near_axis
+from dm2.fusion.tsdf.deposit import cap_near_axis, fuse_profiles_capped
 from dm2.fusion.tsdf.threads import SplitBuffers, fuse_split
 
 log = logging.getLogger(__name__)
@@ -179,7 +179,8 @@ class SparseTSDF:
 
     def integrate_profiles(self, xz_S: np.ndarray, offsets: np.ndarray, T_O_S: np.ndarray,
                            spot_O: np.ndarray, axis_O: np.ndarray, active_radius_mm: float,
-                           bounds_O: tuple | None = None) -> tuple[int, int]:
+                           bounds_O: tuple | None = None,
+                           deposit: tuple | None = None) -> tuple[int, int]:
         """Register profiles into ``O`` (eq 1) and fuse them, in one pass without temporaries.
 
         Parameters
@@ -190,6 +191,8 @@ class SparseTSDF:
         spot_O, axis_O : (k, 3) float64, deposition spot [mm] and unit spray axis at its stamp
         active_radius_mm : float [mm], points this close to the nozzle axis are active
         bounds_O : optional ``(lo (3,), hi (3,))`` [mm]; points outside are not fused
+        deposit : optional ``(radius_mm, half_length_mm, weight_cap)``: before each profile is
+            fused, the weights around its spray axis are capped (:mod:`.deposit`; one thread)
 
         Returns
         -------
@@ -214,7 +217,17 @@ class SparseTSDF:
         counts = np.zeros(2, dtype=np.int64)
         r2 = float(active_radius_mm) ** 2
         start, n = 0, xz.shape[0]
-        if self.threads == 2 and n >= MIN_SPLIT_POINTS:
+        if deposit is not None:
+            cap = tuple(float(x) for x in deposit)
+            while start < n:
+                start = fuse_profiles_capped(
+                    xz, off, T, spot, axis, self.voxel_mm, self.truncation_mm, self.weight_cap,
+                    self.inactive_weight_cap, r2, lo, hi, use_bounds, start, self._table_keys,
+                    self._table_slots, self.block_keys, self.voxels, self.touched, self._state,
+                    counts, *cap)
+                if start < n:
+                    self._grow()
+        if self.threads == 2 and n >= MIN_SPLIT_POINTS and start < n:
             fuse_split(self, True, use_bounds, profile_batch(xz, off, T, spot, axis),
                        self._params(r2, lo, hi), counts)
             start = n
