@@ -54,8 +54,11 @@ class PlannedOutline:
             return None
         a, b = pos[seg - 1, :2], pos[seg, :2]
         steps = np.maximum(np.ceil(np.linalg.norm(b - a, axis=1) / SAMPLE_MM), 1).astype(int)
-        t = np.concatenate([np.linspace(0.0, 1.0, s + 1) for s in steps])
         rep = np.repeat(np.arange(len(seg)), steps + 1)
+        # np.linspace(0, 1, s + 1) of every segment at once: k * (1 / s), the last exactly 1
+        k = np.arange(len(rep)) - np.repeat(np.cumsum(steps + 1) - (steps + 1), steps + 1)
+        t = k * (1.0 / steps)[rep]
+        t[np.cumsum(steps + 1) - 1] = 1.0
         pts = a[rep] + t[:, None] * (b - a)[rep]
         nx = max(int(round(size_mm[0] / cell_mm)), 2)
         ny = max(int(round(size_mm[1] / cell_mm)), 2)

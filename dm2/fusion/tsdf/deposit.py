@@ -32,31 +32,36 @@ def cap_near_axis(table_keys, table_slots, voxels, voxel_mm, spot_O, axis_O, rad
     ``radius_mm`` of the line through ``spot_O (3,)`` [mm] along the unit ``axis_O (3,)`` and
     within ``half_length_mm`` of ``spot_O`` along it; returns the number of voxels capped."""
     r = radius_mm + half_length_mm
-    lo = np.empty(3, np.int64)
+    lo = np.empty(3, np.int64)  # the cylinder's box in voxels (its centres: a half voxel inside)
     hi = np.empty(3, np.int64)
     for c in range(3):
-        ext = abs(axis_O[c]) * half_length_mm + radius_mm
-        lo[c] = int(math.floor((spot_O[c] - min(ext, r)) / voxel_mm)) >> BLOCK_SHIFT
-        hi[c] = int(math.floor((spot_O[c] + min(ext, r)) / voxel_mm)) >> BLOCK_SHIFT
+        ext = min(abs(axis_O[c]) * half_length_mm + radius_mm, r)
+        lo[c] = int(math.floor((spot_O[c] - ext) / voxel_mm))
+        hi[c] = int(math.floor((spot_O[c] + ext) / voxel_mm))
     r2 = radius_mm * radius_mm
     n = 0
-    for bx in range(lo[0], hi[0] + 1):
-        for by in range(lo[1], hi[1] + 1):
-            for bz in range(lo[2], hi[2] + 1):
+    for bx in range(lo[0] >> BLOCK_SHIFT, (hi[0] >> BLOCK_SHIFT) + 1):
+        for by in range(lo[1] >> BLOCK_SHIFT, (hi[1] >> BLOCK_SHIFT) + 1):
+            for bz in range(lo[2] >> BLOCK_SHIFT, (hi[2] >> BLOCK_SHIFT) + 1):
                 slot = hash_find(table_keys, table_slots, pack_key(bx, by, bz))
                 if slot < 0:
                     continue
-                for li in range(BLOCK * BLOCK * BLOCK):
-                    if voxels[slot, li, 1] <= weight_cap:
-                        continue
-                    x = ((bx << BLOCK_SHIFT) + li % BLOCK + 0.5) * voxel_mm - spot_O[0]
-                    y = ((by << BLOCK_SHIFT) + (li // BLOCK) % BLOCK + 0.5) * voxel_mm - spot_O[1]
-                    z = ((bz << BLOCK_SHIFT) + li // (BLOCK * BLOCK) + 0.5) * voxel_mm - spot_O[2]
-                    along = x * axis_O[0] + y * axis_O[1] + z * axis_O[2]
-                    if abs(along) > half_length_mm or x * x + y * y + z * z - along * along > r2:
-                        continue
-                    voxels[slot, li, 1] = weight_cap
-                    n += 1
+                x0, y0, z0 = bx << BLOCK_SHIFT, by << BLOCK_SHIFT, bz << BLOCK_SHIFT
+                for iz in range(max(lo[2] - z0, 0), min(hi[2] - z0, BLOCK - 1) + 1):
+                    for iy in range(max(lo[1] - y0, 0), min(hi[1] - y0, BLOCK - 1) + 1):
+                        for ix in range(max(lo[0] - x0, 0), min(hi[0] - x0, BLOCK - 1) + 1):
+                            li = ix + BLOCK * (iy + BLOCK * iz)
+                            if voxels[slot, li, 1] <= weight_cap:
+                                continue
+                            x = (x0 + ix + 0.5) * voxel_mm - spot_O[0]
+                            y = (y0 + iy + 0.5) * voxel_mm - spot_O[1]
+                            z = (z0 + iz + 0.5) * voxel_mm - spot_O[2]
+                            along = x * axis_O[0] + y * axis_O[1] + z * axis_O[2]
+                            if abs(along) > half_length_mm or \
+                                    x * x + y * y + z * z - along * along > r2:
+                                continue
+                            voxels[slot, li, 1] = weight_cap
+                            n += 1
     return n
 
 
