@@ -76,7 +76,7 @@ def _chunks_of(blocks: np.ndarray) -> list[tuple[int, int, int]]:
     found = [base]
     for shift in np.array([(dx, dy, dz) for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)])[1:]:
         found.append(base[np.all(at_low | (shift == 0), axis=1)] - shift)
-    c = np.concatenate(found) + _CHUNK_OFFSET  # packed into one int64, sorted, unpacked
+    c = np.concatenate(found).astype(np.int64) + _CHUNK_OFFSET  # packed in one int64, sorted
     key = np.unique((c[:, 0] << 42) | (c[:, 1] << 21) | c[:, 2])
     c = np.stack([key >> 42, (key >> 21) & _CHUNK_MASK, key & _CHUNK_MASK], axis=1)
     return list(map(tuple, (c - _CHUNK_OFFSET).tolist()))
