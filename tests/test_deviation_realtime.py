@@ -250,3 +250,46 @@ def test_reference_growing_over_an_earlier_measurement_is_no_evidence():
         assert np.allclose(fd.deviation_mm, -0.8, atol=1e-5)
         alarms += fd.alarms
     assert [a.kind for a in alarms] == ["underbuild"] and alarms[0].first_flag_s == 3.1
+
+
+def test_the_live_reference_brings_its_plume_term_like_a_layer_map():
+    """The session compares against the live NearNetReference, the layer analysis against its
+    ReferenceMap snapshots: both carry the plume width, so the plume term (sigma^2 times the
+    reference's laplacian) widens the bound where the reference curves in both."""
+    from test_reference import CAL
+
+    from dm2.core.config import ProcessConfig
+    from dm2.reference.model import NearNetReference
+
+    live = NearNetReference(ProcessConfig(), MON, CAL, cell_mm=CELL)
+    sigma = live.sigma_mm
+    c = (np.arange(live.heights_mm.shape[1]) + 0.5) * CELL
+    xx, _ = np.meshgrid(c, c)
+    s_mm = 6.0  # a broad ridge along y, 3 mm high: curved (laplacian -h/s^2 at the crest), yet
+    live.heights_mm[:] = 3.0 * np.exp(-(xx - 60.0) ** 2 / (2 * s_mm ** 2))  # not an edge
+    assert live.plume_sigma_mm == sigma == live.snapshot().plume_sigma_mm
+    v = MON.voxel_mm
+    origin = (100, 110, 0)  # x 50..70 mm: across the ridge
+    nx, ny, nz = 40, 20, 16
+    gx = (np.arange(origin[0], origin[0] + nx) + 0.5) * v
+    crest = 3.0 * np.exp(-(gx - 60.0) ** 2 / (2 * s_mm ** 2))
+    surface = np.repeat((crest + MON.delta_global_mm + 0.03)[:, None], ny, axis=1)
+    d = ((np.arange(nz) + 0.5)[None, None, :] * v - surface[:, :, None]).astype(np.float32)
+    w = np.full(d.shape, 6.0, np.float32)
+    strong = {}
+    for name, ref in (("live", live),
+                      ("layer map", ReferenceMap(live.heights_mm, CELL, plume_sigma_mm=sigma)),
+                      ("no plume width", ReferenceMap(live.heights_mm, CELL))):
+        rt = RealtimeDeviation(MON)
+        fd = rt.update(1.0, d, w, origin, ref)
+        gi = np.round(fd.xy_O[:, 0] / v - 0.5).astype(int)
+        gj = np.round(fd.xy_O[:, 1] / v - 0.5).astype(int)
+        strong[name] = rt.strong_map[gj, gi]  # past delta_global and the confidence bound
+    np.testing.assert_array_equal(strong["live"], strong["layer map"])
+    # at the crest (x 60 mm) the surface stands 0.03 mm past delta_global: strong evidence
+    # without the plume term (bound 3 x 0.135 mm); with it the bound also holds
+    # plume_rel sigma^2 |laplacian| (3 x 0.153 mm)
+    crest_cols = np.abs(fd.xy_O[:, 0] - 60.0) < 0.5
+    assert crest_cols.sum() == 2 * ny
+    assert np.all(strong["no plume width"][crest_cols])
+    assert not np.any(strong["live"][crest_cols])

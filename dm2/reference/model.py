@@ -135,6 +135,12 @@ class NearNetReference:
         self._slope_cells = (max(int(round(self.slope_probe_mm / self.cell_mm)), 1)
                              if self.angle_from_surface else 0)
 
+    @property
+    def plume_sigma_mm(self) -> float:
+        """The plume width [mm] the model deposits with now (as :class:`ReferenceMap` names it:
+        the real-time comparison reads it for its plume term)."""
+        return self.sigma_mm
+
     def set_process_scale(self, scale: float, rescale_deposited: float = 1.0,
                           analysed_to: int | None = None) -> None:
         """Deposit at ``scale`` times the nominal volume rate from now on (efficiency x feed
