@@ -275,14 +275,7 @@ class TsdfFusion:
         if b <= a:
             return
         cap = self.cfg.deposit_weight_cap
-        self._fuse_profiles(xz, offsets, T_O_S, spots_O, axes_O, stamps, a, b,
-                            None if cap is None else
-                            (self.active_radius_mm, self.active_radius_mm, cap))
-
-    def _fuse_profiles(self, xz, offsets, T_O_S, spots_O, axes_O, stamps, a: int, b: int,
-                       deposit=None) -> None:
-        if b <= a:
-            return
+        deposit = None if cap is None else (self.active_radius_mm, self.active_radius_mm, cap)
         lo, hi = offsets[a], offsets[b]
         if self.observed_points is not None:  # where each profile saw the surface (in O)
             for j in range(a, b):  # per profile, so the batching does not matter

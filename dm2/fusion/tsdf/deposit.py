@@ -65,7 +65,6 @@ def cap_near_axis(table_keys, table_slots, voxels, voxel_mm, spot_O, axis_O, rad
     return n
 
 
-
 @njit(cache=True, error_model="numpy")
 def fuse_profiles_capped(xz_S, offsets, T_O_S, spot_O, axis_O, voxel_mm, truncation_mm,
                          active_weight_cap, max_weight, active_r2_mm2, bounds_lo, bounds_hi,

@@ -217,26 +217,18 @@ class SparseTSDF:
         counts = np.zeros(2, dtype=np.int64)
         r2 = float(active_radius_mm) ** 2
         start, n = 0, xz.shape[0]
-        if deposit is not None:
-            cap = tuple(float(x) for x in deposit)
-            while start < n:
-                start = fuse_profiles_capped(
-                    xz, off, T, spot, axis, self.voxel_mm, self.truncation_mm, self.weight_cap,
-                    self.inactive_weight_cap, r2, lo, hi, use_bounds, start, self._table_keys,
-                    self._table_slots, self.block_keys, self.voxels, self.touched, self._state,
-                    counts, *cap)
-                if start < n:
-                    self._grow()
-        if self.threads == 2 and n >= MIN_SPLIT_POINTS and start < n:
+        # with the deposit cap each profile is capped, then fused: one thread, profile by profile
+        kernel, cap = (K.fuse_profiles, ()) if deposit is None else \
+            (fuse_profiles_capped, tuple(float(x) for x in deposit))
+        if deposit is None and self.threads == 2 and n >= MIN_SPLIT_POINTS:
             fuse_split(self, True, use_bounds, profile_batch(xz, off, T, spot, axis),
                        self._params(r2, lo, hi), counts)
             start = n
         while start < n:  # flat arguments: a call from Python per profile (see bundles)
-            start = K.fuse_profiles(xz, off, T, spot, axis, self.voxel_mm, self.truncation_mm,
-                                    self.weight_cap, self.inactive_weight_cap, r2, lo, hi,
-                                    use_bounds, start, self._table_keys, self._table_slots,
-                                    self.block_keys, self.voxels, self.touched, self._state,
-                                    counts)
+            start = kernel(xz, off, T, spot, axis, self.voxel_mm, self.truncation_mm,
+                           self.weight_cap, self.inactive_weight_cap, r2, lo, hi, use_bounds,
+                           start, self._table_keys, self._table_slots, self.block_keys,
+                           self.voxels, self.touched, self._state, counts, *cap)
             if start < n:
                 self._grow()
         return int(counts[1]), int(counts[0])
