@@ -250,17 +250,7 @@ def _skimage_output(verts, faces, normals, spacing):
     for j in range(faces.shape[0]):
         f[j, 0], f[j, 1], f[j, 2] = faces[j, 2], faces[j, 1], faces[j, 0]
     keep, f = _degenerate(v, f)
-    m = keep.sum()
-    v_out = np.empty((m, 3), np.float32)
-    n_out = np.empty((m, 3), np.float32)
-    j = 0
-    for i in range(k):
-        if keep[i]:
-            for a in range(3):
-                v_out[j, a] = v[i, a]
-                n_out[j, a] = normals[i, 2 - a]
-            j += 1
-    return v_out, f, n_out
+    return v[keep], f, np.ascontiguousarray(normals[keep][:, ::-1])
 
 
 @njit(cache=True, nogil=True)
@@ -327,29 +317,13 @@ def _observed_only(verts, faces, normals, seen, voxel):
     """The faces of :func:`_observed_faces` and the vertices they use, renumbered in order."""
     keep_f = _observed_faces(verts, faces, seen, voxel)
     used = np.zeros(verts.shape[0], np.bool_)
-    nf = 0
     for j in range(faces.shape[0]):
         if keep_f[j]:
-            nf += 1
             for a in range(3):
                 used[faces[j, a]] = True
-    remap = np.full(verts.shape[0], -1, np.int64)
-    k = 0
-    for i in range(verts.shape[0]):
-        if used[i]:
-            remap[i] = k
-            k += 1
-    v_out = np.empty((k, 3), np.float32)
-    n_out = np.empty((k, 3), np.float32)
-    for i in range(verts.shape[0]):
-        if used[i]:
-            v_out[remap[i]] = verts[i]
-            n_out[remap[i]] = normals[i]
-    f_out = np.empty((nf, 3), np.int64)
-    m = 0
-    for j in range(faces.shape[0]):
-        if keep_f[j]:
-            for a in range(3):
-                f_out[m, a] = remap[faces[j, a]]
-            m += 1
-    return v_out, f_out, n_out
+    remap = np.cumsum(used) - 1
+    f_out = faces[keep_f]
+    for j in range(f_out.shape[0]):
+        for a in range(3):
+            f_out[j, a] = remap[f_out[j, a]]
+    return verts[used], f_out, normals[used]

@@ -40,8 +40,6 @@ __all__ = ["CHUNK_BLOCKS", "ChunkVolume", "PendingSurface", "SurfaceExtractor", 
 
 CHUNK_BLOCKS = 4
 _MISSING = object()
-_CHUNK_OFFSET = 1 << 20  # chunk coordinates within +-2**20 pack into 21 bits each
-_CHUNK_MASK = (1 << 21) - 1
 # Chunk volumes are meshed by this many threads (the marching-cubes kernel releases the GIL)
 # when a surface has at least MIN_PARALLEL_CHUNKS of them; the surface is the same.
 MESH_THREADS = 2 if (os.cpu_count() or 1) >= 2 else 1
@@ -76,10 +74,9 @@ def _chunks_of(blocks: np.ndarray) -> list[tuple[int, int, int]]:
     found = [base]
     for shift in np.array([(dx, dy, dz) for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)])[1:]:
         found.append(base[np.all(at_low | (shift == 0), axis=1)] - shift)
-    c = np.concatenate(found).astype(np.int64) + _CHUNK_OFFSET  # packed in one int64, sorted
-    key = np.unique((c[:, 0] << 42) | (c[:, 1] << 21) | c[:, 2])
-    c = np.stack([key >> 42, (key >> 21) & _CHUNK_MASK, key & _CHUNK_MASK], axis=1)
-    return list(map(tuple, (c - _CHUNK_OFFSET).tolist()))
+    c = np.concatenate(found).astype(np.int64)  # packed like block keys: one int64, sorted
+    key = np.unique(K.pack_key(c[:, 0], c[:, 1], c[:, 2]))
+    return list(map(tuple, K.unpack_keys(key).tolist()))
 
 
 def mesh_volume(d: np.ndarray, w: np.ndarray, origin: np.ndarray, voxel_mm: float,
@@ -104,10 +101,10 @@ def mesh_volume(d: np.ndarray, w: np.ndarray, origin: np.ndarray, voxel_mm: floa
     if mesh is None:
         return None
     verts, faces, normals = mesh
-    wv = map_coordinates(w, (verts / vox).T, order=1, mode="nearest").astype(np.float32)
+    g = verts / vox  # [voxels, box frame]
+    wv = map_coordinates(w, g.T, order=1, mode="nearest").astype(np.float32)
     verts_O = verts + (origin + 0.5) * vox  # voxel centres sit at (i + 0.5) * voxel
     # vertices on the chunk's faces are shared with a neighbour; only they are merged
-    g = verts / vox
     border = np.any((np.abs(g) < GRID_FRACTION_TOL) | (np.abs(g - n) < GRID_FRACTION_TOL), axis=1)
     return verts_O, faces.astype(np.int64), wv, -normals.astype(np.float64), border
 
