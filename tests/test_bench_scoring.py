@@ -291,7 +291,11 @@ def test_an_offset_on_a_control_is_correct_within_the_tolerance_of_the_twin_scal
     assert summarize({"c": s})["false_tracks_per_control"] == {"c": 1}  # counted as false
 
 
-def test_twin_process_scale_is_feed_times_efficiency_over_the_dense_fraction():
+def test_twin_process_scale_is_a_coupon_holding_the_factors_and_the_efficiency_curve():
+    """The twin's scale is its flat raster coupon's plateau over the nominal one: with the
+    default curve, flat up to 30 deg, it is the factors' ratio (feed x efficiency over the dense
+    fraction); a curve that falls linearly from normal incidence takes more, as the jet's
+    divergence and the deposit's ripples meet the plate a few degrees off normal."""
     from dm2.cli.bench_runner import twin_process_scale
     from dm2.core.config import load_scenario
     from scenarios import resolve_scenario
@@ -299,7 +303,14 @@ def test_twin_process_scale_is_feed_times_efficiency_over_the_dense_fraction():
     sc = load_scenario(resolve_scenario("pad"))
     twin = {"efficiency_factor": 1.15, "porosity": 0.04, "feed_g_min": sc.process.feed_g_min * 0.9}
     sc = sc.model_copy(update={"twin_process": sc.twin_process.model_copy(update=twin)})
-    assert twin_process_scale(sc) == pytest.approx(0.9 * 1.15 / 0.96, rel=1e-12)
+    factors = 0.9 * 1.15 / 0.96 * sc.twin_process.efficiency_factor / 1.15
+    assert sc.twin_process.efficiency_curve == "plateau"
+    plateau = twin_process_scale(sc)
+    assert plateau == pytest.approx(factors, rel=0.01)
+    linear = sc.model_copy(update={"twin_process": sc.twin_process.model_copy(
+        update={"efficiency_curve": "linear"})})
+    assert 0.85 * plateau < twin_process_scale(linear) < 0.99 * plateau
+    assert twin_process_scale(sc) == plateau  # seeded: the same coupon every time
 
 
 def test_a_finding_before_the_track_sets_the_detection_onset():

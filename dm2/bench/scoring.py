@@ -149,8 +149,8 @@ def score_run(report: dict, fault_truth: dict | None, *, truth_maps: dict,
     footprints : track id -> {layer: (xy_O, area)}; default: from the regions' boxes
     reconstruction : per layer ``{"rms_mm": ...}`` (measured against the true surface)
     process_s, monitor_s, wall_s : process seconds simulated, pipeline and total wall seconds
-    expected_process_scale : the deposition scale (efficiency x feed / (1 - porosity) against
-        nominal) the twin's ``[twin_process]`` deposits at, or None (unknown)
+    expected_process_scale : the deposition scale against nominal that the twin's
+        ``[twin_process]`` deposits at (its flat coupon's, dm2.cli.bench_runner), or None
     """
     faults = list((fault_truth or {}).get("faults", []))
     foot = footprints_from_regions(report) if footprints is None else footprints

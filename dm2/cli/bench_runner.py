@@ -208,16 +208,13 @@ def score_scenario_run(run: ScenarioRun) -> dict:
 
 
 def twin_process_scale(sc: Scenario) -> float:
-    """The deposition scale the twin deposits at against the nominal ``[process]``: feed x
-    efficiency over nominal, over ``1 - porosity`` (the deposit stands taller by its pores)."""
-    from twin.world.deposition import twin_process
+    """The deposition scale the twin deposits at against the nominal ``[process]``, measured
+    as a shop measures it: the plateau of a flat raster coupon sprayed with the scenario's twin
+    physics over the nominal model's (:func:`twin.world.coupon.coupon_scale`; its efficiency
+    curve and plume shape included, not only the feed, efficiency and porosity factors)."""
+    from twin.world.coupon import coupon_scale
 
-    proc, physics = twin_process(sc)
-    nominal = sc.process
-    return float(proc.feed_g_min * proc.deposition_efficiency
-                 / (nominal.feed_g_min * nominal.deposition_efficiency)
-                 / (1.0 - physics.porosity) * nominal.powder_density_g_cm3
-                 / proc.powder_density_g_cm3)
+    return coupon_scale(sc)
 
 
 def sweep_case(scenario_dict: dict, source: str) -> dict:
