@@ -79,7 +79,7 @@ def _slope(h, a, n, v, along_rows, fixed):
     return (h[fixed, a + 1] - h[fixed, a - 1]) / (2.0 * v)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def compare_columns(d, w, origin_voxel, window, maps, params, stamp_s):
     """Compare a dense TSDF box with the reference and update the column maps in place.
 

@@ -77,7 +77,7 @@ def _grad(a, v, axis):
     return g
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def window_curvatures(heights_mm, cell_mm, i0, j0, i1, j1, voxel_mm, nx_map, ny_map,
                       smooth_mm=SMOOTH_MM):
     """``(mean curvature [1/mm], laplacian [1/mm])``, each (j1 - j0, i1 - i0), of the reference

@@ -23,13 +23,13 @@ from dm2.reference.height_map import bilinear_at
 OVER, UNDER = 1, 2
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def column_crossings(d, w, min_weight):
     """Fractional voxel index (nx, ny) of the topmost - to + crossing along z, NaN if none."""
     return column_crossings_weights(d, w, min_weight)[0]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def column_crossings_weights(d, w, min_weight):
     """:func:`column_crossings` and the smaller TSDF weight of the two voxels bracketing each
     crossing (nx, ny) (0 where none)."""
@@ -49,7 +49,7 @@ def column_crossings_weights(d, w, min_weight):
     return out, wc
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def window_reference_heights(heights_mm, cell_mm, i0, j0, i1, j1, voxel_mm):
     """Reference heights [mm] (ny, nx) at the voxel column centres ``i0:i1, j0:j1``: bilinear
     in the cell-centred grid ``heights_mm`` (:func:`dm2.reference.height_map.bilinear_at`)."""
@@ -61,7 +61,7 @@ def window_reference_heights(heights_mm, cell_mm, i0, j0, i1, j1, voxel_mm):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def patch_alarms(flags, kind, deviation_mm, alarmed, first_flag_s, link, min_cells,
                  mature=None):
     """New alarms of one kind in a window of the column maps, marking their columns alarmed.

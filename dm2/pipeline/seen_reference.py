@@ -76,7 +76,7 @@ def cell_of(x_mm, y_mm, cell_mm, ny, nx):
     return int(math.floor(y)), int(math.floor(x))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _observe_cells(xy_O, cell_mm, reach, stamp_s, reference_heights_mm, heights_mm, stamps_s):
     """Cells within ``reach`` cells of each point ``xy_O (n, 2)`` [mm] on the plate (clipped
     to its edge) take the reference's height and ``stamp_s``."""

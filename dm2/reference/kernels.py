@@ -222,7 +222,7 @@ def deposit_spot(hm, px, py, pz, ax, ay, az, dt, spray):
     return total * cell * cell
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def flush_pending(hm, last, spray):
     """Deposit the pending piece held in ``last[8:16]`` (if any) and clear it; returns volume."""
     acc_dt = last[8]
@@ -237,7 +237,7 @@ def flush_pending(hm, last, spray):
     return vol
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def integrate_states(hm, stamps, T_B_F, on, T_F_O, spot_B, axis_B, last, buf_spot, buf_axis,
                      spray, max_gap_s, max_piece_s):
     """Deposit ``spray`` (:class:`Spray`) onto the map ``hm`` (:class:`HeightMap`) along the

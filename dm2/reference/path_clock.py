@@ -32,7 +32,7 @@ from scipy.spatial import cKDTree
 from dm2.core.messages import Toolpath
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _advance(points, arc, speed, spots, k, s, back, ahead, lock2, ds_out, v_out):
     """Match spots in order; fills the path progress ``ds_out`` [mm] of each spot and the
     programmed speed ``v_out`` [mm/s] where it is; returns (matched count, k, s).
@@ -67,7 +67,7 @@ def _advance(points, arc, speed, spots, k, s, back, ahead, lock2, ds_out, v_out)
     return spots.shape[0], k, s
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _executed_time(ds, elapsed, dwell_speed, acc):
     """Credit the controller's time accumulated since the last progress when progress is made,
     at most ``ds / dwell_speed`` (the resampled path advances in steps, so slow motion shows as

@@ -59,7 +59,7 @@ def bilinear_height(H, cell, x, y):
     return h00 * (1 - s) * (1 - r) + h10 * s * (1 - r) + h01 * (1 - s) * r + h11 * s * r
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def compute_block_max(H, out):
     """Fill ``out[bj, bi]`` with the maximum node height of every patch in the block."""
     ny, nx = H.shape
@@ -245,21 +245,21 @@ def _walk_block(H, bi, bj, U0, V0, z0, dU, dV, dz, ta, tb, top):
             return np.inf
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def raycast_serial(H, bmax, cell, thickness, zmax, origins, dirs, max_range, out):
     for k in range(origins.shape[0]):
         out[k] = ray_one(H, bmax, cell, thickness, zmax, origins[k, 0], origins[k, 1],
                          origins[k, 2], dirs[k, 0], dirs[k, 1], dirs[k, 2], max_range)
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, nogil=True)
 def raycast_parallel(H, bmax, cell, thickness, zmax, origins, dirs, max_range, out):
     for k in prange(origins.shape[0]):
         out[k] = ray_one(H, bmax, cell, thickness, zmax, origins[k, 0], origins[k, 1],
                          origins[k, 2], dirs[k, 0], dirs[k, 1], dirs[k, 2], max_range)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def heights_at(H, cell, xy, out):
     for k in range(xy.shape[0]):
         out[k] = bilinear_height(H, cell, xy[k, 0], xy[k, 1])
@@ -288,7 +288,7 @@ def normal_at(H, cell, x, y):
     return -gx / n, -gy / n, 1.0 / n
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def normals_at(H, cell, xy, out):
     for k in range(xy.shape[0]):
         nx_, ny_, nz_ = normal_at(H, cell, xy[k, 0], xy[k, 1])

@@ -25,7 +25,7 @@ from numba import njit
 from dm2.fusion.tsdf.kernels import BLOCK, BLOCK_SHIFT, fuse_profiles, hash_find, pack_key
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def cap_near_axis(table_keys, table_slots, voxels, voxel_mm, spot_O, axis_O, radius_mm,
                   half_length_mm, weight_cap):
     """Cap at ``weight_cap`` the weight of every stored voxel whose centre lies within
@@ -65,7 +65,7 @@ def cap_near_axis(table_keys, table_slots, voxels, voxel_mm, spot_O, axis_O, rad
     return n
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def fuse_profiles_capped(xz_S, offsets, T_O_S, spot_O, axis_O, voxel_mm, truncation_mm,
                          active_weight_cap, max_weight, active_r2_mm2, bounds_lo, bounds_hi,
                          use_bounds, start, table_keys, table_slots, block_keys, voxels, touched,
