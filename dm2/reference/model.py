@@ -242,7 +242,7 @@ class NearNetReference:
                 return done
         return None
 
-    def add_states(self, stamps_s, T_B_F, spray_on=None) -> float:
+    def add_states(self, stamps_s, T_B_F, spray_on=None, *, checked: bool = False) -> float:
         """Integrate the deposition up to each robot state; returns the volume added [mm^3].
 
         Parameters
@@ -250,18 +250,16 @@ class NearNetReference:
         stamps_s : (m,) float64 [s], increasing
         T_B_F : (m, 4, 4) float64, flange poses
         spray_on : (m,) bool or None, powder flowing on the move into each state (default on)
+        checked : the caller (dm2.reference.feed) hands float64 arrays of matching length,
+            stamps increasing past the last state's: the checks are skipped
         """
-        stamps = np.asarray(stamps_s, dtype=np.float64).reshape(-1)
-        T = np.asarray(T_B_F, dtype=np.float64).reshape(-1, 4, 4)
-        if stamps.shape[0] != T.shape[0]:
-            raise ValueError(f"add_states: {stamps.shape[0]} stamps but {T.shape[0]} poses")
-        if stamps.size == 0:
-            return 0.0
-        on = np.ones(stamps.size, bool) if spray_on is None else np.asarray(spray_on, bool)
-        if on.shape != stamps.shape:
-            raise ValueError(f"add_states: spray_on must be ({stamps.size},), got {on.shape}")
-        if np.any(np.diff(stamps) < 0) or (self._last[0] > 0 and stamps[0] < self._last[1]):
-            raise ValueError("add_states: robot state stamps must not go backwards")
+        if checked:
+            stamps, T = stamps_s, T_B_F
+            on = np.ones(stamps.size, bool) if spray_on is None else spray_on
+        else:
+            stamps, T, on = self._checked_states(stamps_s, T_B_F, spray_on)
+            if stamps.size == 0:
+                return 0.0
         if self._buf_spot.shape[0] < stamps.size:
             self._buf_spot = np.empty((stamps.size, 3))
             self._buf_axis = np.empty((stamps.size, 3))
@@ -273,6 +271,21 @@ class NearNetReference:
         self.gaps_skipped += int(gaps)
         self._deposited_mm3 += vol
         return float(vol)
+
+    def _checked_states(self, stamps_s, T_B_F, spray_on):
+        """``(stamps (m,), poses (m, 4, 4), spray_on (m,))`` as float64 / bool arrays, or a
+        ValueError naming what is wrong."""
+        stamps = np.asarray(stamps_s, dtype=np.float64).reshape(-1)
+        T = np.asarray(T_B_F, dtype=np.float64).reshape(-1, 4, 4)
+        if stamps.shape[0] != T.shape[0]:
+            raise ValueError(f"add_states: {stamps.shape[0]} stamps but {T.shape[0]} poses")
+        on = np.ones(stamps.size, bool) if spray_on is None else np.asarray(spray_on, bool)
+        if on.shape != stamps.shape:
+            raise ValueError(f"add_states: spray_on must be ({stamps.size},), got {on.shape}")
+        if stamps.size and (np.any(np.diff(stamps) < 0)
+                            or (self._last[0] > 0 and stamps[0] < self._last[1])):
+            raise ValueError("add_states: robot state stamps must not go backwards")
+        return stamps, T, on
 
     def _with_pending(self) -> tuple[np.ndarray, float]:
         """A copy of the map with the pending piece deposited, and that piece's volume.
