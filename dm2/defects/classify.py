@@ -69,7 +69,7 @@ class VertexClasses:
     normals_O: np.ndarray | None = None
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _face_terms(v, faces):
     """One pass over the faces: cotangent Laplacian ``sum_j w_ij (v_j - v_i)``, barycentric
     vertex areas, area-weighted normals and the sum of the edges opposite each vertex (zero
@@ -112,7 +112,7 @@ def _face_terms(v, faces):
     return lap, area, nrm, loop
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _smooth(values, faces, iterations):
     n = values.shape[0]
     count = np.zeros(n)

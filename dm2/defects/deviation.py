@@ -109,7 +109,7 @@ def _quad_closest(px, py, pz, h, ox, oy, cell, i, j, best):
     return best
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, nogil=True)
 def closest_on_grid(points, h, ox, oy, cell, max_r):
     """Signed closest distance (n,) and closest points (n, 3) of ``points`` (n, 3) [mm] to
     the grid mesh of heights ``h`` (ny, nx): vertex ``(i, j)`` at ``((i + ox) cell,

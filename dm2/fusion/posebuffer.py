@@ -136,13 +136,13 @@ class PoseBuffer:
         return out, ok
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _poses_at(t, T, n, q_s, max_gap_s, out, ok):
     for k in range(q_s.shape[0]):
         ok[k] = _pose_at(t, T, n, q_s[k], max_gap_s, out[k])
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _pose_at(t, T, n, q_s, max_gap_s, out):
     """Pose at ``q_s`` into ``out (4, 4)`` (identity when not bracketed); whether bracketed."""
     out[:] = np.eye(4)

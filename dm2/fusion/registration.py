@@ -36,7 +36,7 @@ def _points_O(xz_S, T_O_S):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def profile_frames(T_B_F, T_F_O, T_B_S, sensor_index, spot_B, axis_B):
     """Per-profile frames of a batch, each computed alone (the same bits whatever the batch).
 

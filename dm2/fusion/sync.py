@@ -201,7 +201,7 @@ class StreamSync:
         return SyncedProfile(p, xz, T_B_F)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _usable_points(xz_S, valid):
     """Valid finite points ``(k, 2)`` of a profile and the number flagged valid but not finite."""
     out = np.empty_like(xz_S)

@@ -80,7 +80,7 @@ class ReobservedTop:
         return (ref_mm + float(np.median(measured - ref))) / ref_mm, int(i.size)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _accumulate(points_O, cell_mm, plateau, close_mm, heights_mm, sum_mm, count):
     """Add each point's height to its cell where that cell is on the plateau and its reference
     grew less than ``FRESH_GROWTH`` of its height since the close."""

@@ -186,7 +186,7 @@ def bilinear_at(heights_mm, cell_mm, x, y):
             + (1 - tx) * ty * heights_mm[j0 + 1, i0] + tx * ty * heights_mm[j0 + 1, i0 + 1])
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _bilinear_points(heights_mm, cell_mm, xy):
     out = np.empty(xy.shape[0])
     for k in range(xy.shape[0]):

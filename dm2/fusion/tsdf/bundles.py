@@ -66,7 +66,7 @@ def new_staging(capacity: int = 1024) -> Staging:
                    np.zeros(1, dtype=np.int64))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def ray_batch(origins_O, points_O, active):
     """A :class:`Batch` of rays ``origins_O[i] -> points_O[i]`` (C-contiguous float64 ``(n, 3)``
     [mm, O], ``active (n,)`` bool), one "profile" of all points; the profile fields hold no
@@ -77,7 +77,7 @@ def ray_batch(origins_O, points_O, active):
                  none3)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def profile_batch(xz_S, offsets, T_O_S, spot_O, axis_O):
     """A :class:`Batch` of profiles (C-contiguous arrays as in :class:`Batch`); the ray fields
     are empty."""

@@ -8,7 +8,7 @@ from numba import njit
 from dm2.fusion.tsdf.kernels import BLOCK, BLOCK_SHIFT, hash_find, pack_key
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def gather_dense(table_keys, table_slots, voxels, origin_voxel, shape, fill_mm):
     """Dense ``tsdf (shape)`` and ``weight (shape)`` sub-volumes starting at voxel index
     ``origin_voxel (3,)``; voxels of unallocated blocks get ``fill_mm`` and weight 0."""

@@ -87,7 +87,7 @@ def hash_insert(table_keys, table_slots, key, slot):
     table_slots[h] = slot
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def rebuild_hash(block_keys, n_blocks, table_size):
     """A fresh hash table of ``table_size`` (power of two) entries for the first blocks."""
     table_keys = np.full(table_size, EMPTY, dtype=np.int64)
@@ -135,7 +135,7 @@ def recent_slot(bx, by, bz, a, b):
     return -1
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def integrate_rays(origins_O, points_O, active, voxel_mm, truncation_mm, active_weight_cap,
                    max_weight, table_keys, table_slots, block_keys, voxels, touched, state,
                    start):
@@ -159,7 +159,7 @@ def integrate_rays(origins_O, points_O, active, voxel_mm, truncation_mm, active_
                  BlockHash(table_keys, table_slots), block_keys, voxels, touched, state, counts)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def fuse_profiles(xz_S, offsets, T_O_S, spot_O, axis_O, voxel_mm, truncation_mm,
                   active_weight_cap, max_weight, active_r2_mm2, bounds_lo, bounds_hi, use_bounds,
                   start, table_keys, table_slots, block_keys, voxels, touched, state, counts):
