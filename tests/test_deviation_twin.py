@@ -6,6 +6,7 @@ Slow (a full simulated build, fused and analysed): run with ``pytest -m slow``.
 import numpy as np
 import pytest
 
+import twin  # noqa: F401  (registers the twin's scenario sections with load_scenario)
 from dm2.core.config import load_scenario, parse_scenario
 from dm2.defects.layer_analysis import LayerAnalysis
 from dm2.fusion.fusion import TsdfFusion
