@@ -1,17 +1,14 @@
-"""Robot states into the near-net reference, on the programmed clock, in any slicing.
+"""Robot states into the near-net reference, on the path clock, in any slicing.
 
 :class:`ReferenceFeed` buffers the robot states a session receives and integrates them into a
 :class:`~dm2.reference.model.NearNetReference` on request, up to a stamp and at most so many at a
 time. With a toolpath, each state advances the reference's clock along the path it covered
 (:mod:`dm2.reference.path_clock`): by the controller's time while the spray spot progresses, but
-not while
-it stands still (``reference_clock = "executed"``: a dwell or a reorientation stop grows the
-part, not the reference), or by the programmed time of the path covered (``"programmed"``,
-MonitorConfig's default: every slowdown of the robot grows the part more than the
-reference).
-The clock is summed one state after the other, so the reference is the
-same however the states are sliced. Late or duplicated states cannot rewind
-the reference.
+not while it stands still (``reference_clock = "executed"``, MonitorConfig's default: a dwell or
+a reorientation stop grows the part, not the reference), or by the programmed time of the path
+covered (``"programmed"``: every slowdown of the robot grows the part more than the reference).
+The clock is summed one state after the other, so the reference is the same however the states
+are sliced. Late or duplicated states cannot rewind the reference.
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@ deposition time, in one of two clocks:
   and keeps spraying (an extra dwell, a reorientation stop at a tilted corner) grows the real
   part but not the reference — that is the corner overbuild of the paper's experiments 3 and 4.
   A reference on the raw controller clock would grow the same bump and hide the defect.
-- programmed (default): path length over the programmed speed (``ds / v_programmed``), as if
+- programmed: path length over the programmed speed (``ds / v_programmed``), as if
   the robot held its programmed speed everywhere; every slowdown then shows as overbuild.
 
 Progress only advances (a running maximum), so standing still, jitter of the reported pose and
