@@ -311,6 +311,9 @@ def test_twin_process_scale_is_a_coupon_holding_the_factors_and_the_efficiency_c
         update={"efficiency_curve": "linear"})})
     assert 0.85 * plateau < twin_process_scale(linear) < 0.99 * plateau
     assert twin_process_scale(sc) == plateau  # seeded: the same coupon every time
+    wide = sc.model_copy(update={"twin_process": sc.twin_process.model_copy(
+        update={"plume_sigma_factor": 4.0})})  # sigma 12 mm: the coupon widens to keep a plateau
+    assert twin_process_scale(wide) == pytest.approx(factors, rel=0.02)
 
 
 def test_a_finding_before_the_track_sets_the_detection_onset():

@@ -23,8 +23,8 @@ import numpy as np
 from twin.world.deposition import SprayModel, twin_process, volume_rate_mm3_s
 from twin.world.heightfield import HeightField
 
-COUPON_MM = 40.0  # side of the sprayed square [mm]
-PLATE_MM = 80.0  # side of the coupon's plate [mm]
+COUPON_MM = 40.0  # side of the sprayed square [mm], at least (wider for a wide plume)
+PLATEAU_LINES = 5  # raster lines the plateau spans, at least
 CELL_MM = 0.25
 RATE_HZ = 250.0  # motion samples per second, as the robot state stream
 PLATEAU_MARGIN_SIGMAS = 4.0  # the plateau is this many plume sigmas inside the raster
@@ -48,21 +48,24 @@ def raster_spots(side_mm: float, spacing_mm: float, speed_mm_s: float,
 def coupon_scale(scenario) -> float:
     """The twin's deposition scale against the nominal ``[process]`` (see the module
     docstring): the median plateau height of one raster coupon sprayed at normal incidence with
-    the scenario's twin physics, over the nominal model's plateau height."""
+    the scenario's twin physics, over the nominal model's plateau height
+    (the coupon is wider than :data:`COUPON_MM` where a wide plume needs it for a plateau)
+    """
     proc, physics = twin_process(scenario)
     nominal = scenario.process
     spacing = float(scenario.toolpath.line_spacing_mm)
     speed = float(scenario.toolpath.speed_mm_s.infill)
-    centre = 0.5 * PLATE_MM
-    spots = raster_spots(COUPON_MM, spacing, speed, centre)
-    axes = np.tile([0.0, 0.0, -1.0], (len(spots), 1))
-    hf = HeightField((PLATE_MM, PLATE_MM), CELL_MM, 6.0)
     model = SprayModel(proc, seed=scenario.seed, physics=physics)
+    margin = PLATEAU_MARGIN_SIGMAS * model.sigma_mm()
+    side = max(COUPON_MM, 2.0 * margin + PLATEAU_LINES * spacing)
+    # the plume's tails stay on the plate; whole mm, so the raster sits on the cells alike
+    plate = float(np.ceil(side + 2.0 * margin + 2.0 * spacing))
+    centre = 0.5 * plate
+    spots = raster_spots(side, spacing, speed, centre)
+    axes = np.tile([0.0, 0.0, -1.0], (len(spots), 1))
+    hf = HeightField((plate, plate), CELL_MM, 6.0)
     model.deposit_samples(hf, spots, axes, 1.0 / RATE_HZ)
-    inner = 0.5 * COUPON_MM - PLATEAU_MARGIN_SIGMAS * model.sigma_mm()
-    if inner <= spacing:
-        raise ValueError(f"coupon_scale: a {COUPON_MM} mm coupon has no plateau for a plume "
-                         f"sigma of {model.sigma_mm():.2f} mm")
+    inner = 0.5 * side - margin
     ny, nx = hf.heights_mm.shape
     x = (np.arange(nx) + 0.5) * CELL_MM - centre
     y = (np.arange(ny) + 0.5) * CELL_MM - centre
