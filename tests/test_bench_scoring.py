@@ -303,7 +303,7 @@ def test_twin_process_scale_is_a_coupon_holding_the_factors_and_the_efficiency_c
     sc = load_scenario(resolve_scenario("pad"))
     twin = {"efficiency_factor": 1.15, "porosity": 0.04, "feed_g_min": sc.process.feed_g_min * 0.9}
     sc = sc.model_copy(update={"twin_process": sc.twin_process.model_copy(update=twin)})
-    factors = 0.9 * 1.15 / 0.96 * sc.twin_process.efficiency_factor / 1.15
+    factors = 0.9 * 1.15 / 0.96  # feed x efficiency over the dense fraction
     assert sc.twin_process.efficiency_curve == "plateau"
     plateau = twin_process_scale(sc)
     assert plateau == pytest.approx(factors, rel=0.01)
