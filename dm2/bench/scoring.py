@@ -150,7 +150,8 @@ def score_run(report: dict, fault_truth: dict | None, *, truth_maps: dict,
     reconstruction : per layer ``{"rms_mm": ...}`` (measured against the true surface)
     process_s, monitor_s, wall_s : process seconds simulated, pipeline and total wall seconds
     expected_process_scale : the deposition scale against nominal that the twin's
-        ``[twin_process]`` deposits at (its flat coupon's, dm2.cli.bench_runner), or None
+        ``[twin_process]`` deposits at (its factors and its efficiency curve's loss on a flat
+        coupon, dm2.cli.bench_runner), or None
     """
     faults = list((fault_truth or {}).get("faults", []))
     foot = footprints_from_regions(report) if footprints is None else footprints

@@ -208,10 +208,9 @@ def score_scenario_run(run: ScenarioRun) -> dict:
 
 
 def twin_process_scale(sc: Scenario) -> float:
-    """The deposition scale the twin deposits at against the nominal ``[process]``, measured
-    as a shop measures it: the plateau of a flat raster coupon sprayed with the scenario's twin
-    physics over the nominal model's (:func:`twin.world.coupon.coupon_scale`; its efficiency
-    curve and plume shape included, not only the feed, efficiency and porosity factors)."""
+    """The deposition scale the twin deposits at against the nominal ``[process]``: feed x
+    efficiency over nominal, over ``1 - porosity``, times what the twin's efficiency curve takes
+    at normal spray on a flat raster coupon (:func:`twin.world.coupon.coupon_scale`)."""
     from twin.world.coupon import coupon_scale
 
     return coupon_scale(sc)
