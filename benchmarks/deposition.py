@@ -20,22 +20,12 @@ import numpy as np
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).parent.resolve()]
 
 from dm2.core.config import ProcessConfig  # noqa: E402
+from twin.world.coupon import raster_spots  # noqa: E402
 from twin.world.deposition import SprayModel  # noqa: E402
 from twin.world.heightfield import HeightField  # noqa: E402
 
 RATE_HZ = 250.0
 DT = 1.0 / RATE_HZ
-
-
-def raster(speed=30.0):
-    pts = []
-    for k, y in enumerate(np.arange(40.0, 80.0 + 1e-9, 2.0)):
-        pts += [(40.0, y), (80.0, y)] if k % 2 == 0 else [(80.0, y), (40.0, y)]
-    pts = np.array(pts)
-    s = np.concatenate([[0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
-    q = np.arange(0, s[-1], speed * DT)
-    return np.column_stack([np.interp(q, s, pts[:, 0]), np.interp(q, s, pts[:, 1]),
-                            np.zeros(len(q))])
 
 
 def run(axis, batched: bool, spots) -> float:
@@ -53,7 +43,7 @@ def run(axis, batched: bool, spots) -> float:
 
 
 def main() -> None:
-    spots = raster()
+    spots = raster_spots(40.0, 2.0, 30.0, 60.0)  # the 40 x 40 mm pad at x, y 40-80 mm
     a = math.radians(35.0)
     cases = {"infill (normal)": np.array([0.0, 0.0, -1.0]),
              "edge (35 deg tilt)": np.array([math.sin(a), 0.0, -math.cos(a)])}

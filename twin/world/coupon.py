@@ -26,6 +26,7 @@ from dataclasses import replace
 import numpy as np
 
 from twin.world.deposition import SprayModel, twin_process
+from twin.world.heightfield import HeightField
 from twin.world.twin_physics import TwinPhysics
 
 COUPON_MM = 40.0  # side of the sprayed square [mm], at least (wider for a wide plume)
@@ -56,8 +57,6 @@ def coupon_plateau_mm(process, physics: TwinPhysics, spacing_mm: float, speed_mm
     """Median plateau height [mm] of one raster layer sprayed at normal incidence on a flat
     plate, at least :data:`COUPON_MM` wide (wider where a wide plume needs it for a plateau of
     :data:`PLATEAU_LINES` lines, :data:`PLATEAU_MARGIN_SIGMAS` sigmas inside the edges)."""
-    from twin.world.heightfield import HeightField
-
     model = SprayModel(process, seed=seed, physics=physics)
     margin = PLATEAU_MARGIN_SIGMAS * model.sigma_mm()
     side = max(COUPON_MM, 2.0 * margin + PLATEAU_LINES * spacing_mm)
