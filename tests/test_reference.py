@@ -229,6 +229,38 @@ def test_each_footprint_cell_sticks_at_its_own_spray_angle():
     assert added == pytest.approx(expected, rel=0.02)
 
 
+def test_tilted_spray_past_a_wall_top_reaches_the_plate_below_on_every_ray():
+    """A 35 degree spray aimed 5 mm inside the top edge of a 20 mm wall: the rays that pass
+    the edge land on the plate 15-30 mm out. Exactly the cells whose surface point lies within
+    the footprint's 4 sigmas of the axis receive powder, on the wall's top and on the plate
+    (none is dropped by the kernel's search band, none outside it is touched)."""
+    from dm2.reference import kernels as RK
+    from dm2.reference.model import FOOTPRINT_SIGMAS
+
+    alpha = math.radians(35.0)
+    a = np.array([0.0, math.sin(alpha), -math.cos(alpha)])
+    ref = NearNetReference(ProcessConfig(), MonitorConfig(), CAL, angle_from_surface=False)
+    n = ref.heights_mm.shape[0]
+    y = (np.arange(n) + 0.5) * ref.cell_mm
+    ref.heights_mm[:] = np.where(y < 60.0, 20.0, 0.0)[:, None]
+    ref._zmax[0] = 20.0
+    before = ref.heights_mm.copy()
+    p = np.array([60.0, 55.0, 20.0])
+    hm = RK.HeightMap(ref.heights_mm, ref.cell_mm, ref._zmax, ref._scratch)
+    RK.deposit_spot(hm, *p, *a, 0.05, ref._spray())
+    got = ref.heights_mm > before
+
+    xx, yy = np.meshgrid((np.arange(n) + 0.5) * ref.cell_mm, y)
+    r = np.stack([xx - p[0], yy - p[1], before - p[2]], axis=-1)
+    dist = np.sqrt(np.maximum((r * r).sum(-1) - (r @ a) ** 2, 0.0))
+    radius = FOOTPRINT_SIGMAS * ref.sigma_mm
+    clear = np.abs(dist - radius) > 0.01  # the impact is found to a sixty-fourth of a cell
+    assert np.array_equal(got[clear], (dist <= radius)[clear])
+    on_plate = got & (before == 0.0)
+    assert on_plate.any() and yy[on_plate].max() > 55.0 + 20.0 * math.tan(alpha) + 10.0
+    assert not (got & (yy < 40.0)).any()
+
+
 @pytest.mark.parametrize("capacity", [16, None])
 def test_feed_gives_the_same_reference_for_any_arrival_order_and_slicing(capacity, monkeypatch):
     """Robot states arriving out of order within the window and integrated in slices of any

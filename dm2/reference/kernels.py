@@ -26,6 +26,7 @@ import numpy as np
 from numba import njit
 
 from dm2.core.tolerances import DOWNWARD_COS, NEAR_ZERO
+from dm2.reference.tilted_band import NO_BAND, row_span, tilted_band
 
 MARCH_REFINE_STEPS = 6  # bisections after the march brackets the surface (cell / 64)
 
@@ -176,12 +177,14 @@ def deposit_spot(hm, px, py, pz, ax, ay, az, dt, spray):
         for j in range(j_lo, j_hi + 1):
             ry = (j + 0.5) * cell - py
             scratch[off + w + j - j_lo] = math.exp(-ry * ry * (1.0 - ay * ay) * inv2s2)
+    band = tilted_band(px, py, pz, ax, ay, az, zmax[0], n_sigma * sigma) if tilted else NO_BAND
     for j in range(j_lo, j_hi + 1):  # pass 1: the footprint on the surface as it was
         ry = (j + 0.5) * cell - py
         jm = max(j - slope_cells, 0)
         jp = min(j + slope_cells, ny - 1)
         ey = scratch[off + w + j - j_lo] if separable else 0.0
-        for i in range(i_lo, i_hi + 1):
+        ia, ib = row_span(band, ry, px, cell, i_lo, i_hi) if tilted else (i_lo, i_hi)
+        for i in range(ia, ib + 1):
             rx = (i + 0.5) * cell - px
             if tilted:  # the ray through the cell's surface point, off the axis by r_perp
                 rz = h[j, i] - pz
@@ -212,7 +215,9 @@ def deposit_spot(hm, px, py, pz, ax, ay, az, dt, spray):
             total += dz
     top = zmax[0]
     for j in range(j_lo, j_hi + 1):  # pass 2: add it
-        for i in range(i_lo, i_hi + 1):
+        ry = (j + 0.5) * cell - py
+        ia, ib = row_span(band, ry, px, cell, i_lo, i_hi) if tilted else (i_lo, i_hi)
+        for i in range(ia, ib + 1):
             dz = scratch[(j - j_lo) * w + (i - i_lo)]
             if dz != 0.0:
                 h[j, i] += dz
