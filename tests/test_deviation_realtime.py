@@ -178,10 +178,13 @@ def test_alarm_patches_equal_scipy_closing_and_labelling():
     yy, xx = np.mgrid[-4:5, -4:5]
     link = xx * xx + yy * yy <= 16
     n_alarms = 0
-    for _ in range(40):
+    for k in range(40):
         h, w = rng.integers(20, 90, 2)
         flags = rng.choice([0, 1, 2], size=(h, w), p=[0.8, 0.12, 0.08]).astype(np.int8)
-        flags[rng.random((h, w)) < 0.5] = 0  # sparse lines of flagged columns
+        if k % 2:
+            flags[rng.random((h, w)) < 0.5] = 0  # sparse lines of flagged columns
+        else:  # runs of flagged columns along the rows, as on a flagged top
+            flags = np.repeat(flags[:, ::4], 4, axis=1)[:, :w]
         dev = np.where(rng.random((h, w)) < 0.6, np.nan, 0.1)  # mostly unobserved between
         dev[flags != 0] = 0.5
         first = np.where(flags != 0, rng.uniform(0, 10, (h, w)), np.nan)

@@ -93,18 +93,34 @@ def patch_alarms(flags, kind, deviation_mm, alarmed, first_flag_s, link, min_cel
 
 @njit(cache=True)
 def _dilate(hit, link):
-    """(h, w) bool: ``hit`` dilated by the disk ``link`` (odd square of bools), clipped."""
+    """(h, w) bool: ``hit`` dilated by the disk ``link`` (odd square of bools, each row one
+    run), clipped. Each row's runs of hits are spread at once: a run ``[x0, x1]`` covers
+    ``[x0 - s, x1 + s]`` on the row ``a`` away, ``s`` the disk's half width there."""
     h, w = hit.shape
     r = link.shape[0] // 2
+    half = np.full(2 * r + 1, -1, np.int64)  # -1: the disk has no column on that row
+    for a in range(2 * r + 1):
+        for b in range(2 * r + 1):
+            if link[a, b]:
+                half[a] = max(half[a], abs(b - r))
     dil = np.zeros((h, w), np.bool_)
     for y in range(h):
-        for x in range(w):
-            if hit[y, x]:
-                for a in range(-r, r + 1):
-                    for b in range(-r, r + 1):
-                        yy, xx = y + a, x + b
-                        if link[a + r, b + r] and 0 <= yy < h and 0 <= xx < w:
-                            dil[yy, xx] = True
+        x = 0
+        while x < w:
+            if not hit[y, x]:
+                x += 1
+                continue
+            x0 = x
+            while x < w and hit[y, x]:
+                x += 1
+            x1 = x - 1
+            for a in range(-r, r + 1):
+                yy = y + a
+                s = half[a + r]
+                if s < 0 or not 0 <= yy < h:
+                    continue
+                for xx in range(max(x0 - s, 0), min(x1 + s, w - 1) + 1):
+                    dil[yy, xx] = True
     return dil
 
 
