@@ -64,7 +64,7 @@ def one_run(height_mm: float, stamps, spots_O, axes_O) -> float:
     c = (np.arange(n) + 0.5) * ref.cell_mm
     inside = ((c >= BLOCK_MM[0]) & (c < BLOCK_MM[1]))
     ref.heights_mm[np.ix_(inside, inside)] = height_mm
-    ref._zmax[0] = float(ref.heights_mm.max())  # the map was written from outside
+    ref.heights_written()
     pts = spots_O.copy()
     pts[:, 2] = height_mm
     poses = flange_poses(pts, axes_O)

@@ -174,6 +174,7 @@ def test_tilted_spray_lands_where_its_axis_meets_a_lagging_surface():
     # the same spray onto a surface 2 mm higher than programmed lands 2 tan(35) short of it
     ref = NearNetReference(proc, MonitorConfig(), CAL, angle_from_surface=False)
     ref.heights_mm[:] = 2.0
+    ref.heights_written()
     pts[:, 2] = 0.0
     ref.add_states(ts, flange_poses(pts, np.tile(axis, (len(ts), 1))))
     ridge = ref.snapshot().heights_mm[:, 240] - 2.0
@@ -193,6 +194,7 @@ def test_tilted_spray_onto_a_slope_follows_its_rays():
     ref = NearNetReference(proc, MonitorConfig(), CAL)
     y = (np.arange(ref.heights_mm.shape[0]) + 0.5) * ref.cell_mm
     ref.heights_mm[:] = (20.0 + s * (y - 60.125))[:, None]
+    ref.heights_written()
     before = ref.heights_mm.copy()
     ts = np.arange(0.0, 100.0 / 30.0 + 1e-9, 1 / 250)
     pts = np.column_stack([10.0 + 30.0 * ts, np.full_like(ts, 60.125), np.full_like(ts, 20.0)])
@@ -243,7 +245,7 @@ def test_tilted_spray_past_a_wall_top_reaches_the_plate_below_on_every_ray():
     n = ref.heights_mm.shape[0]
     y = (np.arange(n) + 0.5) * ref.cell_mm
     ref.heights_mm[:] = np.where(y < 60.0, 20.0, 0.0)[:, None]
-    ref._zmax[0] = 20.0
+    ref.heights_written()
     before = ref.heights_mm.copy()
     p = np.array([60.0, 55.0, 20.0])
     hm = RK.HeightMap(ref.heights_mm, ref.cell_mm, ref._zmax, ref._scratch)

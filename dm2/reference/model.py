@@ -198,6 +198,13 @@ class NearNetReference:
         self.sigma_mm = sigma * factor
         self._size_scratch()
 
+    def heights_written(self) -> None:
+        """Call after writing ``heights_mm`` in place (a surface to start from, a test): the
+        kernels bound their search for the surface and for a tilted spray's footprint by the
+        map's highest value, which the model keeps up to date as it deposits, scales and
+        blurs, but cannot see a direct write."""
+        self._zmax[0] = float(self.heights_mm.max())
+
     def _deposit_box(self, margin: int) -> tuple[slice, slice] | None:
         """The grid's rows and columns holding deposit, widened by ``margin`` cells (clipped to
         the plate), or None before any deposit. A filter whose support is at most ``margin - 1``

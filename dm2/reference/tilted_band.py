@@ -5,7 +5,9 @@ A tilted spray at the top of a tall wall reaches down to the plate: the rays tha
 wall's edge land ``height * tan(tilt)`` farther out. The square that holds every such ray is
 tens of millimetres wide, most of it far from any ray. The kernel visits, row by row, only the
 band along the tilt that can hold the footprint (:func:`row_span`), with the same arithmetic
-per visited cell: the deposit is the same, bit for bit, as over the whole square.
+per visited cell: the deposit is the same, bit for bit, as over the whole square. The band
+holds while every height lies in ``[0, zmax]``, the map's highest value that the model keeps
+(``NearNetReference.heights_written`` after writing the map from outside).
 """
 
 from __future__ import annotations
