@@ -57,6 +57,7 @@ from dm2.core.plume import plume_sigma_mm
 from dm2.fusion.layers import LayerTracker
 from dm2.reference import kernels as RK
 from dm2.reference.height_map import ReferenceMap
+from dm2.reference.plume_width import rescale_plume
 
 log = logging.getLogger(__name__)
 
@@ -65,7 +66,6 @@ FOOTPRINT_SIGMAS = 4.0  # footprint truncated at 4 sigma (0.03 % of the mass is 
 SLOPE_PROBE_MM = 0.5  # half span of the central difference giving the local surface normal
 MAX_INTEGRATION_GAP_S = 1.0  # longer gaps between robot states are not integrated
 MAX_PIECE_S = 0.1  # a dwell deposits at least every 0.1 s (pieces are sigma / 4 long)
-GAUSSIAN_TRUNCATE = 4.0  # the plume calibration blurs out to 4 sigmas (scipy's default)
 
 
 def volume_rate_mm3_s(process) -> float:
@@ -171,31 +171,15 @@ class NearNetReference:
 
     def set_plume_factor(self, factor: float) -> None:
         """Deposit with a plume ``factor`` times as wide from now on and widen (or narrow) what
-        was deposited so far to match: a Gaussian footprint is a heat kernel, so a wider plume's
-        deposit is the narrower one's blurred by ``sigma * sqrt(factor^2 - 1)``; a narrower one
-        is the first-order step ``h + (factor - 1) sigma^2 laplacian(h)``
-        (dm2.pipeline.process_fit's plume calibration)."""
-        from scipy.ndimage import gaussian_filter, laplace
-
+        was deposited so far to match (:mod:`dm2.reference.plume_width`; dm2.pipeline.
+        process_fit's plume calibration)."""
         if not 0.5 <= factor <= 2.0:
             raise ValueError(f"NearNetReference: plume factor must be in [0.5, 2], got {factor}")
         if factor == 1.0:
             return
-        sigma = self.sigma_mm
-        if factor > 1.0:
-            blur_px = sigma * np.sqrt(factor * factor - 1.0) / self.cell_mm
-            box = self._deposit_box(int(GAUSSIAN_TRUNCATE * blur_px + 0.5) + 1)
-            if box is not None:
-                self.heights_mm[box] = gaussian_filter(self.heights_mm[box], blur_px,
-                                                       mode="nearest", truncate=GAUSSIAN_TRUNCATE)
-        else:
-            box = self._deposit_box(2)
-            if box is not None:
-                h = self.heights_mm[box]
-                lap = laplace(h, mode="nearest") / (self.cell_mm * self.cell_mm)
-                self.heights_mm[box] = np.maximum(h + (factor - 1.0) * sigma ** 2 * lap, 0.0)
+        rescale_plume(self.heights_mm, self.cell_mm, self.sigma_mm, factor)
         self._zmax[0] = float(self.heights_mm.max())
-        self.sigma_mm = sigma * factor
+        self.sigma_mm = self.sigma_mm * factor
         self._size_scratch()
 
     def heights_written(self) -> None:
@@ -204,19 +188,6 @@ class NearNetReference:
         map's highest value, which the model keeps up to date as it deposits, scales and
         blurs, but cannot see a direct write."""
         self._zmax[0] = float(self.heights_mm.max())
-
-    def _deposit_box(self, margin: int) -> tuple[slice, slice] | None:
-        """The grid's rows and columns holding deposit, widened by ``margin`` cells (clipped to
-        the plate), or None before any deposit. A filter whose support is at most ``margin - 1``
-        cells gives the same heights on this box as on the whole plate (everything outside it
-        is 0 before and after), in a fraction of the time on a small part on a large plate."""
-        rows = np.flatnonzero(self.heights_mm.any(axis=1))
-        if not len(rows):
-            return None
-        cols = np.flatnonzero(self.heights_mm[rows[0]:rows[-1] + 1].any(axis=0))
-        ny, nx = self.heights_mm.shape
-        return (slice(max(rows[0] - margin, 0), min(rows[-1] + margin + 1, ny)),
-                slice(max(cols[0] - margin, 0), min(cols[-1] + margin + 1, nx)))
 
     def spot_O(self, T_B_F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Deposition spot and spray axis in ``O`` for flange poses ``T_B_F`` (..., 4, 4)."""
