@@ -291,32 +291,32 @@ def test_an_offset_on_a_control_is_correct_within_the_tolerance_of_the_twin_scal
     assert summarize({"c": s})["false_tracks_per_control"] == {"c": 1}  # counted as false
 
 
-def test_twin_process_scale_is_the_factors_times_what_the_curve_takes_on_a_flat_coupon():
+def test_the_twin_scale_is_the_factors_times_what_the_curve_takes_on_a_flat_coupon():
     """The twin's scale is the factors' ratio (feed x efficiency over the dense fraction) where
     its efficiency curve is flat near normal incidence (the default curve, flat to 30 deg); a
     curve that falls linearly from normal incidence takes more, as the jet's divergence and the
     deposit's ripples meet a flat coupon a few degrees off normal; a wide plume's coupon grows
     to keep a plateau."""
-    from dm2.cli.bench_runner import twin_process_scale
     from dm2.core.config import load_scenario
     from scenarios import resolve_scenario
+    from twin.world.coupon import coupon_scale
 
     sc = load_scenario(resolve_scenario("pad"))
     twin = {"efficiency_factor": 1.15, "porosity": 0.04, "feed_g_min": sc.process.feed_g_min * 0.9}
     sc = sc.model_copy(update={"twin_process": sc.twin_process.model_copy(update=twin)})
     factors = 0.9 * 1.15 / 0.96  # feed x efficiency over the dense fraction
     assert sc.twin_process.efficiency_curve == "plateau"
-    assert twin_process_scale(sc) == pytest.approx(factors, rel=1e-12)
+    assert coupon_scale(sc) == pytest.approx(factors, rel=1e-12)
 
     def with_curve(curve, **more):
         return sc.model_copy(update={"twin_process": sc.twin_process.model_copy(
             update={"efficiency_curve": curve, **more})})
 
-    linear = twin_process_scale(with_curve("linear"))
+    linear = coupon_scale(with_curve("linear"))
     assert 0.85 * factors < linear < 0.995 * factors  # pad: a thin raster, small ripples
-    assert twin_process_scale(with_curve("linear")) == linear  # seeded: the same coupons
-    assert twin_process_scale(with_curve("cos2")) == pytest.approx(factors, rel=0.005)
-    wide = twin_process_scale(with_curve("linear", plume_sigma_factor=4.0))  # sigma 12 mm
+    assert coupon_scale(with_curve("linear")) == linear  # seeded: the same coupons
+    assert coupon_scale(with_curve("cos2")) == pytest.approx(factors, rel=0.005)
+    wide = coupon_scale(with_curve("linear", plume_sigma_factor=4.0))  # sigma 12 mm
     assert 0.85 * factors < wide < 0.995 * factors
 
 

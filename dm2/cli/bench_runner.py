@@ -199,21 +199,15 @@ def score_scenario_run(run: ScenarioRun) -> dict:
     """:func:`dm2.bench.scoring.score_run` of a finished run, with its scenario's settings."""
     from dm2.bench.scoring import score_run
     from dm2.bench.truth_maps import load_truth_maps
+    from twin.world.coupon import coupon_scale
 
+    # the scale the twin deposits at: its [twin_process] factors times what its efficiency
+    # curve takes at normal spray on a flat raster coupon
     return score_run(run.report, run.fault_truth,
                      truth_maps=load_truth_maps(run.run_dir / "truth"),
                      footprints=run.footprints, reconstruction=run.reconstruction,
                      process_s=run.process_s, monitor_s=run.monitor_s, wall_s=run.wall_s,
-                     expected_process_scale=twin_process_scale(run.scenario))
-
-
-def twin_process_scale(sc: Scenario) -> float:
-    """The deposition scale the twin deposits at against the nominal ``[process]``: feed x
-    efficiency over nominal, over ``1 - porosity``, times what the twin's efficiency curve takes
-    at normal spray on a flat raster coupon (:func:`twin.world.coupon.coupon_scale`)."""
-    from twin.world.coupon import coupon_scale
-
-    return coupon_scale(sc)
+                     expected_process_scale=coupon_scale(run.scenario))
 
 
 def sweep_case(scenario_dict: dict, source: str) -> dict:
