@@ -97,3 +97,38 @@ def test_a_change_during_the_build_is_its_own_finding():
     assert change["kind"] == "change" and change["sign"] == -1 and change["since_layer"] == 3
     assert change["text"].startswith("deposition fell")
     assert fit.layers[0]["next_scale"] == pytest.approx(0.92)  # calibrated before the drop
+
+
+def pad_deposit(sigma_mm, scale=1.0, side_mm=16.0, height_mm=0.8, cell_mm=0.25):
+    """One layer on a ``side_mm`` square pad centred at (40, 40) mm of an 80 mm plate: the
+    planned square of ``height_mm`` spread by a Gaussian plume of ``sigma_mm``."""
+    from scipy.ndimage import gaussian_filter
+
+    c = (np.arange(int(80 / cell_mm)) + 0.5) * cell_mm
+    x, y = np.meshgrid(c, c)
+    inside = (np.abs(x - 40) <= side_mm / 2) & (np.abs(y - 40) <= side_mm / 2)
+    return scale * gaussian_filter(height_mm * inside, sigma_mm / cell_mm, mode="constant")
+
+
+def test_a_wider_plume_does_not_bias_the_calibrated_scale():
+    # the cell deposits 18 % above nominal with a plume 15 % wider than modelled: the pad's
+    # top is lower near its edges than the reference's, by the plume and not by the scale
+    from dm2.reference.height_map import ReferenceMap, bilinear_height
+
+    sigma, cell = 2.0, 0.25
+    ref = ReferenceMap(pad_deposit(sigma), cell, 0, 10.0, plume_sigma_mm=sigma)
+    truth = pad_deposit(1.15 * sigma, scale=1.18)
+    g = np.arange(32.1, 48.0, 0.5)
+    xy = np.column_stack([a.ravel() for a in np.meshgrid(g, g)])
+    n = len(xy)
+    dev = SimpleNamespace(vertices_O=np.column_stack([xy, bilinear_height(truth, cell, xy)]),
+                          foot_O=np.column_stack([xy, ref.height_at(xy)]),
+                          class_code=np.zeros(n, np.int8), outside_mm=np.zeros(n),
+                          normals_O=np.tile([0.0, 0.0, 1.0], (n, 1)), n_vertices=n)
+    fit = ProcessFit()
+    scale, rescale, plume = fit.update(SimpleNamespace(layer=0, deviation=dev, reference=ref))
+    assert scale == pytest.approx(1.18, abs=0.01) and rescale == scale
+    assert plume == pytest.approx(1.15, abs=0.03)
+    # the whole plateau, plume-sensitive edges and all, would have read the scale 4 % low
+    plateau = (np.abs(ref.plume_sensitivity_at(xy)) >= 0.05) & (dev.foot_O[:, 2] > 0.56)
+    assert np.median(dev.vertices_O[plateau, 2] / dev.foot_O[plateau, 2]) < 1.15

@@ -113,3 +113,31 @@ def test_without_enough_seen_the_fused_calibration_stays():
     assert fit.recalibrate(SeenTop(None)) is None
     assert fit.scale == pytest.approx(0.9) and fit.layers[0]["reobserved_cells"] == 500
     assert "fused_estimate" not in fit.layers[0]
+
+
+def test_the_scale_is_read_where_the_plume_width_does_not_matter():
+    # the cell deposits 18 % above nominal with a plume 15 % wider than modelled: near the
+    # pad's edges its finished top is lower than the reference's by the plume, not the scale
+    from scipy.ndimage import gaussian_filter
+
+    c = (np.arange(320) + 0.5) * CELL_MM
+    x, y = np.meshgrid(c, c)
+    pad = 0.8 * ((np.abs(x - 40) <= 8) & (np.abs(y - 40) <= 8))
+    sigma = 2.0
+
+    def deposit(s):
+        return gaussian_filter(pad, s / CELL_MM, mode="constant")
+
+    truth = 1.18 * deposit(1.15 * sigma)
+    seen = {}
+    for plume_sigma in (sigma, 0.0):  # the model's plume width known, or not
+        close = ReferenceMap(deposit(sigma), CELL_MM, 0, 10.0, plume_sigma_mm=plume_sigma)
+        top = ReobservedTop(close, 10.0, 15.0)
+        i, j = np.nonzero(top.plateau)
+        xy = np.column_stack([(j + 0.5) * CELL_MM, (i + 0.5) * CELL_MM])
+        top.observe(np.column_stack([xy, truth[i, j]]), 11.0, close.heights_mm)
+        seen[plume_sigma] = top.estimate()
+    ratio, cells = seen[sigma]
+    assert ratio == pytest.approx(1.18, abs=0.01)
+    assert MIN_CELLS <= cells < seen[0.0][1]  # the plateau's flat middle only
+    assert seen[0.0][0] < 1.16  # the whole plateau reads the scale low

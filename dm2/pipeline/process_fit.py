@@ -14,7 +14,8 @@ observed top (vertices inside the planned outline, ``|n_z| >= TOP_NZ``, not unob
 
 * **First layer: calibration.** The ratio of the measured to the reference top height after the
   first layer with enough top is the cell's deposition scale ``s_0`` (efficiency x feed against
-  nominal), within ``1 +- bound``; the plume width is the least-squares factor that explains
+  nominal), within ``1 +- bound``, read where the plume width does not move the reference
+  when enough of the top is such (:func:`plume_insensitive`); the plume width is the least-squares factor that explains
   the layer's edges (:func:`_plume_factor`), within ``1 +- PLUME_BOUND``. The reference
   deposited so far is scaled and blurred by them and deposits with them from then on. A fault
   spanning the whole build from its first layer at one rate cannot be told from such an
@@ -107,11 +108,7 @@ class ProcessFit:
                 seen_ref = seen_ref - dev.unseen_mm[top]
             area = getattr(dev, "vertex_area_mm2", None)
             area = np.ones(seen_ref.size) if area is None else np.asarray(area)[top]
-            ref = _weighted_median(seen_ref, area)
-            # the measured top as the reference's plus the median difference: a flat top's
-            # marching-cubes vertices crowd at the voxel-centre levels, so their own median
-            # sticks to a voxel plane (0.1 mm low on a thin first layer)
-            meas = ref + _weighted_median(dev.vertices_O[top, 2] - seen_ref, area)
+            ref, meas = _top_heights(seen_ref, dev.vertices_O[top, 2], area)
             if ref >= MIN_HEIGHT_MM:
                 # the reference's growth since the last update was deposited at self.scale
                 self._nominal_mm += max(ref - self._last_ref_mm, 0.0) / self.scale
@@ -121,6 +118,11 @@ class ProcessFit:
                 entry["height_ratio"] = meas / max(self._nominal_mm, 1e-9)
                 if self._first is None:  # calibration: the process so far
                     est = entry["height_ratio"]
+                    flat = _plume_insensitive(result, dev.foot_O[top, :2], MIN_TOP_VERTICES)
+                    if flat is not None:  # read where the plume width does not matter
+                        ref_flat, meas_flat = _top_heights(
+                            seen_ref[flat], dev.vertices_O[top, 2][flat], area[flat])
+                        est = meas_flat / ref_flat * self.scale
                     self._first = (meas, self._nominal_mm)
                     new = float(np.clip(est, 1 - self.bound, 1 + self.bound))
                     rescale = new / self.scale
@@ -289,6 +291,38 @@ def _on_plateau(reference, foot_O, top) -> np.ndarray:
     h = foot_O[:, 2]
     slope = np.linalg.norm(reference.gradient_at(foot_O[:, :2]), axis=-1)
     return (slope <= PLATEAU_SLOPE) & (h >= PLATEAU_FRACTION * np.percentile(h[top], 95))
+
+
+def plume_insensitive(sensitivity_mm: np.ndarray, enough: int) -> np.ndarray | None:
+    """The calibration's scale is read where the plume width does not matter: the mask of
+    ``|sensitivity_mm| < PLUME_MIN_SENSITIVITY_MM`` (the reference's ``sigma^2 laplacian``,
+    :meth:`ReferenceMap.plume_sensitivity_at`), or None when fewer than ``enough`` are.
+
+    A narrow part's plateau is not flat at the plume's scale: on a 7 mm wide ring its
+    ``sigma^2 laplacian`` is -0.17 mm at the median, so a plume 15 % wider than modelled lowers
+    it by 0.03 mm, 3 % of a first layer, and a scale read there comes out that much low. The
+    plume width is then fitted at that scale on the edges, where it does matter
+    (:func:`_plume_factor`). A part with no such top (a bracket's thin walls) keeps the
+    whole plateau."""
+    flat = np.abs(sensitivity_mm) < PLUME_MIN_SENSITIVITY_MM
+    return flat if flat.sum() >= enough else None
+
+
+def _plume_insensitive(result, xy_O: np.ndarray, enough: int) -> np.ndarray | None:
+    """:func:`plume_insensitive` of the layer's reference at ``xy_O`` (None without one)."""
+    ref = getattr(result, "reference", None)
+    if ref is None or not ref.plume_sigma_mm > 0 or not len(xy_O):
+        return None
+    return plume_insensitive(ref.plume_sensitivity_at(xy_O), enough)
+
+
+def _top_heights(seen_ref: np.ndarray, z: np.ndarray, area: np.ndarray) -> tuple[float, float]:
+    """``(reference, measured)`` top heights [mm]: the reference's area-weighted median, and
+    the measured top as the reference's plus the median difference (a flat top's
+    marching-cubes vertices crowd at the voxel-centre levels, so their own median sticks to a
+    voxel plane, 0.1 mm low on a thin first layer)."""
+    ref = _weighted_median(seen_ref, area)
+    return ref, ref + _weighted_median(z - seen_ref, area)
 
 
 def _normals_z(dev) -> np.ndarray:

@@ -16,7 +16,9 @@ top's 95th-percentile height), the mean height of such points seen in a window o
 after the close. Its :meth:`estimate` is the reference's median plateau height plus the median
 measured-minus-reference difference over the cells seen, against the reference's median height:
 the scale the calibration then uses, when at least ``MIN_CELLS`` cells were seen (else the
-calibration keeps the fused layer's estimate). Cells near a flagged defect of the calibration
+calibration keeps the fused layer's estimate). Like the fused layer's estimate, it is read only
+on the cells where the plume width does not move the reference, when at least ``MIN_CELLS``
+of those were seen (:func:`dm2.pipeline.process_fit.plume_insensitive`). Cells near a flagged defect of the calibration
 layer are left out, as the fused layer's estimate leaves out defect vertices.
 """
 
@@ -26,7 +28,8 @@ import numpy as np
 from numba import njit
 from scipy.spatial import cKDTree
 
-from dm2.pipeline.process_fit import MIN_HEIGHT_MM, PLATEAU_FRACTION, PLATEAU_SLOPE
+from dm2.pipeline.process_fit import (MIN_HEIGHT_MM, PLATEAU_FRACTION, PLATEAU_SLOPE,
+                                      plume_insensitive)
 from dm2.pipeline.seen_reference import cell_of
 from dm2.reference.height_map import ReferenceMap
 
@@ -45,6 +48,7 @@ class ReobservedTop:
     """
 
     def __init__(self, close_map: ReferenceMap, since_s: float, until_s: float):
+        self.close_map = close_map
         self.cell_mm = float(close_map.cell_mm)
         self.close_mm = np.asarray(close_map.heights_mm, np.float64)
         self.since_s, self.until_s = float(since_s), float(until_s)
@@ -74,6 +78,11 @@ class ReobservedTop:
             i, j = i[far], j[far]
         if i.size < MIN_CELLS:
             return None, int(i.size)
+        if self.close_map.plume_sigma_mm > 0:  # where the plume width does not matter
+            xy = np.c_[(j + 0.5) * self.cell_mm, (i + 0.5) * self.cell_mm]
+            flat = plume_insensitive(self.close_map.plume_sensitivity_at(xy), MIN_CELLS)
+            if flat is not None:
+                i, j = i[flat], j[flat]
         ref = self.close_mm[i, j]
         measured = self._sum_mm[i, j] / self._count[i, j]
         ref_mm = float(np.median(ref))
