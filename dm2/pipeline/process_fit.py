@@ -15,11 +15,12 @@ observed top (vertices inside the planned outline, ``|n_z| >= TOP_NZ``, not unob
 * **First layer: calibration.** The ratio of the measured to the reference top height after the
   first layer with enough top is the cell's deposition scale ``s_0`` (efficiency x feed against
   nominal), within ``1 +- bound``, read where the plume width does not move the reference
-  when enough of the top is such (:func:`plume_insensitive`); the plume width is the least-squares factor that explains
-  the layer's edges (:func:`_plume_factor`), within ``1 +- PLUME_BOUND``. The reference
-  deposited so far is scaled and blurred by them and deposits with them from then on. A fault
-  spanning the whole build from its first layer at one rate cannot be told from such an
-  offset; it is reported as a process finding, not hidden.
+  when enough of the top is such (:func:`plume_insensitive`); the plume width is the
+  least-squares factor that explains the layer's edges (:func:`_plume_factor`), within
+  ``1 +- PLUME_BOUND``. The reference deposited so far is scaled and blurred by them and
+  deposits with them from then on. A fault spanning the whole build from its first layer at
+  one rate cannot be told from such an offset; it is reported as a process finding, not
+  hidden.
 * **Later layers: a slow follower.** The estimate ``s_hat`` is the measured growth since the
   calibration layer over the growth the reference would have had at the nominal process. The
   scale moves towards it by at most ``rate_per_layer`` per layer (from then on only; what was
