@@ -98,3 +98,37 @@ def test_write_outputs_and_layer_surface(ran, tmp_path):
     mesh = trimesh.load(tmp_path / entry["file"], force="mesh", process=False)
     assert np.allclose(mesh.vertices, first.surface.vertices_O, atol=1e-5)
     assert np.array_equal(mesh.faces, first.surface.faces)
+
+
+def test_a_replay_does_not_depend_on_how_fast_it_is_read(pad_stream):
+    """A replay fuses full batches only: pauses while reading the stream (a slow disk, a
+    garbage collection, a first run compiling its kernels) move no batch of the fusion and no
+    real-time comparison, so the layers, tracks and real-time comparisons are the same."""
+    import time
+
+    sc, sim, msgs = pad_stream
+    runs = []
+    for pause_every in (0, 97):
+        p = Pipeline(sim.calibration, sc.monitor, sc.process, sc.cell.plate_size_mm,
+                     toolpath=sim.toolpath)
+        stamps = []
+        rt = p.session.realtime
+        compare = rt.update_from_tsdf
+
+        def spy(tsdf, spot_O, stamp, reference, _compare=compare, _stamps=stamps):
+            _stamps.append(stamp)
+            return _compare(tsdf, spot_O, stamp, reference)
+
+        rt.update_from_tsdf = spy
+
+        def source(every=pause_every):
+            for i, m in enumerate(msgs):
+                if every and i % every == every - 1:
+                    time.sleep(0.03)  # longer than a live stream's batch delay
+                yield m
+
+        p.run(source())
+        runs.append((p, stamps))
+    (a, stamps_a), (b, stamps_b) = runs
+    assert len(stamps_a) > 50 and stamps_a == stamps_b
+    _same_layers_and_tracks(a, b)

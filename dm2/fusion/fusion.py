@@ -91,7 +91,8 @@ class TsdfFusion:
         pose and active region, and profiles are fused in stream order
     max_delay_s : float [s], wall-clock time after which a waiting batch is fused at the next
         message even when not full, so a live stream sees its profiles fused within about this
-        long (a replay, which runs faster than real time, still fuses full batches)
+        long; ``inf`` fuses full batches only, whatever the reading speed (what a replay's
+        session passes, dm2.pipeline.session)
     defer_meshing : at a layer end only copy the chunk boxes to re-mesh; the layer's
         surface is meshed where it is first read (a live session's worker thread)
 

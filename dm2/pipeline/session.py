@@ -52,7 +52,7 @@ from dm2.defects.footprint import PlannedOutline
 from dm2.defects.layer_analysis import LayerAnalysis, LayerResult
 from dm2.defects.realtime import RealtimeDeviation
 from dm2.defects.uncertainty_online import live_factors
-from dm2.fusion.fusion import LayerSurface, TsdfFusion
+from dm2.fusion.fusion import DEFAULT_MAX_DELAY_S, LayerSurface, TsdfFusion
 from dm2.pipeline.events import LayerClosed, LayerStarted, Observed, SessionTiming
 from dm2.pipeline.layer_worker import LayerWorker
 from dm2.pipeline.process_fit import ProcessFit, process_fit_on
@@ -83,8 +83,8 @@ class MonitoringSession:
     toolpath : optional; splits layers when the stream carries no layer marks
     on_layer : optional callback ``f(LayerResult)`` when a layer has been analysed (from the
         worker thread with ``analysis_thread``)
-    analysis_thread : analyse finished layers on a worker thread (live runs); :meth:`finish`
-        waits for it, so the results are the same
+    analysis_thread : analyse finished layers on a worker thread (live runs; :meth:`finish`
+        waits for it: same results); without it (replays) the fusion fuses full batches only
     gates : optional :class:`~dm2.fusion.gates.InputGates` every message passes first
         (replays; a live run gates before its clock aligner); its drops join :attr:`dropped`
     """
@@ -110,7 +110,8 @@ class MonitoringSession:
                                        monitor_cfg.process_finding_threshold, planned)
                             if process_fit_on(monitor_cfg) else None)
         self.fusion = TsdfFusion(calibration, monitor_cfg, process, toolpath=toolpath,
-                               on_layer_done=self._layer_done, defer_meshing=analysis_thread)
+                                 on_layer_done=self._layer_done, defer_meshing=analysis_thread,
+                                 max_delay_s=DEFAULT_MAX_DELAY_S if analysis_thread else np.inf)
         self.timing = SessionTiming()
         self.states = ReferenceFeed(self.reference, toolpath, monitor_cfg.reference_clock,
                                     monitor_cfg.dwell_speed_mm_s)
@@ -128,8 +129,7 @@ class MonitoringSession:
         self._rt_latency_s: list[float] = []
         self._finished = False
         self._last_premesh = 0.0
-        # reference steps due at a stamp, in stream order (deferred feeding runs them when
-        # catching up)
+        # reference steps due at a stamp, in stream order (run when catching up if deferred)
         self._ops: deque[LayerStarted | LayerClosed] = deque()
         self._marked_layer = self.reference.layer
         self._defer_layers = bool(analysis_thread)
