@@ -119,7 +119,8 @@ class ProcessFit:
                 entry["height_ratio"] = meas / max(self._nominal_mm, 1e-9)
                 if self._first is None:  # calibration: the process so far
                     est = entry["height_ratio"]
-                    flat = _plume_insensitive(result, dev.foot_O[top, :2], MIN_TOP_VERTICES)
+                    flat = plume_insensitive(getattr(result, "reference", None),
+                                             dev.foot_O[top, :2], MIN_TOP_VERTICES)
                     if flat is not None:  # read where the plume width does not matter
                         ref_flat, meas_flat = _top_heights(
                             seen_ref[flat], dev.vertices_O[top, 2][flat], area[flat])
@@ -294,10 +295,12 @@ def _on_plateau(reference, foot_O, top) -> np.ndarray:
     return (slope <= PLATEAU_SLOPE) & (h >= PLATEAU_FRACTION * np.percentile(h[top], 95))
 
 
-def plume_insensitive(sensitivity_mm: np.ndarray, enough: int) -> np.ndarray | None:
-    """The calibration's scale is read where the plume width does not matter: the mask of
-    ``|sensitivity_mm| < PLUME_MIN_SENSITIVITY_MM`` (the reference's ``sigma^2 laplacian``,
-    :meth:`ReferenceMap.plume_sensitivity_at`), or None when fewer than ``enough`` are.
+def plume_insensitive(reference, xy_O: np.ndarray, enough: int) -> np.ndarray | None:
+    """The calibration's scale is read where the plume width does not matter: the mask of the
+    points ``xy_O (n, 2)`` [mm] where ``reference`` (a ReferenceMap) moves less than
+    ``PLUME_MIN_SENSITIVITY_MM`` with its plume width (its ``sigma^2 laplacian``,
+    :meth:`ReferenceMap.plume_sensitivity_at`), or None when fewer than ``enough`` are, or
+    without a reference whose plume width is known.
 
     A narrow part's plateau is not flat at the plume's scale: on a 7 mm wide ring its
     ``sigma^2 laplacian`` is -0.17 mm at the median, so a plume 15 % wider than modelled lowers
@@ -305,16 +308,10 @@ def plume_insensitive(sensitivity_mm: np.ndarray, enough: int) -> np.ndarray | N
     plume width is then fitted at that scale on the edges, where it does matter
     (:func:`_plume_factor`). A part with no such top (a bracket's thin walls) keeps the
     whole plateau."""
-    flat = np.abs(sensitivity_mm) < PLUME_MIN_SENSITIVITY_MM
-    return flat if flat.sum() >= enough else None
-
-
-def _plume_insensitive(result, xy_O: np.ndarray, enough: int) -> np.ndarray | None:
-    """:func:`plume_insensitive` of the layer's reference at ``xy_O`` (None without one)."""
-    ref = getattr(result, "reference", None)
-    if ref is None or not ref.plume_sigma_mm > 0 or not len(xy_O):
+    if reference is None or not reference.plume_sigma_mm > 0 or not len(xy_O):
         return None
-    return plume_insensitive(ref.plume_sensitivity_at(xy_O), enough)
+    flat = np.abs(reference.plume_sensitivity_at(xy_O)) < PLUME_MIN_SENSITIVITY_MM
+    return flat if flat.sum() >= enough else None
 
 
 def _top_heights(seen_ref: np.ndarray, z: np.ndarray, area: np.ndarray) -> tuple[float, float]:

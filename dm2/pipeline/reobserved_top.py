@@ -76,18 +76,16 @@ class ReobservedTop:
         """``(measured / reference height ratio or None, cells used)``; cells within
         ``DEFECT_CLEARANCE_MM`` of ``defect_xy_O (k, 2)`` [mm] are left out."""
         i, j = np.nonzero(self._count)
+        xy = np.c_[(j + 0.5) * self.cell_mm, (i + 0.5) * self.cell_mm]
         if defect_xy_O is not None and len(defect_xy_O):
-            xy = np.c_[(j + 0.5) * self.cell_mm, (i + 0.5) * self.cell_mm]
             far = cKDTree(np.asarray(defect_xy_O)[:, :2]).query(
                 xy, distance_upper_bound=DEFECT_CLEARANCE_MM)[0] > DEFECT_CLEARANCE_MM
-            i, j = i[far], j[far]
+            i, j, xy = i[far], j[far], xy[far]
         if i.size < MIN_CELLS:
             return None, int(i.size)
-        if self.close_map.plume_sigma_mm > 0:  # where the plume width does not matter
-            xy = np.c_[(j + 0.5) * self.cell_mm, (i + 0.5) * self.cell_mm]
-            flat = plume_insensitive(self.close_map.plume_sensitivity_at(xy), MIN_CELLS)
-            if flat is not None:
-                i, j = i[flat], j[flat]
+        flat = plume_insensitive(self.close_map, xy, MIN_CELLS)  # where the width does not matter
+        if flat is not None:
+            i, j = i[flat], j[flat]
         ref = self.close_mm[i, j]
         measured = self._sum_mm[i, j] / self._count[i, j]
         ref_mm = float(np.median(ref))

@@ -178,7 +178,7 @@ class NearNetReference:
         if factor == 1.0:
             return
         rescale_plume(self.heights_mm, self.cell_mm, self.sigma_mm, factor)
-        self._zmax[0] = float(self.heights_mm.max())
+        self.heights_written()
         self.sigma_mm = self.sigma_mm * factor
         self._size_scratch()
 
