@@ -110,26 +110,69 @@ def pad_deposit(sigma_mm, scale=1.0, side_mm=16.0, height_mm=0.8, cell_mm=0.25):
     return scale * gaussian_filter(height_mm * inside, sigma_mm / cell_mm, mode="constant")
 
 
+def pad_layer(k, truth, ref, xy):
+    """A layer's deviation: vertices at ``xy`` on the true surface ``truth`` (grid), feet on
+    the reference map ``ref``."""
+    from dm2.reference.height_map import bilinear_height
+
+    n = len(xy)
+    dev = SimpleNamespace(vertices_O=np.column_stack([xy, bilinear_height(truth, ref.cell_mm, xy)]),
+                          foot_O=np.column_stack([xy, ref.height_at(xy)]),
+                          class_code=np.zeros(n, np.int8), outside_mm=np.zeros(n),
+                          normals_O=np.tile([0.0, 0.0, 1.0], (n, 1)), n_vertices=n)
+    return SimpleNamespace(layer=k, deviation=dev, reference=ref)
+
+
+def grid_xy(lo_mm, hi_mm, step_mm=0.5):
+    """Points (n, 2) [mm] of a square grid from ``lo_mm`` to below ``hi_mm`` on both axes."""
+    g = np.arange(lo_mm, hi_mm, step_mm)
+    return np.column_stack([a.ravel() for a in np.meshgrid(g, g)])
+
+
 def test_a_wider_plume_does_not_bias_the_calibrated_scale():
     # the cell deposits 18 % above nominal with a plume 15 % wider than modelled: the pad's
     # top is lower near its edges than the reference's, by the plume and not by the scale
-    from dm2.reference.height_map import ReferenceMap, bilinear_height
+    from dm2.reference.height_map import ReferenceMap
 
     sigma, cell = 2.0, 0.25
     ref = ReferenceMap(pad_deposit(sigma), cell, 0, 10.0, plume_sigma_mm=sigma)
     truth = pad_deposit(1.15 * sigma, scale=1.18)
-    g = np.arange(32.1, 48.0, 0.5)
-    xy = np.column_stack([a.ravel() for a in np.meshgrid(g, g)])
-    n = len(xy)
-    dev = SimpleNamespace(vertices_O=np.column_stack([xy, bilinear_height(truth, cell, xy)]),
-                          foot_O=np.column_stack([xy, ref.height_at(xy)]),
-                          class_code=np.zeros(n, np.int8), outside_mm=np.zeros(n),
-                          normals_O=np.tile([0.0, 0.0, 1.0], (n, 1)), n_vertices=n)
+    xy = grid_xy(32.1, 48.0)
+    layer0 = pad_layer(0, truth, ref, xy)
+    dev = layer0.deviation
     fit = ProcessFit()
-    scale, rescale, plume = fit.update(SimpleNamespace(layer=0, deviation=dev, reference=ref))
+    scale, rescale, plume = fit.update(layer0)
     assert scale == pytest.approx(1.18, abs=0.01) and rescale == scale
     assert plume == pytest.approx(1.15, abs=0.03)
     # the plateau's plume-sensitive vertices read the scale more than 2.5 % low (the whole
     # plateau gave 1.147 and a plume of 1.06 before the scale was read on its flat middle)
     plateau = (np.abs(ref.plume_sensitivity_at(xy)) >= 0.05) & (dev.foot_O[:, 2] > 0.56)
     assert np.median(dev.vertices_O[plateau, 2] / dev.foot_O[plateau, 2]) < 1.15
+
+
+def test_growth_is_read_where_each_layer_is_measured():
+    # a pad deposited 18 % above nominal with a plume 15 % wider than modelled, two layers. The
+    # second layer's top is only the pad's middle; the first layer's whole plateau includes its
+    # plume-lowered rim. The growth since the calibration is read on the second layer's own
+    # vertices, so the rim does not read as growth (the two sets' medians read 1.21)
+    from dm2.reference.height_map import ReferenceMap
+    from dm2.reference.plume_width import rescale_plume
+
+    sigma, cell = 2.0, 0.25
+    ref0 = ReferenceMap(pad_deposit(sigma), cell, 0, 10.0, plume_sigma_mm=sigma)
+    truth0 = pad_deposit(1.15 * sigma, scale=1.18)
+    xy0 = grid_xy(32.1, 48.0)
+    fit = ProcessFit()
+    scale, rescale, plume = fit.update(pad_layer(0, truth0, ref0, xy0))
+    # the reference as the session brings it to the calibration, then its second layer
+    h1 = ref0.heights_mm * rescale
+    rescale_plume(h1, cell, sigma, plume)
+    h1 = h1 + pad_deposit(sigma * plume, scale=scale)
+    ref1 = ReferenceMap(h1, cell, 1, 20.0, plume_sigma_mm=sigma * plume)
+    truth1 = truth0 + pad_deposit(1.15 * sigma, scale=1.18)
+    xy1 = grid_xy(36.1, 44.0)
+    fit.update(pad_layer(1, truth1, ref1, xy1))
+    assert fit.layers[1]["estimate"] == pytest.approx(1.18, abs=0.01)
+    assert fit.layers[1]["growth_vertices"] == len(xy1)
+    (finding,) = fit.finding_details()
+    assert finding["kind"] == "offset" and finding["estimate"] == pytest.approx(1.18, abs=0.01)

@@ -37,17 +37,51 @@ def test_plane_is_recovered_with_the_right_sign():
     assert w[0] > 0 and w[1] > 0
 
 
-def test_inactive_weight_falls_off_behind_the_surface_active_does_not():
+def test_weights_fall_off_behind_the_surface_in_the_active_region_too():
     rng = np.random.default_rng(1)
     o, p = _plane_rays(50_000, 0.0, rng, tilt=(0.0, 0.0, 80.0))
-    inact, act = SparseTSDF(0.5, 1.5), SparseTSDF(0.5, 1.5)
+    # (the active weight cap out of the way: 1e6)
+    inact, act = SparseTSDF(0.5, 1.5, 1e6), SparseTSDF(0.5, 1.5, 1e6)
     inact.integrate(o, p)
     act.integrate(o, p, np.ones(len(p), bool))
     z = np.array([[20.1, 20.1, 0.75], [20.1, 20.1, -0.75]])  # in front / behind by 0.75 mm
     _, wi = inact.sample(z)
     _, wa = act.sample(z)
     assert wi[1] == pytest.approx(0.5 * wi[0], rel=0.05)  # w_I = 1 - 0.75 / 1.5 behind
-    assert wa[1] == pytest.approx(wa[0], rel=0.05)  # w_A = 1 across the band
+    assert wa[1] == pytest.approx(0.5 * wa[0], rel=0.05)  # w_A alike
+
+
+def _topmost_crossing(tsdf, x, y):
+    """Height [mm] of the topmost + over - zero crossing in the voxel column through (x, y)."""
+    v = np.floor(np.array([x, y]) / tsdf.voxel_mm).astype(int)
+    d, w = tsdf.dense(np.array([v[0], v[1], -10]), (1, 1, 20))
+    d, w = d.ravel(), w.ravel()
+    z = (np.arange(-10, 10) + 0.5) * tsdf.voxel_mm
+    for k in range(18, -1, -1):
+        if w[k] > 0 and w[k + 1] > 0 and d[k] < 0 <= d[k + 1]:
+            return z[k] + (0 - d[k]) / (d[k + 1] - d[k]) * tsdf.voxel_mm
+    raise AssertionError("no zero crossing")
+
+
+def test_a_ray_grazing_a_rim_puts_no_surface_in_the_free_space_beyond():
+    # a 1 mm step (x < 20 mm) seen from above, then the spray passes (the weights reset to one
+    # observation) and a profile at 15 deg, one ray per voxel column, grazes the step's rim:
+    # the rays' band behind the rim runs on into the free space over the lower plate, which
+    # must stay free (at full weight behind, the column 1 mm past the rim read 0.79 mm)
+    rng = np.random.default_rng(4)
+    x, y = rng.uniform(0, 40, 40_000), rng.uniform(0, 40, 40_000)
+    p = np.column_stack([x, y, np.where(x < 20.0, 1.0, 0.0)])
+    tsdf = SparseTSDF(0.5, 1.5)
+    for _ in range(4):
+        tsdf.integrate(p + [0.0, 0.0, 80.0], p, np.ones(len(p), bool))
+    tsdf.cap_weights_near_axis([20.0, 20.0, 0.0], [0.0, 0.0, -1.0], 30.0, 10.0, 1.0)
+    ys = np.arange(5.25, 35.0, 0.5)
+    rim = np.column_stack([np.full(ys.size, 19.8), ys, np.full(ys.size, 1.0)])
+    ray = np.array([np.cos(np.radians(15.0)), 0.0, -np.sin(np.radians(15.0))])
+    tsdf.integrate(rim - 60.0 * ray, rim, np.ones(len(rim), bool))
+    for yy in (10.2, 20.2, 30.2):
+        assert _topmost_crossing(tsdf, 20.8, yy) == pytest.approx(0.0, abs=0.1)
+        assert _topmost_crossing(tsdf, 10.2, yy) == pytest.approx(1.0, abs=0.1)
 
 
 def test_active_cap_follows_a_rise_while_uncapped_history_lags():

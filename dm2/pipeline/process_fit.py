@@ -22,9 +22,13 @@ observed top (vertices inside the planned outline, ``|n_z| >= TOP_NZ``, not unob
   one rate cannot be told from such an offset; it is reported as a process finding, not
   hidden.
 * **Later layers: a slow follower.** The estimate ``s_hat`` is the measured growth since the
-  calibration layer over the growth the reference would have had at the nominal process. The
-  scale moves towards it by at most ``rate_per_layer`` per layer (from then on only; what was
-  deposited stays as it was) and stays within ``1 +- bound``. So a slow drift is absorbed over
+  calibration layer over the growth the reference would have had at the nominal process, read
+  on the layer's own top vertices against the calibration layer at the same places
+  (:class:`dm2.pipeline.calibration_top.CalibrationTop`), on those where the plume width does
+  not matter when enough are (:func:`plume_insensitive`). Where too few of them lie on the
+  calibration layer's top it is read as the two layers' top heights. The scale moves towards
+  it by at most ``rate_per_layer`` per layer (from then on only; what was deposited stays as it
+  was) and stays within ``1 +- bound``. So a slow drift is absorbed over
   many layers and still reported, and a fault faster or larger than that (an efficiency drift of
   25 %/layer, a feed step of 40 %) is measured as a defect. The plume width is not followed
   after the calibration.
@@ -41,6 +45,7 @@ from __future__ import annotations
 import numpy as np
 
 from dm2.defects.classify import DEFECT_CLASSES, UNOBSERVED
+from dm2.pipeline.calibration_top import CalibrationTop, weighted_median
 
 TOP_NZ = 0.95  # |n_z| of a vertex counted as the part's top
 MIN_TOP_VERTICES = 50  # fewer top vertices: no estimate this layer
@@ -86,6 +91,23 @@ class ProcessFit:
         self._last_ref_mm = 0.0  # the reference's top after the last update (as rescaled)
         self._first: tuple[float, float] | None = None  # (measured, nominal) at calibration
         self._calibration: dict | None = None  # the calibration layer until recalibrate()
+        self._top: CalibrationTop | None = None  # the calibration layer's top, for the growth
+        self._grown_mm = 0.0  # the reference's top growth since the calibration (as applied)
+
+    def _growth_estimate(self, xy_O, z_mm, seen_mm, area, entry: dict) -> float | None:
+        """The scale the part grew at since the calibration layer, read at the later layer's
+        own top vertices (:class:`CalibrationTop`): their measured over their reference growth,
+        times the growth-weighted scale the reference deposited that growth at; None when too
+        few of them lie where the calibration layer's top was, or it grew too little."""
+        if self._top is None:
+            return None
+        ratio, ref_growth, n = self._top.growth_ratio(xy_O, z_mm, seen_mm, area,
+                                                      MIN_TOP_VERTICES)
+        entry["growth_vertices"] = n
+        nominal = self._nominal_mm - self._first[1]
+        if ratio is None or ref_growth < MIN_HEIGHT_MM or self._grown_mm <= 0.0:
+            return None
+        return ratio * self._grown_mm / nominal  # the reference grew at that mean scale
 
     def update(self, result) -> tuple[float, float, float]:
         """Take one analysed layer (dm2.defects.layer_analysis.LayerResult).
@@ -112,7 +134,9 @@ class ProcessFit:
             ref, meas = _top_heights(seen_ref, dev.vertices_O[top, 2], area)
             if ref >= MIN_HEIGHT_MM:
                 # the reference's growth since the last update was deposited at self.scale
-                self._nominal_mm += max(ref - self._last_ref_mm, 0.0) / self.scale
+                grown = max(ref - self._last_ref_mm, 0.0)
+                self._nominal_mm += grown / self.scale
+                self._grown_mm += grown
                 self._last_ref_mm = ref
                 entry.update({"measured_top_mm": meas, "reference_top_mm": ref,
                               "nominal_top_mm": self._nominal_mm})
@@ -126,6 +150,7 @@ class ProcessFit:
                             seen_ref[flat], dev.vertices_O[top, 2][flat], area[flat])
                         est = meas_flat / ref_flat * self.scale
                     self._first = (meas, self._nominal_mm)
+                    self._grown_mm = 0.0
                     new = float(np.clip(est, 1 - self.bound, 1 + self.bound))
                     rescale = new / self.scale
                     self._calibration = {"result": result, "ref": ref, "entry": entry,
@@ -134,8 +159,20 @@ class ProcessFit:
                     entry["calibration"] = True
                     plume = _plume_factor(result, new, self.plume_bound)
                     entry["plume_factor"] = plume
+                    reference = getattr(result, "reference", None)
+                    if reference is not None:
+                        self._top = CalibrationTop(reference, self.scale, dev.foot_O[top, :2],
+                                                   dev.vertices_O[top, 2], seen_ref)
+                        self._top.calibrate(new, plume)
                 elif self._nominal_mm - self._first[1] >= MIN_HEIGHT_MM:
-                    est = (meas - self._first[0]) / (self._nominal_mm - self._first[1])
+                    xy = dev.foot_O[top, :2]
+                    flat = plume_insensitive(getattr(result, "reference", None), xy,
+                                             MIN_TOP_VERTICES)
+                    flat = np.ones(len(xy), bool) if flat is None else flat
+                    est = self._growth_estimate(xy[flat], dev.vertices_O[top, 2][flat],
+                                                seen_ref[flat], area[flat], entry)
+                    if est is None:  # too little of the top where the calibration's was
+                        est = (meas - self._first[0]) / (self._nominal_mm - self._first[1])
                     step = float(np.clip(est - self.scale, -self.rate_per_layer,
                                          self.rate_per_layer))
                     new = float(np.clip(self.scale + step, 1 - self.bound, 1 + self.bound))
@@ -173,6 +210,8 @@ class ProcessFit:
         rescale = new / cal["scale"]
         self._last_ref_mm = cal["ref"] * rescale
         plume = _plume_factor(cal["result"], new, self.plume_bound)
+        if self._top is not None:
+            self._top.calibrate(new, plume)
         entry.update({"fused_estimate": entry["estimate"], "estimate": est,
                       "plume_factor": plume, "next_scale": new})
         self.scale = new
@@ -276,13 +315,6 @@ def _plume_factor(result, scale: float, bound: float) -> float:
     return float(np.clip(1.0 + r, 1.0 - bound, 1.0 + bound))
 
 
-def _weighted_median(values: np.ndarray, weights: np.ndarray) -> float:
-    """The value below which half the total weight lies."""
-    order = np.argsort(values, kind="stable")
-    cw = np.cumsum(weights[order])
-    return float(values[order][min(int(np.searchsorted(cw, 0.5 * cw[-1])), cw.size - 1)])
-
-
 def _on_plateau(reference, foot_O, top) -> np.ndarray:
     """Vertices whose reference is on the part's plateau: slope at most ``PLATEAU_SLOPE`` and
     at least ``PLATEAU_FRACTION`` of the top's 95th-percentile height. The edges' ramps are
@@ -319,8 +351,8 @@ def _top_heights(seen_ref: np.ndarray, z: np.ndarray, area: np.ndarray) -> tuple
     the measured top as the reference's plus the median difference (a flat top's
     marching-cubes vertices crowd at the voxel-centre levels, so their own median sticks to a
     voxel plane, 0.1 mm low on a thin first layer)."""
-    ref = _weighted_median(seen_ref, area)
-    return ref, ref + _weighted_median(z - seen_ref, area)
+    ref = weighted_median(seen_ref, area)
+    return ref, ref + weighted_median(z - seen_ref, area)
 
 
 def _normals_z(dev) -> np.ndarray:

@@ -8,33 +8,30 @@ fusion closes a layer, that layer's surface is compared with the reference of th
 (:class:`~dm2.defects.layer_analysis.LayerAnalysis`: deviation, classification, segmentation,
 tracking).
 
-The reference follows the executed path at the nominal process (:mod:`dm2.reference.feed`,
+The reference follows the executed path (:mod:`dm2.reference.feed`,
 :mod:`dm2.reference.path_clock`): with a toolpath, each robot state advances the reference's clock
-by the
-programmed time of the path it covered (or, with ``reference_clock = "executed"``, by the
+by the programmed time of the path it covered (or, with ``reference_clock = "executed"``, by the
 controller's time while the spray spot progresses), so a robot that stops and keeps spraying
-(a corner dwell, a reorientation stop) grows the part but not the reference.
-Without a toolpath the reference integrates the controller's own clock.
+(a corner dwell, a reorientation stop) grows the part but not the reference. Without a toolpath
+the reference integrates the controller's own clock. Where the reference grows, the fused
+surface's weights are capped (:mod:`dm2.pipeline.grown_columns`).
 
 After every fused frame set (three profiles) the active region of the measured TSDF is compared
-with the reference as of the same instant (:mod:`dm2.defects.realtime`), so a defect raises an alarm
-within a second of process time, before its layer ends; robot states are held back until the
-profiles they bracket are fused, so the reference never runs ahead of the measurement.
+with the reference as of the same instant (:mod:`dm2.defects.realtime`): an alarm within a second
+of process time; robot states are held back until the profiles they bracket are fused.
 
 Live streams put fusion first: ``feed(msg, defer=True)`` only fuses and notes that a comparison
 is due; :meth:`MonitoringSession.catch_up` (called by the live loop whenever its inbox is empty)
 integrates the held-back robot states in slices of :data:`STATE_SLICE`, runs the comparison at
-the newest fused profile (frame sets that arrived while the loop was busy are compared once,
-together) and pre-meshes the surface chunks touched so far, so a layer end only meshes the last
-fraction of a second. The reference integrates states one by one whatever the slicing, and the
-surface is the same whenever chunks are meshed, so deferred and immediate feeding give the same
-layer results and tracks; ``analysis_thread=True`` runs the layer analysis (deviation,
-segmentation, tracking) on a worker thread, in layer order, off the fusion path.
+the newest fused profile (frame sets that arrived meanwhile are compared once, together) and
+pre-meshes the surface chunks touched so far. The reference integrates states one by one
+whatever the slicing, and the surface is the same whenever chunks are meshed, so deferred and
+immediate feeding give the same layer results and tracks; ``analysis_thread=True`` runs the
+layer analysis on a worker thread, in layer order, off the fusion path.
 
-The same object serves the twin in process, recordings and live sources: it only sees
-messages. The reference of layer ``L`` is taken when the stream reports the start of layer
-``L + 1`` (a ``LayerMark``), so it holds exactly the deposition of layers ``0..L``; streams
-without layer marks take it when the fusion closes the layer.
+The same object serves the twin, recordings and live sources: it only sees messages. The
+reference of layer ``L`` is taken at the start of layer ``L + 1`` (a ``LayerMark``): exactly the
+deposition of layers ``0..L``; streams without layer marks take it when the fusion closes it.
 """
 
 from __future__ import annotations
@@ -54,6 +51,7 @@ from dm2.defects.realtime import RealtimeDeviation
 from dm2.defects.uncertainty_online import live_factors
 from dm2.fusion.fusion import DEFAULT_MAX_DELAY_S, LayerSurface, TsdfFusion
 from dm2.pipeline.events import LayerClosed, LayerStarted, Observed, SessionTiming
+from dm2.pipeline.grown_columns import GrownColumns
 from dm2.pipeline.layer_worker import LayerWorker
 from dm2.pipeline.process_fit import ProcessFit, process_fit_on
 from dm2.pipeline.reobserved_top import ReobservedTop
@@ -121,6 +119,8 @@ class MonitoringSession:
         self.fusion.observed_points = []
         self.seen = SeenReference(self.reference.heights_mm.shape, self.reference.cell_mm,
                                   0.5 * monitor_cfg.voxel_mm)
+        self.grown = GrownColumns(self.reference.heights_mm.shape, self.reference.cell_mm,
+                                  self.fusion.tsdf, monitor_cfg.deposit_weight_cap)
         self._pending_fit: tuple | None = None  # (scale, rescale, plume, inflation)
         self._reobserved: ReobservedTop | None = None  # the calibration layer seen again
         self._fit_due_s: float | None = None  # stream time the pending fit is applied at
@@ -153,11 +153,9 @@ class MonitoringSession:
         return out
 
     def feed(self, msg, defer: bool = False) -> None:
-        """Take one message (Profile, RobotState or LayerMark).
-
-        ``defer=True`` fuses only: the reference update and the real-time comparison wait for
-        :meth:`catch_up` (layer ends still take the reference of the finished layer at once).
-        """
+        """Take one message (Profile, RobotState or LayerMark). ``defer=True`` fuses only: the
+        reference update and the real-time comparison wait for :meth:`catch_up` (layer ends
+        still take the reference of the finished layer at once)."""
         if self.gates is not None:
             for m, _ in self.gates.admit(msg):
                 self._feed(m, defer)
@@ -171,8 +169,8 @@ class MonitoringSession:
         elif isinstance(msg, LayerMark) and msg.layer > self._marked_layer:
             self._marked_layer = msg.layer
             self._ops.append(LayerStarted(msg.stamp_s, msg.layer))
-            if not defer:
-                self._advance(upto_s=msg.stamp_s)
+            self._advance(upto_s=msg.stamp_s)  # deferred too: the grown columns, before fusing on
+            self.grown.update(self.reference.heights_mm)
         t0 = time.perf_counter()
         self.fusion.feed(msg)
         self._queue_observed()
@@ -383,6 +381,7 @@ class MonitoringSession:
         self.realtime.set_model_inflation(live_factors(inflation))
         self.reference.set_process_scale(scale, rescale, analysed_to=self._taken_layer)
         self.seen.calibrated(self.reference, rescale, plume)
+        self.grown.calibrated(self.reference.heights_mm, rescale, plume)
 
     def _analyse(self, done: LayerSurface, ref, stamp, unseen=None) -> None:
         t0 = time.perf_counter()
@@ -392,7 +391,7 @@ class MonitoringSession:
             return
         result = self.defects.analyse_layer(surface, ref, done.layer, stamp, unseen)
         if self.process_fit is not None:  # applied at _fit_due_s (_apply_fit)
-            # with the bound's model-error factors the layer measured, for the live columns
+            # with the bound's model-error factors the layer measured (for the live columns)
             self._pending_fit = (*self.process_fit.update(result),
                                  result.deviation.model_inflation)
         self.timing.analysis_s += time.perf_counter() - t0

@@ -92,3 +92,27 @@ def fuse_profiles_capped(xz_S, offsets, T_O_S, spot_O, axis_O, voxel_mm, truncat
         if done < b - a:
             return a + done
     return xz_S.shape[0]
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def cap_columns(table_keys, table_slots, voxels, voxel_mm, x_mm, y_mm, z_lo_mm, z_hi_mm,
+                weight_cap):
+    """Cap at ``weight_cap`` the weight of the stored voxels of the columns holding the points
+    ``(x_mm[k], y_mm[k])`` between the heights ``z_lo_mm[k]`` and ``z_hi_mm[k]`` [mm] (a voxel
+    whose centre's column and height fall there); returns the number of voxels capped."""
+    n = 0
+    for k in range(x_mm.shape[0]):
+        ix = int(math.floor(x_mm[k] / voxel_mm))
+        iy = int(math.floor(y_mm[k] / voxel_mm))
+        iz0 = int(math.floor(z_lo_mm[k] / voxel_mm))
+        iz1 = int(math.floor(z_hi_mm[k] / voxel_mm))
+        for iz in range(iz0, iz1 + 1):
+            slot = hash_find(table_keys, table_slots,
+                             pack_key(ix >> BLOCK_SHIFT, iy >> BLOCK_SHIFT, iz >> BLOCK_SHIFT))
+            if slot < 0:
+                continue
+            li = (ix & (BLOCK - 1)) + BLOCK * ((iy & (BLOCK - 1)) + BLOCK * (iz & (BLOCK - 1)))
+            if voxels[slot, li, 1] > weight_cap:
+                voxels[slot, li, 1] = weight_cap
+                n += 1
+    return n

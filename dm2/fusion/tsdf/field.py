@@ -18,9 +18,14 @@ front of the surface, towards the sensor) by the weighted running average of eqs
 
 Weight functions (eqs 4-5). The paper writes ``w(d)`` with ``d`` measured *behind* the point
 (``d < 0`` in front). We keep that reading: ``w_I`` is 1 in front of the point and falls
-linearly to 0 at ``truncation_mm`` behind it (measurements are less certain inside the part);
-the paper leaves ``w_A`` on ``0 < d < delta`` open, we take 1 there, so fresh deposition is
-trusted over the whole band.
+linearly to 0 at ``truncation_mm`` behind it (measurements are less certain inside the part).
+The paper leaves ``w_A`` on ``0 < d < delta`` open; we let it fall off behind the point as
+``w_I`` does, so the two differ only by the active region's weight cap. Behind a point lies
+material only where the surface is flat at the truncation's scale: a ray grazing a rim ends on
+it, and its band behind runs on into the free space beyond. Where the spray had just reset the
+weights (:mod:`dm2.fusion.tsdf.deposit`), one such ray at full weight put a surface 0.4-0.5 mm
+above the twin's true one for a moment, and real-time overbuild alarms followed (on the plate
+with a hole's inner wall; 15 mm from the default run's corner dwell).
 
 Weight cap (our addition)
 -------------------------
@@ -52,7 +57,7 @@ import numpy as np
 from dm2.fusion.tsdf import kernels as K
 from dm2.fusion.tsdf.bundles import FusionParams, profile_batch, ray_batch
 from dm2.fusion.tsdf.dense import gather_dense
-from dm2.fusion.tsdf.deposit import cap_near_axis, fuse_profiles_capped
+from dm2.fusion.tsdf.deposit import cap_columns, cap_near_axis, fuse_profiles_capped
 from dm2.fusion.tsdf.threads import SplitBuffers, fuse_split
 
 log = logging.getLogger(__name__)
@@ -245,6 +250,16 @@ class SparseTSDF:
         return int(cap_near_axis(self._table_keys, self._table_slots, self.voxels, self.voxel_mm,
                                  np.asarray(spot_O, np.float64), np.asarray(axis_O, np.float64),
                                  float(radius_mm), float(half_length_mm), float(weight_cap)))
+
+    def cap_weights_in_columns(self, xy_O, z_lo_mm, z_hi_mm, weight_cap: float) -> int:
+        """Cap the weights of the voxel columns holding ``xy_O (k, 2)`` [mm] between
+        ``z_lo_mm (k,)`` and ``z_hi_mm (k,)`` (dm2.fusion.tsdf.deposit.cap_columns); returns how
+        many voxels were capped. Signed distances are kept."""
+        xy = np.asarray(xy_O, np.float64).reshape(-1, 2)
+        return int(cap_columns(self._table_keys, self._table_slots, self.voxels, self.voxel_mm,
+                               np.ascontiguousarray(xy[:, 0]), np.ascontiguousarray(xy[:, 1]),
+                               np.asarray(z_lo_mm, np.float64), np.asarray(z_hi_mm, np.float64),
+                               float(weight_cap)))
 
     def _grow(self, extra: int = 0) -> None:
         """Room for ``extra`` more blocks plus one ray's worth: the block arrays and the hash

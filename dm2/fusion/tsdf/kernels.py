@@ -196,12 +196,13 @@ def _fuse(register, use_bounds, batch, params, start, table, block_keys, voxels,
     into each with ``register`` and ``use_bounds`` as constants.
 
     Signed distance ``d`` [mm] is positive in front of the measured point (free space towards
-    the sensor) and negative behind it. Weights: ``w_A = 1`` over the whole band in the active
-    region; ``w_I = 1`` in front and ``1 - behind / truncation`` behind the point elsewhere
-    (eqs 4-5). In the active region the stored weight is first capped at ``active_weight_cap``,
-    and the walk goes on ``CARVE_TRUNCATIONS`` truncations beyond the band through allocated
-    blocks only, carving enclosed stale free space (:mod:`dm2.fusion.tsdf.carve`; a free run
-    ends where the walk enters another two-thread column, as the two-thread kernel sees it).
+    the sensor) and negative behind it. Weights (eqs 4-5): 1 in front and ``1 - behind /
+    truncation`` behind the point, in the active region (``w_A``) and elsewhere (``w_I``) alike
+    (:mod:`dm2.fusion.tsdf.field`). In the active region the stored weight is first capped at
+    ``active_weight_cap``, and the walk goes on ``CARVE_TRUNCATIONS`` truncations beyond the
+    band through allocated blocks only, carving enclosed stale free space
+    (:mod:`dm2.fusion.tsdf.carve`; a free run ends where the walk enters another two-thread
+    column, as the two-thread kernel sees it).
     ``voxels[slot, li, 0]`` is the signed distance, ``voxels[slot, li, 1]`` the weight.
     """
     # the bundles' fields, read once here: a field read in a loop would be reference-counted

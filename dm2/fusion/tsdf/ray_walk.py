@@ -66,14 +66,14 @@ def dda_step(vx, vy, vz, tmx, tmy, tmz, d, steps):
 def update_voxel(voxels, slot, vx, vy, vz, d, truncation_mm, inv_trunc, act, active_weight_cap,
                  max_weight):
     """One voxel's update along a ray (paper eqs 2-5): projective signed distance ``d`` [mm]
-    clamped to +-truncation, weight ``w_A = 1`` in the active region and ``w_I`` (1 in front,
-    falling linearly behind the surface) elsewhere, the stored weight capped in the active
-    region."""
+    clamped to +-truncation, weight 1 in front of the surface and falling linearly behind it
+    (``w_A`` in the active region and ``w_I`` elsewhere alike), the stored weight capped in the
+    active region."""
     if d > truncation_mm:
         d = truncation_mm
     elif d < -truncation_mm:
         d = -truncation_mm
-    w = 1.0 if (act or d >= 0.0) else 1.0 + d * inv_trunc
+    w = 1.0 if d >= 0.0 else 1.0 + d * inv_trunc
     if w > 0.0:
         li = (vx & 7) + 8 * ((vy & 7) + 8 * (vz & 7))
         w_prev = voxels[slot, li, 1]
