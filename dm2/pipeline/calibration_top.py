@@ -6,9 +6,8 @@ the part's top since the calibration layer against the growth of the reference. 
 top (its plateau's well observed vertices) is another set of points: a narrow part's first-layer
 plateau is a 7 mm ring, the third layer's its few highest patches. Medians over different sets
 compare different places: the first layer's whole plateau, lowered at its edges by the plume,
-against a later layer's highest patch read a 30 mm wide plate with a 10 mm hole 3-4 % too
-efficient (1.212 against the twin's 1.173), and the same comparison under a narrow plume read
-low.
+against a later layer's highest patch read a 30 mm wide plate with a 10 mm hole 3 % too
+efficient (1.212 against the twin's 1.173).
 
 :class:`CalibrationTop` keeps the calibration layer's top vertices (where they were, what was
 measured there, the reference as the profilers had seen it) and its reference map. Once the
@@ -36,8 +35,8 @@ MATCH_MM = 0.5  # a later vertex takes the calibration residual of a vertex this
 class CalibrationTop:
     """The calibration layer's top: vertices ``xy_O (n, 2)`` [mm], measured heights ``z_mm
     (n,)``, the reference there as seen ``seen_mm (n,)`` (the layer's map less what the
-    profilers had not seen yet), their areas, and the layer's reference map ``close_map``
-    deposited at ``scale``."""
+    profilers had not seen yet), and the layer's reference map ``close_map`` deposited at
+    ``scale``."""
 
     def __init__(self, close_map: ReferenceMap, scale: float, xy_O: np.ndarray,
                  z_mm: np.ndarray, seen_mm: np.ndarray):

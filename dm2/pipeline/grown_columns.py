@@ -73,6 +73,6 @@ class GrownColumns:
         y = (rows + box[0].start + 0.5) * self.cell_mm
         lo = old[rows, cols] - self.truncation_mm
         hi = new[rows, cols] + self.truncation_mm
-        self.capped_voxels += self.tsdf.cap_weights_in_columns(np.column_stack([x, y]), lo, hi,
-                                                          self.weight_cap)
+        xy = np.column_stack([x, y])
+        self.capped_voxels += self.tsdf.cap_weights_in_columns(xy, lo, hi, self.weight_cap)
         old[rows, cols] = new[rows, cols]

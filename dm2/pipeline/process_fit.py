@@ -28,10 +28,10 @@ observed top (vertices inside the planned outline, ``|n_z| >= TOP_NZ``, not unob
   not matter when enough are (:func:`plume_insensitive`). Where too few of them lie on the
   calibration layer's top it is read as the two layers' top heights. The scale moves towards
   it by at most ``rate_per_layer`` per layer (from then on only; what was deposited stays as it
-  was) and stays within ``1 +- bound``. So a slow drift is absorbed over
-  many layers and still reported, and a fault faster or larger than that (an efficiency drift of
-  25 %/layer, a feed step of 40 %) is measured as a defect. The plume width is not followed
-  after the calibration.
+  was) and stays within ``1 +- bound``. So a slow drift is absorbed over many layers and still
+  reported, and a fault faster or larger than that (an efficiency drift of 25 %/layer, a feed
+  step of 40 %) is measured as a defect. The plume width is not followed after the
+  calibration.
 
 What the fit absorbs is never hidden: every layer's height ratio (measured over nominal top
 height), estimate, applied scale and the calibrated plume factor are in report.json
