@@ -116,12 +116,13 @@ class ProcessFit:
         on, the factor by which the reference deposited so far is to be scaled, and the factor
         its plume width is to be widened by (both 1 except at the calibration layer)."""
         dev = result.deviation
+        reference = getattr(result, "reference", None)
         normals = _normals_z(dev)
         top = (dev.class_code != UNOBSERVED) & (normals >= TOP_NZ)
         top &= ~np.isin(dev.class_code, DEFECT_CLASSES)  # the process where no defect is
         if dev.outside_mm is not None:
             top &= dev.outside_mm <= 0.0
-        top &= _on_plateau(getattr(result, "reference", None), dev.foot_O, top)
+        top &= _on_plateau(reference, dev.foot_O, top)
         entry = {"layer": int(result.layer), "applied_scale": self.scale, "estimate": None,
                  "top_vertices": int(top.sum())}
         rescale = plume = 1.0
@@ -131,7 +132,8 @@ class ProcessFit:
                 seen_ref = seen_ref - dev.unseen_mm[top]
             area = getattr(dev, "vertex_area_mm2", None)
             area = np.ones(seen_ref.size) if area is None else np.asarray(area)[top]
-            ref, meas = _top_heights(seen_ref, dev.vertices_O[top, 2], area)
+            xy_top, z_top = dev.foot_O[top, :2], dev.vertices_O[top, 2]
+            ref, meas = _top_heights(seen_ref, z_top, area)
             if ref >= MIN_HEIGHT_MM:
                 # the reference's growth since the last update was deposited at self.scale
                 grown = max(ref - self._last_ref_mm, 0.0)
@@ -143,11 +145,10 @@ class ProcessFit:
                 entry["height_ratio"] = meas / max(self._nominal_mm, 1e-9)
                 if self._first is None:  # calibration: the process so far
                     est = entry["height_ratio"]
-                    flat = plume_insensitive(getattr(result, "reference", None),
-                                             dev.foot_O[top, :2], MIN_TOP_VERTICES)
+                    flat = plume_insensitive(reference, xy_top, MIN_TOP_VERTICES)
                     if flat is not None:  # read where the plume width does not matter
-                        ref_flat, meas_flat = _top_heights(
-                            seen_ref[flat], dev.vertices_O[top, 2][flat], area[flat])
+                        ref_flat, meas_flat = _top_heights(seen_ref[flat], z_top[flat],
+                                                           area[flat])
                         est = meas_flat / ref_flat * self.scale
                     self._first = (meas, self._nominal_mm)
                     self._grown_mm = 0.0
@@ -159,18 +160,15 @@ class ProcessFit:
                     entry["calibration"] = True
                     plume = _plume_factor(result, new, self.plume_bound)
                     entry["plume_factor"] = plume
-                    reference = getattr(result, "reference", None)
                     if reference is not None:
-                        self._top = CalibrationTop(reference, self.scale, dev.foot_O[top, :2],
-                                                   dev.vertices_O[top, 2], seen_ref)
+                        self._top = CalibrationTop(reference, self.scale, xy_top, z_top,
+                                                   seen_ref)
                         self._top.calibrate(new, plume)
                 elif self._nominal_mm - self._first[1] >= MIN_HEIGHT_MM:
-                    xy = dev.foot_O[top, :2]
-                    flat = plume_insensitive(getattr(result, "reference", None), xy,
-                                             MIN_TOP_VERTICES)
-                    flat = np.ones(len(xy), bool) if flat is None else flat
-                    est = self._growth_estimate(xy[flat], dev.vertices_O[top, 2][flat],
-                                                seen_ref[flat], area[flat], entry)
+                    flat = plume_insensitive(reference, xy_top, MIN_TOP_VERTICES)
+                    flat = np.ones(len(xy_top), bool) if flat is None else flat
+                    est = self._growth_estimate(xy_top[flat], z_top[flat], seen_ref[flat],
+                                                area[flat], entry)
                     if est is None:  # too little of the top where the calibration's was
                         est = (meas - self._first[0]) / (self._nominal_mm - self._first[1])
                     step = float(np.clip(est - self.scale, -self.rate_per_layer,
