@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from dm2.defects.realtime_kernels import column_crossings_weights
+from dm2.fusion.tsdf.carve import CARVE_WEIGHT
 from dm2.fusion.tsdf.field import SparseTSDF
 from tests.test_tsdf_threads import _assert_same_field
 
@@ -75,3 +77,50 @@ def test_inactive_surface_follows_a_rise_within_the_weight_window():
     assert abs(_inactive_top_after_rise(None) - 0.5) < 0.05  # default window: 50 observations
     # weights let to grow to 1e4 average the whole history: the surface stays far behind
     assert _inactive_top_after_rise(1.0e4) < 0.35
+
+
+def _rim_rays(direction, n: int, rng):
+    """Points of a floor (z = 0, y > 20) beside a 2 mm block (y < 20) that a sensor along
+    ``direction`` (from point to sensor) sees: the block's top, its +y face where the sensor is
+    on that side, and the floor outside the block's shadow."""
+    x = rng.uniform(5, 35, 3 * n)
+    kind = rng.integers(0, 3, 3 * n)  # 0 the top, 1 the floor, 2 the +y face
+    y = np.where(kind == 0, rng.uniform(12, 20, 3 * n), rng.uniform(20, 30, 3 * n))
+    y = np.where(kind == 2, 20.0, y)
+    z = np.where(kind == 2, rng.uniform(0.0, 2.0, 3 * n), np.where(kind == 0, 2.0, 0.0))
+    if direction[1] < 0:  # looking along +y: the face is hidden, the floor shadowed
+        seen = (kind == 0) | ((kind == 1) & (y >= 20.0 + 2.0 * -direction[1] / direction[2]))
+    else:
+        seen = np.ones(3 * n, bool)
+    pts = np.column_stack([x, y, z])[seen][:n]
+    return pts + 95.0 * direction, pts
+
+
+def test_carved_material_is_inferred_not_a_measured_surface():
+    """Active rays hit a 2 mm block's top 0.9 to 1.5 mm from its edge: their band ends inside
+    the block, and their walk beyond it leaves the block's side into the free space over the
+    floor beside it, then meets the floor, and carves that free space (its run is enclosed
+    along the ray). The carved voxels are inferred, not measured: their weight is below the
+    monitor's min_weight, so the real-time crossings next to the block are the floor's (or none,
+    until the floor is seen again); with the carve's old full weight a false surface stood
+    there 1.1 mm above the floor (checked)."""
+    facing = DIRECTION * np.array([1.0, -1.0, 1.0])  # a sensor on the floor's side
+    for threads in (1, 2):
+        rng = np.random.default_rng(11)
+        tsdf = SparseTSDF(0.5, 1.5, 8.0, threads=threads)
+        for _ in range(3):
+            for direction in (DIRECTION, facing):
+                o, p = _rim_rays(direction, 100_000, rng)
+                tsdf.integrate(o, p, np.zeros(len(p), bool))
+        n = 50_000
+        p = np.column_stack([rng.uniform(5, 35, n), rng.uniform(18.5, 19.1, n), np.full(n, 2.0)])
+        tsdf.integrate(p + 95.0 * DIRECTION, p, np.ones(n, bool))
+        origin = np.array([16, 40, -4])  # x 8-32 mm, y 20-21 mm (the two columns beside the
+        d, w = tsdf.dense(origin, (48, 2, 12))  # block), z -2 to 4 mm
+        carved = (w == CARVE_WEIGHT) & (d == -1.5)
+        assert np.count_nonzero(carved) > 20  # the walk did carve there
+        cross, _ = column_crossings_weights(d, w, np.float32(1.0))
+        z_mm = (origin[2] + cross + 0.5) * 0.5
+        seen = np.isfinite(z_mm)  # a column whose floor voxels were carved is unobserved
+        assert np.count_nonzero(seen) > 20 and np.max(np.abs(z_mm[seen])) < 0.15, (threads,
+                                                                                   z_mm)

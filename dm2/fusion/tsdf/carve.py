@@ -13,10 +13,19 @@ layer; with the carve it stays at 0.11 to 0.13 mm over 56 layers.
 How: an *active* ray (its point is in the deposition region) walks on ``CARVE_TRUNCATIONS``
 truncations beyond its band, through allocated blocks only. There, a run of observed voxels
 that still claim free space (``d > 0``) which the ray leaves into observed material (``d <= 0``)
-is a thin free slab enclosed by material: it becomes material (``d = -truncation``, weight 1,
-which the next observation outweighs). A run that ends in unobserved space or at the end of the
-walk is left alone: that is where a ray that entered the top near an edge leaves the part
-through a wall, and the free space outside the wall is real.
+is a thin free slab enclosed by material: it becomes material (``d = -truncation``). A run that
+ends in unobserved space or at the end of the walk is left alone: that is where a ray that
+entered the top near an edge leaves the part through a wall, and the free space outside the
+wall is real.
+
+The carved material is inferred, not measured, and is sometimes wrong: a ray through a rim
+whose walk leaves it into the open space over a concave floor beyond (a hole's dimple) meets
+the floor's material too, and the run it carves is real free space. So a carved voxel gets the
+weight ``CARVE_WEIGHT``, below the monitor's default ``min_weight``: it ends the buried
+surface's crossing, and takes part in no extracted surface and no real-time crossing until an
+observation confirms it (or outweighs it). With weight 1 the dimple on the plate with a hole
+showed a false surface up to 0.85 mm above its floor, which the real-time comparison
+flagged as overbuild.
 
 The two-thread kernel deals block columns to its threads and a thread reads only its own
 voxels, so a free run also ends where the walk enters another block column (``2**COL_SHIFT``
@@ -29,6 +38,9 @@ import numpy as np
 from numba import njit
 
 CARVE_TRUNCATIONS = 1.0  # the walk beyond the band [truncations]
+# a carved voxel's weight: inferred material, below the monitor's default min_weight (1), so it
+# takes part in no extracted surface and no real-time crossing until an observation confirms it
+CARVE_WEIGHT = 0.5
 CARVE_RUN_VOXELS = 32    # longest free run that can be carved (a 1.5 mm walk crosses <= 10)
 COL_SHIFT = 2            # the two-thread update deals block columns 2**COL_SHIFT blocks wide
 
@@ -67,7 +79,7 @@ def carve_visit(voxels, slot, vx, vy, vz, truncation_mm, run, n_run, touched, ma
     for j in range(n_run):
         s = run[j, 0]
         voxels[s, run[j, 1], 0] = -truncation_mm
-        voxels[s, run[j, 1], 1] = 1.0
+        voxels[s, run[j, 1], 1] = CARVE_WEIGHT
         if s < mark_below:
             touched[s] = True
     return 0
