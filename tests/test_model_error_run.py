@@ -2,7 +2,7 @@
 monitor models cos^2), 15 % less efficient and with a 10 % narrower plume: the edges of the box
 come out systematically lower than the Gaussian model predicts. The layers' own deviations raise
 the plume term's convex bound, and no track opens; with the bound as configured, the same run
-opens a false underbuild track at the box's edge."""
+opens false underbuild tracks at the box's edges."""
 
 from __future__ import annotations
 
@@ -39,14 +39,15 @@ def test_the_layers_raise_the_bound_where_the_model_errs_and_no_track_opens(tmp_
     truth = run.fault_truth["faults"]
     assert truth == []  # fault-free: every track would be false
 
-    # the same run with the bound as configured: the edge opens a false underbuild track
+    # the same run with the bound as configured: the edges open false underbuild tracks
     monkeypatch.setattr(deviation_mod, "model_inflation",
                         lambda *a, **k: dict.fromkeys(FACTORS, 1.0))
     plain = run_scenario(_scenario(), tmp_path / "configured", full_report=False)
     tracks = plain.report["tracks"]
-    assert [t["kind"] for t in tracks] == ["underbuild"]
-    x, y, _ = tracks[0]["history"][-1]["centroid_O_mm"]
-    # on the box's rim (x 46-74, y 50-70 mm), not on its plateau
-    assert min(abs(x - 46.0), abs(x - 74.0), abs(y - 50.0), abs(y - 70.0)) < 6.0
+    assert tracks and all(t["kind"] == "underbuild" for t in tracks)
+    for t in tracks:
+        x, y, _ = t["history"][-1]["centroid_O_mm"]
+        # on the box's rim (x 46-74, y 50-70 mm), not on its plateau
+        assert min(abs(x - 46.0), abs(x - 74.0), abs(y - 50.0), abs(y - 70.0)) < 6.0
     assert np.isclose(layers[0]["statistics"]["n_vertices"],
                       plain.report["layers"][0]["statistics"]["n_vertices"])

@@ -158,7 +158,10 @@ class SparseTSDF:
         """Fuse rays from ``origins_O (n, 3)`` [mm] to measured ``points_O (n, 3)`` [mm].
 
         ``active (n,) bool`` marks rays whose point lies in the active deposition region.
-        Points must be finite (the pipeline drops NaN points before this).
+        Points must be finite (the pipeline drops NaN points before this). Consecutive rays from
+        the same origin are taken as a profile's points in order: one whose neighbour reaches
+        more than 1 mm farther is an occluding edge and writes no band behind its point
+        (dm2.fusion.tsdf.point_rays), as in :meth:`integrate_profiles`.
         """
         o = np.ascontiguousarray(origins_O, dtype=np.float64)
         p = np.ascontiguousarray(points_O, dtype=np.float64)

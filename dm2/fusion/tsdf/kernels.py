@@ -27,7 +27,13 @@ from dm2.fusion.tsdf.carve import (
     COL_SHIFT,
     carve_visit,
 )
-from dm2.fusion.tsdf.point_rays import NO_POSE, point_ray, profile_pose
+from dm2.fusion.tsdf.point_rays import (
+    NO_POSE,
+    behind_scale,
+    point_ray,
+    profile_pose,
+    ray_behind_scale,
+)
 from dm2.fusion.tsdf.ray_walk import dda_start, dda_step, update_voxel
 
 BLOCK = 8  # voxels per block edge
@@ -198,9 +204,10 @@ def _fuse(register, use_bounds, batch, params, start, table, block_keys, voxels,
     Signed distance ``d`` [mm] is positive in front of the measured point (free space towards
     the sensor) and negative behind it. Weights (eqs 4-5): 1 in front and ``1 - behind /
     truncation`` behind the point, in the active region (``w_A``) and elsewhere (``w_I``) alike
-    (:mod:`dm2.fusion.tsdf.field`). In the active region the stored weight is first capped at
-    ``active_weight_cap``, and the walk goes on ``CARVE_TRUNCATIONS`` truncations beyond the
-    band through allocated blocks only, carving enclosed stale free space
+    (:mod:`dm2.fusion.tsdf.field`), none behind a profile point on an occluding edge
+    (:func:`~dm2.fusion.tsdf.point_rays.behind_scale`). In the active region the stored weight
+    is first capped at ``active_weight_cap``, and the walk goes on ``CARVE_TRUNCATIONS``
+    truncations beyond the band through allocated blocks only, carving enclosed stale free space
     (:mod:`dm2.fusion.tsdf.carve`; a free run ends where the walk enters another two-thread
     column, as the two-thread kernel sees it).
     ``voxels[slot, li, 0]`` is the signed distance, ``voxels[slot, li, 1]`` the weight.
@@ -233,6 +240,8 @@ def _fuse(register, use_bounds, batch, params, start, table, block_keys, voxels,
                 bounds_hi, use_bounds, truncation_mm, counts)
             if not ok:
                 continue
+            behind = (behind_scale(xz_S, i, offsets[k], offsets[k + 1]) if register else
+                      ray_behind_scale(origins_O, points_O, i, points_O.shape[0], r))
             vx, vy, vz, span, tmx, tmy, tmz, d, steps = \
                 dda_start(ox, oy, oz, dx, dy, dz, r, truncation_mm, voxel_mm, inv_vox)
             last_bx, last_by, last_bz, slot = 1 << 40, 0, 0, -1
@@ -247,7 +256,7 @@ def _fuse(register, use_bounds, batch, params, start, table, block_keys, voxels,
                         ra, rb = (bx, by, bz, slot), ra
                     last_bx, last_by, last_bz = bx, by, bz
                 update_voxel(voxels, slot, vx, vy, vz, d, truncation_mm, inv_trunc, act,
-                             active_weight_cap, max_weight)
+                             active_weight_cap, max_weight, behind)
                 t, vx, vy, vz, tmx, tmy, tmz, d = dda_step(vx, vy, vz, tmx, tmy, tmz, d, steps)
             if not act:
                 continue

@@ -31,7 +31,13 @@ from dm2.fusion.tsdf.kernels import (
     pack_key,
     recent_slot,
 )
-from dm2.fusion.tsdf.point_rays import NO_POSE, point_ray, profile_pose
+from dm2.fusion.tsdf.point_rays import (
+    NO_POSE,
+    behind_scale,
+    point_ray,
+    profile_pose,
+    ray_behind_scale,
+)
 from dm2.fusion.tsdf.ray_walk import dda_start, dda_step, update_voxel
 
 
@@ -120,6 +126,8 @@ def _owned(tid, col_shift, start, register, use_bounds, batch, params, table, vo
             mine = cx0 == cx1 and cy0 == cy1
             if mine and ((cx0 + cy0) & 1) != tid:
                 continue  # the other thread's column
+            behind = (behind_scale(xz_S, i, offsets[k], offsets[k + 1]) if register else
+                      ray_behind_scale(origins_O, points_O, i, points_O.shape[0], r))
             vx, vy, vz, span, tmx, tmy, tmz, d, steps = \
                 dda_start(ox, oy, oz, dx, dy, dz, r, truncation_mm, voxel_mm, inv_vox)
             last_bx, last_by, last_bz, slot = 1 << 40, 0, 0, -1
@@ -139,7 +147,7 @@ def _owned(tid, col_shift, start, register, use_bounds, batch, params, table, vo
                             ra, rb = (bx, by, bz, slot), ra
                         last_bx, last_by, last_bz = bx, by, bz
                     update_voxel(voxels, slot, vx, vy, vz, d, truncation_mm, inv_trunc, act,
-                                 active_weight_cap, max_weight)
+                                 active_weight_cap, max_weight, behind)
                 t, vx, vy, vz, tmx, tmy, tmz, d = dda_step(vx, vy, vz, tmx, tmy, tmz, d, steps)
             if not act:
                 continue

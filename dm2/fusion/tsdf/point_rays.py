@@ -1,8 +1,9 @@
-"""Per-point rays of the TSDF kernels: profile registration (paper eq 1) and the active-region
-test, shared by the serial integrator (:func:`dm2.fusion.tsdf.kernels._fuse`) and the two-thread
-kernel (:func:`dm2.fusion.tsdf.owned_kernels.fuse_owned`) so both count and skip points identically.
+"""Per-point rays of the TSDF kernels: profile registration (paper eq 1), the active-region
+test and the occluding-edge test of the band behind a point (:func:`behind_scale`), shared by
+the serial integrator (:func:`dm2.fusion.tsdf.kernels._fuse`) and the two-thread kernel
+(:func:`dm2.fusion.tsdf.owned_kernels.fuse_owned`) so both count and skip points identically.
 
-Both helpers are inlined into their callers (``inline="always"``): the arithmetic is the same
+The helpers are inlined into their callers (``inline="always"``): the arithmetic is the same
 operations in the same order wherever it runs, which keeps the two-thread fusion bit-identical
 to the serial one.
 """
@@ -71,3 +72,57 @@ def point_ray(register, i, pose, xz_S, origins_O, points_O, active, active_r2_mm
     dy /= r
     dz /= r
     return True, ox, oy, oz, dx, dy, dz, r, act
+
+
+
+# a neighbour in the profile this much farther from the sensor: the point is on an occluding
+# edge (two voxels at the default 0.5 mm)
+EDGE_JUMP_MM = 1.0
+
+
+@njit(cache=True, inline="always")
+def behind_scale(xz_S, i, lo, hi):
+    """The weight factor of the band behind point ``i`` of the profile ``xz_S[lo:hi]`` (its
+    points in order along the laser line): 0 where the point is the near side of an occluding
+    edge, a neighbour lying more than ``EDGE_JUMP_MM`` farther from the sensor; else 1. Behind
+    such a point the ray leaves the part past the edge into the edge's shadow, free space the
+    sensor never saw, where the band would write material: a false surface that a real-time
+    comparison reads as overbuild (on a fault-free plate with a hole, 0.3 mm over the true
+    dimple, an alarm). Points with no jump beside them keep their band; so do the far sides
+    of jumps."""
+    xi, zi = xz_S[i, 0], xz_S[i, 1]
+    ri = np.sqrt(xi * xi + zi * zi)
+    if i > lo:
+        x, z = xz_S[i - 1, 0], xz_S[i - 1, 1]
+        if np.sqrt(x * x + z * z) - ri > EDGE_JUMP_MM:
+            return 0.0
+    if i < hi - 1:
+        x, z = xz_S[i + 1, 0], xz_S[i + 1, 1]
+        if np.sqrt(x * x + z * z) - ri > EDGE_JUMP_MM:
+            return 0.0
+    return 1.0
+
+
+@njit(cache=True, inline="always")
+def _ray_farther(origins_O, points_O, i, j, r_i):
+    """Whether ray ``j`` leaves ray ``i``'s origin and reaches more than ``EDGE_JUMP_MM``
+    farther (range ``r_i`` [mm])."""
+    if origins_O[j, 0] != origins_O[i, 0] or origins_O[j, 1] != origins_O[i, 1] or \
+            origins_O[j, 2] != origins_O[i, 2]:
+        return False
+    dx = points_O[j, 0] - origins_O[j, 0]
+    dy = points_O[j, 1] - origins_O[j, 1]
+    dz = points_O[j, 2] - origins_O[j, 2]
+    return np.sqrt(dx * dx + dy * dy + dz * dz) - r_i > EDGE_JUMP_MM
+
+
+@njit(cache=True, inline="always")
+def ray_behind_scale(origins_O, points_O, i, n, r_i):
+    """:func:`behind_scale` for rays given in ``O`` (``n`` of them, ray ``i`` of range ``r_i``
+    [mm]): consecutive rays from the same origin are a profile's points in order, so a ray is
+    an occluding edge where such a neighbour reaches more than ``EDGE_JUMP_MM`` farther."""
+    if i > 0 and _ray_farther(origins_O, points_O, i, i - 1, r_i):
+        return 0.0
+    if i < n - 1 and _ray_farther(origins_O, points_O, i, i + 1, r_i):
+        return 0.0
+    return 1.0
