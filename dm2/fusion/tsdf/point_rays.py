@@ -74,7 +74,6 @@ def point_ray(register, i, pose, xz_S, origins_O, points_O, active, active_r2_mm
     return True, ox, oy, oz, dx, dy, dz, r, act
 
 
-
 # a neighbour in the profile this much farther from the sensor: the point is on an occluding
 # edge (two voxels at the default 0.5 mm)
 EDGE_JUMP_MM = 1.0
