@@ -81,10 +81,10 @@ class CalibrationTop:
         if ok.sum() < enough:
             return None, 0.0, int(ok.sum())
         idx = idx[ok]
-        cal_ref = self._at(np.asarray(xy_O)[ok])  # the calibration layer's reference here
-        ref_growth = np.asarray(seen_mm)[ok] - (cal_ref - self._unseen_now_mm[idx])
-        meas_growth = np.asarray(z_mm)[ok] - (cal_ref - self._unseen_now_mm[idx]
-                                              + self._residual_mm[idx])
+        # the calibration layer's reference here, as the profilers had seen it
+        cal_seen = self._at(np.asarray(xy_O)[ok]) - self._unseen_now_mm[idx]
+        ref_growth = np.asarray(seen_mm)[ok] - cal_seen
+        meas_growth = np.asarray(z_mm)[ok] - (cal_seen + self._residual_mm[idx])
         w = np.asarray(area_mm2)[ok]
         ref_mm = weighted_median(ref_growth, w)
         if ref_mm <= 0.0:
