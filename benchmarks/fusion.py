@@ -6,11 +6,11 @@ The batched replay (``batch_profiles=REPLAY_BATCH_PROFILES``) is compared in the
 with one kernel call per frame set (``batch_profiles=3``, the default for live and sessions), and
 the two-thread TSDF update (``SparseTSDF(threads=2)``, bit-identical) with the one-thread kernel.
 The load average is printed first: on a shared machine the second thread only helps when a
-second core is idle. With the package defaults (``deposit_weight_cap`` set) each profile is
-capped around its spray axis and then fused, one profile after the other on one thread
-(dm2.fusion.tsdf.deposit.fuse_profiles_capped): the two-thread kernel is not used, so its lines
-read the same as one thread and the threads' seconds 0; the kernel-alone line (no cap) shows
-it. The CPU-time line is load-independent: the replay's CPU seconds outside the two threads
+second core is idle. With the package defaults (``deposit_weight_cap`` set) the weights around
+each profile's spray axis are capped before its points are fused (dm2.fusion.tsdf.deposit); with
+two threads each caps its own block columns in profile order, so the field is still the serial
+kernel's bit for bit. The kernel-alone line has no cap. The CPU-time line is load-independent:
+the replay's CPU seconds outside the two threads
 plus, for each batch, the slower thread's seconds, i.e. the replay's critical path on two idle
 cores.
 
@@ -223,9 +223,6 @@ def main() -> None:
           f"{new / one:.2f}x); {old / 1e6:.2f} M points/s one frame set per call "
           f"(batch_profiles=3, serial below {MIN_SPLIT_POINTS} points; ratio {new / old:.2f}x) "
           f"({mon.points_fused} points, {mon.tsdf.n_blocks} blocks, voxel {mon.cfg.voxel_mm} mm)")
-    if mon.cfg.deposit_weight_cap is not None:
-        print("  (deposit cap on, the package default: profiles are capped and fused one after "
-              "the other on one thread, so the 2-thread figures are the serial kernel's)")
 
     peer(cal, msgs, args.repeats)
 

@@ -48,9 +48,9 @@ def test_two_threads_equal_one_thread_bit_for_bit_on_overlapping_rays():
     assert np.array_equal(_sorted_rows(one.take_touched()), _sorted_rows(two.take_touched()))
 
 
-def test_two_threads_equal_one_thread_for_registered_profiles():
-    rng = np.random.default_rng(3)
-    k, m = 120, 640  # profiles of 640 points, sensors moving along x over a slanted plane
+def _profiles_over_a_plane(rng, k=120, m=640):
+    """``k`` profiles of ``m`` points, sensors moving along x over a plane: (xz_S, offsets,
+    T_O_S, spot_O, axis_O, bounds_O)."""
     x = np.tile(np.linspace(-20.0, 20.0, m), k)
     z = 90.0 + 0.2 * rng.standard_normal(k * m)
     z[rng.random(k * m) < 0.01] = -1.0  # behind the sensor: skipped
@@ -64,11 +64,45 @@ def test_two_threads_equal_one_thread_for_registered_profiles():
     spot = T[:, :3, 3] - [0.0, 0.0, 95.0]
     axis = np.tile([0.0, 0.0, -1.0], (k, 1))
     bounds = (np.array([0.0, 0.0, -10.0]), np.array([60.0, 60.0, 20.0]))
+    return xz, offsets, T, spot, axis, bounds
+
+
+def test_two_threads_equal_one_thread_for_registered_profiles():
+    profiles = _profiles_over_a_plane(np.random.default_rng(3))
     one = SparseTSDF(0.5, 1.5, 4.0, initial_blocks=64, threads=1)
     two = SparseTSDF(0.5, 1.5, 4.0, initial_blocks=64, threads=2)
-    got = [t.integrate_profiles(xz, offsets, T, spot, axis, 3.0, bounds) for t in (one, two)]
+    got = [t.integrate_profiles(*profiles[:5], 3.0, profiles[5]) for t in (one, two)]
     assert got[0] == got[1] and got[0][1] > 0
     _assert_same_field(one, two)
+
+
+@pytest.mark.parametrize("staging_blocks", [None, 24])
+def test_two_threads_cap_around_the_spray_axis_as_one_thread(staging_blocks):
+    """With the deposit cap (dm2.fusion.tsdf.deposit) each thread caps its own columns before
+    each profile's points: the serial capped kernel's field bit for bit, also when the threads
+    stop and resume mid-batch (a tight staging area) and across an empty profile."""
+    from dm2.fusion.tsdf import threads as tsdf_split
+
+    xz, offsets, T, spot, axis, bounds = _profiles_over_a_plane(np.random.default_rng(9))
+    spot[:, 2] = 5.0  # on the plane
+    offsets = np.insert(offsets, 40, offsets[40])  # profile 40 is empty
+    T, spot, axis = (np.insert(a, 40, a[40], axis=0) for a in (T, spot, axis))
+    deposit = (2.0, 2.0, 1.0)
+    one, two, uncapped = (SparseTSDF(0.5, 1.5, 4.0, initial_blocks=64, threads=n)
+                          for n in (1, 2, 1))
+    if staging_blocks:
+        two._split_buffers = tsdf_split.SplitBuffers(capacity=staging_blocks)
+    for _ in range(2):  # the second pass meets the first pass's weights around the axis
+        got = [t.integrate_profiles(xz, offsets, T, spot, axis, 3.0, bounds, deposit)
+               for t in (one, two)]
+        uncapped.integrate_profiles(xz, offsets, T, spot, axis, 3.0, bounds)
+    assert got[0] == got[1] and got[0][1] > 0
+    _assert_same_field(one, two)
+    n = one.n_blocks  # the cap did act: less weight than without it, the same blocks
+    assert n == uncapped.n_blocks
+    assert np.array_equal(one.block_keys[:n], uncapped.block_keys[:n])
+    lower = one.weight[:n] < uncapped.weight[:n]
+    assert lower.sum() > 200 and not (one.weight[:n] > uncapped.weight[:n]).any()
 
 
 def test_small_batches_use_the_serial_kernel_and_threads_is_validated(monkeypatch):

@@ -25,43 +25,61 @@ from numba import njit
 from dm2.fusion.tsdf.kernels import BLOCK, BLOCK_SHIFT, fuse_profiles, hash_find, pack_key
 
 
+@njit(cache=True, inline="always")
+def cap_box(voxel_mm, spot_O, axis_O, radius_mm, half_length_mm):
+    """The voxel index box ``(lo (3,), hi (3,))`` int64 (inclusive) that holds every voxel centre
+    of the cylinder of :func:`cap_near_axis`: along each axis, its own extent and its end discs'
+    (plus 1 nm against rounding)."""
+    lo = np.empty(3, np.int64)
+    hi = np.empty(3, np.int64)
+    for c in range(3):
+        a = abs(axis_O[c])
+        ext = a * half_length_mm + radius_mm * math.sqrt(max(1.0 - a * a, 0.0)) + 1e-6
+        lo[c] = int(math.floor((spot_O[c] - ext) / voxel_mm))
+        hi[c] = int(math.floor((spot_O[c] + ext) / voxel_mm))
+    return lo, hi
+
+
+@njit(cache=True, inline="always")
+def cap_block(voxels, slot, bx, by, bz, lo, hi, voxel_mm, spot_O, axis_O, radius_mm,
+              half_length_mm, weight_cap):
+    """:func:`cap_near_axis` within block ``(bx, by, bz)`` stored in row ``slot`` of ``voxels``
+    (``lo, hi``: :func:`cap_box`); returns the number of voxels capped."""
+    r2 = radius_mm * radius_mm
+    n = 0
+    x0, y0, z0 = bx << BLOCK_SHIFT, by << BLOCK_SHIFT, bz << BLOCK_SHIFT
+    for iz in range(max(lo[2] - z0, 0), min(hi[2] - z0, BLOCK - 1) + 1):
+        for iy in range(max(lo[1] - y0, 0), min(hi[1] - y0, BLOCK - 1) + 1):
+            for ix in range(max(lo[0] - x0, 0), min(hi[0] - x0, BLOCK - 1) + 1):
+                li = ix + BLOCK * (iy + BLOCK * iz)
+                if voxels[slot, li, 1] <= weight_cap:
+                    continue
+                x = (x0 + ix + 0.5) * voxel_mm - spot_O[0]
+                y = (y0 + iy + 0.5) * voxel_mm - spot_O[1]
+                z = (z0 + iz + 0.5) * voxel_mm - spot_O[2]
+                along = x * axis_O[0] + y * axis_O[1] + z * axis_O[2]
+                if abs(along) > half_length_mm or x * x + y * y + z * z - along * along > r2:
+                    continue
+                voxels[slot, li, 1] = weight_cap
+                n += 1
+    return n
+
+
 @njit(cache=True, error_model="numpy", nogil=True)
 def cap_near_axis(table_keys, table_slots, voxels, voxel_mm, spot_O, axis_O, radius_mm,
                   half_length_mm, weight_cap):
     """Cap at ``weight_cap`` the weight of every stored voxel whose centre lies within
     ``radius_mm`` of the line through ``spot_O (3,)`` [mm] along the unit ``axis_O (3,)`` and
     within ``half_length_mm`` of ``spot_O`` along it; returns the number of voxels capped."""
-    r = radius_mm + half_length_mm
-    lo = np.empty(3, np.int64)  # the cylinder's box in voxels (its centres: a half voxel inside)
-    hi = np.empty(3, np.int64)
-    for c in range(3):
-        ext = min(abs(axis_O[c]) * half_length_mm + radius_mm, r)
-        lo[c] = int(math.floor((spot_O[c] - ext) / voxel_mm))
-        hi[c] = int(math.floor((spot_O[c] + ext) / voxel_mm))
-    r2 = radius_mm * radius_mm
+    lo, hi = cap_box(voxel_mm, spot_O, axis_O, radius_mm, half_length_mm)
     n = 0
     for bx in range(lo[0] >> BLOCK_SHIFT, (hi[0] >> BLOCK_SHIFT) + 1):
         for by in range(lo[1] >> BLOCK_SHIFT, (hi[1] >> BLOCK_SHIFT) + 1):
             for bz in range(lo[2] >> BLOCK_SHIFT, (hi[2] >> BLOCK_SHIFT) + 1):
                 slot = hash_find(table_keys, table_slots, pack_key(bx, by, bz))
-                if slot < 0:
-                    continue
-                x0, y0, z0 = bx << BLOCK_SHIFT, by << BLOCK_SHIFT, bz << BLOCK_SHIFT
-                for iz in range(max(lo[2] - z0, 0), min(hi[2] - z0, BLOCK - 1) + 1):
-                    for iy in range(max(lo[1] - y0, 0), min(hi[1] - y0, BLOCK - 1) + 1):
-                        for ix in range(max(lo[0] - x0, 0), min(hi[0] - x0, BLOCK - 1) + 1):
-                            li = ix + BLOCK * (iy + BLOCK * iz)
-                            if voxels[slot, li, 1] <= weight_cap:
-                                continue
-                            x = (x0 + ix + 0.5) * voxel_mm - spot_O[0]
-                            y = (y0 + iy + 0.5) * voxel_mm - spot_O[1]
-                            z = (z0 + iz + 0.5) * voxel_mm - spot_O[2]
-                            along = x * axis_O[0] + y * axis_O[1] + z * axis_O[2]
-                            if abs(along) > half_length_mm or \
-                                    x * x + y * y + z * z - along * along > r2:
-                                continue
-                            voxels[slot, li, 1] = weight_cap
-                            n += 1
+                if slot >= 0:
+                    n += cap_block(voxels, slot, bx, by, bz, lo, hi, voxel_mm, spot_O, axis_O,
+                                   radius_mm, half_length_mm, weight_cap)
     return n
 
 

@@ -58,7 +58,7 @@ from dm2.fusion.tsdf import kernels as K
 from dm2.fusion.tsdf.bundles import FusionParams, profile_batch, ray_batch
 from dm2.fusion.tsdf.dense import gather_dense
 from dm2.fusion.tsdf.deposit import cap_columns, cap_near_axis, fuse_profiles_capped
-from dm2.fusion.tsdf.threads import SplitBuffers, fuse_split
+from dm2.fusion.tsdf.threads import NO_DEPOSIT, SplitBuffers, fuse_split
 
 log = logging.getLogger(__name__)
 
@@ -200,7 +200,8 @@ class SparseTSDF:
         active_radius_mm : float [mm], points this close to the nozzle axis are active
         bounds_O : optional ``(lo (3,), hi (3,))`` [mm]; points outside are not fused
         deposit : optional ``(radius_mm, half_length_mm, weight_cap)``: before each profile is
-            fused, the weights around its spray axis are capped (:mod:`.deposit`; one thread)
+            fused, the weights around its spray axis are capped (:mod:`.deposit`; with two
+            threads each caps its own block columns)
 
         Returns
         -------
@@ -225,12 +226,12 @@ class SparseTSDF:
         counts = np.zeros(2, dtype=np.int64)
         r2 = float(active_radius_mm) ** 2
         start, n = 0, xz.shape[0]
-        # with the deposit cap each profile is capped, then fused: one thread, profile by profile
+        # with the deposit cap each profile is capped, then fused, profile by profile
         kernel, cap = (K.fuse_profiles, ()) if deposit is None else \
             (fuse_profiles_capped, tuple(float(x) for x in deposit))
-        if deposit is None and self.threads == 2 and n >= MIN_SPLIT_POINTS:
+        if self.threads == 2 and n >= MIN_SPLIT_POINTS:
             fuse_split(self, True, use_bounds, profile_batch(xz, off, T, spot, axis),
-                       self._params(r2, lo, hi), counts)
+                       self._params(r2, lo, hi), counts, cap or NO_DEPOSIT)
             start = n
         while start < n:  # flat arguments: a call from Python per profile (see bundles)
             start = kernel(xz, off, T, spot, axis, self.voxel_mm, self.truncation_mm,

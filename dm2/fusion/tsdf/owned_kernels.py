@@ -23,6 +23,7 @@ import numpy as np
 from numba import njit
 
 from dm2.fusion.tsdf.carve import CARVE_RUN_VOXELS, CARVE_TRUNCATIONS, carve_visit, walk_columns
+from dm2.fusion.tsdf.deposit import cap_block, cap_box
 from dm2.fusion.tsdf.kernels import (
     BLOCK_SHIFT,
     MAX_NEW_BLOCKS_PER_RAY,
@@ -62,15 +63,37 @@ def _found_slot(key, table, base, staging):
     return base + s if s >= 0 else -1
 
 
+@njit(cache=True, inline="always")
+def _cap_owned(tid, col_shift, spot_O, axis_O, voxel_mm, deposit, table, voxels, base, staging):
+    """Thread ``tid``'s part of :func:`dm2.fusion.tsdf.deposit.cap_near_axis` around ``spot_O,
+    axis_O (3,)``: the blocks in its own columns, allocated or staged (``deposit``: radius,
+    half length and cap as in :func:`fuse_owned`)."""
+    radius_mm, half_length_mm, weight_cap = deposit
+    lo, hi = cap_box(voxel_mm, spot_O, axis_O, radius_mm, half_length_mm)
+    for bx in range(lo[0] >> BLOCK_SHIFT, (hi[0] >> BLOCK_SHIFT) + 1):
+        for by in range(lo[1] >> BLOCK_SHIFT, (hi[1] >> BLOCK_SHIFT) + 1):
+            if ((bx >> col_shift) + (by >> col_shift)) & 1 != tid:
+                continue
+            for bz in range(lo[2] >> BLOCK_SHIFT, (hi[2] >> BLOCK_SHIFT) + 1):
+                slot = _found_slot(pack_key(bx, by, bz), table, base, staging)
+                if slot >= 0:
+                    cap_block(voxels, slot, bx, by, bz, lo, hi, voxel_mm, spot_O, axis_O,
+                              radius_mm, half_length_mm, weight_cap)
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
-def fuse_owned(tid, col_shift, start, register, use_bounds, batch, params, table, voxels,
-               touched, counts, base, staging):
+def fuse_owned(tid, col_shift, start, register, use_bounds, batch, params, deposit, table,
+               voxels, touched, counts, base, staging):
     """Thread ``tid`` (0 or 1): fuse its own voxels of the points of ``batch`` from ``start`` on
     (``batch``: a :class:`~dm2.fusion.tsdf.bundles.Batch`, ``params``: the
     :class:`~dm2.fusion.tsdf.bundles.FusionParams`, ``table``: the field's
     :class:`~dm2.fusion.tsdf.bundles.BlockHash`, ``voxels``, ``touched`` and the flags as in
     :func:`dm2.fusion.tsdf.kernels.fuse_profiles`; ``counts`` as the serial kernel counts the
-    points walked); ``col_shift``: the checkerboard's columns are ``2**col_shift`` blocks wide.
+    points walked); ``col_shift``: the checkerboard's columns are ``2**col_shift`` blocks wide;
+    ``deposit``: ``(radius_mm, half_length_mm, weight_cap)`` of the cap around each profile's
+    spray axis before its points (:mod:`dm2.fusion.tsdf.deposit`, each thread in its own
+    columns, so the voxels see the serial ``fuse_profiles_capped``'s order), ``weight_cap <= 0``
+    for none (rays are never capped).
     Bundled arguments: called twice per batch of thousands of points, whose typing by numba
     (a few microseconds) does not count.
     Blocks the field lacks are staged in ``staging`` (the thread's
@@ -78,18 +101,18 @@ def fuse_owned(tid, col_shift, start, register, use_bounds, batch, params, table
     ``base:base + len(staging.keys)`` of ``voxels`` (zero). Returns the index of the first point
     not handled because the staging area is full (``len(xz_S)`` when done)."""
     if not register:  # literal flags: each variant is compiled without the other's tests
-        return _owned(tid, col_shift, start, False, False, batch, params, table, voxels,
-                      touched, counts, base, staging)
+        return _owned(tid, col_shift, start, False, False, batch, params, deposit, table,
+                      voxels, touched, counts, base, staging)
     if use_bounds:
-        return _owned(tid, col_shift, start, True, True, batch, params, table, voxels, touched,
-                      counts, base, staging)
-    return _owned(tid, col_shift, start, True, False, batch, params, table, voxels, touched,
-                  counts, base, staging)
+        return _owned(tid, col_shift, start, True, True, batch, params, deposit, table, voxels,
+                      touched, counts, base, staging)
+    return _owned(tid, col_shift, start, True, False, batch, params, deposit, table, voxels,
+                  touched, counts, base, staging)
 
 
 @njit(cache=True, inline="always")
-def _owned(tid, col_shift, start, register, use_bounds, batch, params, table, voxels, touched,
-           counts, base, staging):
+def _owned(tid, col_shift, start, register, use_bounds, batch, params, deposit, table, voxels,
+           touched, counts, base, staging):
     """The loop of :func:`fuse_owned`, inlined with ``register`` and ``use_bounds`` as
     constants."""
     # the bundles' fields, read once here: a field read in a loop would be reference-counted
@@ -107,11 +130,15 @@ def _owned(tid, col_shift, start, register, use_bounds, batch, params, table, vo
     st_capacity = staging.keys.shape[0]
     pose = NO_POSE
     ra = rb = (1 << 40, 0, 0, -1)  # the two blocks looked up last (bx, by, bz, slot)
+    capped = register and deposit[2] > 0.0
     for k in range(offsets.shape[0] - 1):
-        if offsets[k + 1] <= start:
+        if offsets[k + 1] <= start and (offsets[k] < start or not capped):
             continue
         if register:
             pose = profile_pose(T_O_S, spot_O, axis_O, k)
+        if capped and offsets[k] >= start:  # a profile resumed mid-way was capped before
+            _cap_owned(tid, col_shift, spot_O[k], axis_O[k], voxel_mm, deposit, table, voxels,
+                       base, staging)
         for i in range(max(offsets[k], start), offsets[k + 1]):
             if st_state[0] + MAX_NEW_BLOCKS_PER_RAY > st_capacity:
                 return i

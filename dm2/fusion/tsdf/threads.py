@@ -43,11 +43,17 @@ class SplitBuffers:
         self.staging = (new_staging(self.capacity), new_staging(self.capacity))
 
 
-def fuse_split(field, register: bool, use_bounds: bool, batch, params, counts) -> None:
+NO_DEPOSIT = (0.0, 0.0, 0.0)  # fuse_owned's deposit argument: no cap around the spray axis
+
+
+def fuse_split(field, register: bool, use_bounds: bool, batch, params, counts,
+               deposit: tuple = NO_DEPOSIT) -> None:
     """Fuse one batch into ``field`` with two threads (``batch``: a
     :class:`~dm2.fusion.tsdf.bundles.Batch`, ``params``: the
     :class:`~dm2.fusion.tsdf.bundles.FusionParams`, the flags as in
-    :func:`dm2.fusion.tsdf.kernels.fuse_profiles`); ``counts`` (skipped, fused) is added to and
+    :func:`dm2.fusion.tsdf.kernels.fuse_profiles`; ``deposit``: the cap around each profile's
+    spray axis, as in :func:`dm2.fusion.tsdf.owned_kernels.fuse_owned`); ``counts`` (skipped,
+    fused) is added to and
     ``field.split_cpu_s`` receives the phases' CPU seconds."""
     n = batch.xz_S.shape[0]
     buffers = field._split_buffers
@@ -61,7 +67,7 @@ def fuse_split(field, register: bool, use_bounds: bool, batch, params, counts) -
         field._grow(2 * buffers.capacity)
         bases = (field.n_blocks, field.n_blocks + buffers.capacity)
         table = BlockHash(field._table_keys, field._table_slots)
-        args = (register, use_bounds, batch, params, table, field.voxels, field.touched)
+        args = (register, use_bounds, batch, params, deposit, table, field.voxels, field.touched)
         other = _pool().submit(_timed_run, 1, starts[1], n, args, lines[1], bases[1],
                                staging[1])
         stop0, cpu0 = _timed_run(0, starts[0], n, args, lines[0], bases[0], staging[0])
@@ -82,7 +88,7 @@ def _timed_run(tid: int, start: int, n: int, args: tuple, counts, base: int,
     if start >= n:
         return n, 0.0
     c = time.thread_time()
-    register, use_bounds, batch, params, table, voxels, touched = args
-    stop = OK.fuse_owned(tid, COL_SHIFT, start, register, use_bounds, batch, params, table,
-                         voxels, touched, counts, base, st)
+    register, use_bounds, batch, params, deposit, table, voxels, touched = args
+    stop = OK.fuse_owned(tid, COL_SHIFT, start, register, use_bounds, batch, params, deposit,
+                         table, voxels, touched, counts, base, st)
     return stop, time.thread_time() - c
