@@ -16,10 +16,11 @@ from dm2.core.tolerances import DIVISOR_FLOOR, GRID_FRACTION_TOL
 from dm2.fusion.surface_mesh import SurfaceMesh
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _compact(target, verts, faces, weight, normals, floor):
     """Keep vertex i where ``target[i] == i`` (a first copy), renumber, remap the faces through
-    ``target`` and drop the degenerate ones; normals divided by ``max(|n|, floor)``."""
+    ``target`` and drop the degenerate ones; normals divided by ``max(|n|, floor)`` (``floor``
+    > 0). The faces returned are the first rows of a buffer as long as ``faces``."""
     n = target.shape[0]
     new = np.empty(n, np.int64)
     k = 0
@@ -27,6 +28,9 @@ def _compact(target, verts, faces, weight, normals, floor):
         if target[i] == i:
             new[i] = k
             k += 1
+    for i in range(n):  # a later copy takes the number of its first copy (a kept vertex)
+        if target[i] != i:
+            new[i] = new[target[i]]
     v_out = np.empty((k, 3))
     w_out = np.empty(k, np.float32)
     n_out = np.empty((k, 3))
@@ -36,19 +40,16 @@ def _compact(target, verts, faces, weight, normals, floor):
             v_out[j, 0], v_out[j, 1], v_out[j, 2] = verts[i, 0], verts[i, 1], verts[i, 2]
             w_out[j] = weight[i]
             x, y, z = normals[i, 0], normals[i, 1], normals[i, 2]
-            s = np.sqrt(x * x + y * y + z * z)
-            s = max(s, floor)
+            s = max(np.sqrt(x * x + y * y + z * z), floor)
             n_out[j, 0], n_out[j, 1], n_out[j, 2] = x / s, y / s, z / s
     f_out = np.empty_like(faces)
     m = 0
     for t in range(faces.shape[0]):
-        a = new[target[faces[t, 0]]]
-        b = new[target[faces[t, 1]]]
-        c = new[target[faces[t, 2]]]
+        a, b, c = new[faces[t, 0]], new[faces[t, 1]], new[faces[t, 2]]
         if a != b and b != c and a != c:
             f_out[m, 0], f_out[m, 1], f_out[m, 2] = a, b, c
             m += 1
-    return v_out, f_out[:m].copy(), w_out, n_out
+    return v_out, f_out[:m], w_out, n_out
 
 
 def assemble(parts: list, voxel_mm: float) -> SurfaceMesh:
