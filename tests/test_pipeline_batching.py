@@ -11,6 +11,7 @@ from dm2.core.config import MonitorConfig, ProcessConfig
 from dm2.core.messages import Profile, RobotState, Toolpath
 from dm2.fusion.fusion import TsdfFusion
 from dm2.fusion.registration import profile_frames, register_profiles, spot_B
+from dm2.fusion.tsdf import field as tsdf_field
 from dm2.fusion.tsdf.field import SparseTSDF
 
 
@@ -111,7 +112,8 @@ def test_deposit_capped_batch_equals_cap_then_fuse_per_profile_with_growth(cal):
         T_B_F, cal.T_F_O, np.stack([cal.T_B_S[s] for s in sensors]),
         np.array([sensors.index(p.sensor_id) for p in profiles]),
         spot_B(cal, 30.0), cal.T_B_N[:3, 2].copy())
-    one = SparseTSDF(0.5, 1.5, 4.0, initial_blocks=8)  # grows many times inside the call
+    # the serial kernel (two threads give its voxels in another block order: test_tsdf_threads)
+    one = SparseTSDF(0.5, 1.5, 4.0, initial_blocks=8, threads=1)  # grows many times in the call
     fused = one.integrate_profiles(xz, offsets, T_O_S, spots, axes, 3.0, deposit=(3.0, 3.0, 1.0))
     two = SparseTSDF(0.5, 1.5, 4.0, initial_blocks=8)
     capped, total = 0, [0, 0]
@@ -127,6 +129,13 @@ def test_deposit_capped_batch_equals_cap_then_fuse_per_profile_with_growth(cal):
     assert one.n_blocks == n > 8
     np.testing.assert_array_equal(one.block_keys[:n], two.block_keys[:n])
     np.testing.assert_array_equal(one.voxels[:n], two.voxels[:n])
+    split = SparseTSDF(0.5, 1.5, 4.0, initial_blocks=8, threads=2)  # the batch is split
+    assert len(xz) >= tsdf_field.MIN_SPLIT_POINTS
+    assert split.integrate_profiles(xz, offsets, T_O_S, spots, axes, 3.0,
+                                    deposit=(3.0, 3.0, 1.0)) == fused
+    ia, ib = np.argsort(one.block_keys[:n]), np.argsort(split.block_keys[:n])
+    np.testing.assert_array_equal(one.block_keys[:n][ia], split.block_keys[:n][ib])
+    np.testing.assert_array_equal(one.voxels[:n][ia], split.voxels[:n][ib])
 
 
 def test_integrate_profiles_rejects_mismatched_batches():
