@@ -64,6 +64,14 @@ def _found_slot(key, table, base, staging):
 
 
 @njit(cache=True, inline="always")
+def _owner(x, y, shift):
+    """The thread (0 or 1) that owns the column holding index ``(x, y)``: columns are
+    ``2**shift`` indices wide, dealt as a checkerboard (voxel indices with ``BLOCK_SHIFT +
+    col_shift``, block indices with ``col_shift``, column indices with 0)."""
+    return ((x >> shift) + (y >> shift)) & 1
+
+
+@njit(cache=True, inline="always")
 def _cap_owned(tid, col_shift, spot_O, axis_O, voxel_mm, deposit, table, voxels, base, staging):
     """Thread ``tid``'s part of :func:`dm2.fusion.tsdf.deposit.cap_near_axis` around ``spot_O,
     axis_O (3,)``: the blocks in its own columns, allocated or staged (``deposit``: radius,
@@ -72,7 +80,7 @@ def _cap_owned(tid, col_shift, spot_O, axis_O, voxel_mm, deposit, table, voxels,
     lo, hi = cap_box(voxel_mm, spot_O, axis_O, radius_mm, half_length_mm)
     for bx in range(lo[0] >> BLOCK_SHIFT, (hi[0] >> BLOCK_SHIFT) + 1):
         for by in range(lo[1] >> BLOCK_SHIFT, (hi[1] >> BLOCK_SHIFT) + 1):
-            if ((bx >> col_shift) + (by >> col_shift)) & 1 != tid:
+            if _owner(bx, by, col_shift) != tid:
                 continue
             for bz in range(lo[2] >> BLOCK_SHIFT, (hi[2] >> BLOCK_SHIFT) + 1):
                 slot = _found_slot(pack_key(bx, by, bz), table, base, staging)
@@ -132,7 +140,7 @@ def _owned(tid, col_shift, start, register, use_bounds, batch, params, deposit, 
     ra = rb = (1 << 40, 0, 0, -1)  # the two blocks looked up last (bx, by, bz, slot)
     capped = register and deposit[2] > 0.0
     for k in range(offsets.shape[0] - 1):
-        if offsets[k + 1] <= start and (offsets[k] < start or not capped):
+        if offsets[k] < start and offsets[k + 1] <= start:  # done before start
             continue
         if register:
             pose = profile_pose(T_O_S, spot_O, axis_O, k)
@@ -151,7 +159,7 @@ def _owned(tid, col_shift, start, register, use_bounds, batch, params, deposit, 
             cx0, cx1, cy0, cy1 = walk_columns(ox, oy, dx, dy, r, truncation_mm,
                                               carve_mm if act else 0.0, inv_vox, cs)
             mine = cx0 == cx1 and cy0 == cy1
-            if mine and ((cx0 + cy0) & 1) != tid:
+            if mine and _owner(cx0, cy0, 0) != tid:
                 continue  # the other thread's column
             behind = (behind_scale(xz_S, i, offsets[k], offsets[k + 1]) if register else
                       ray_behind_scale(origins_O, points_O, i, points_O.shape[0], r))
@@ -160,7 +168,7 @@ def _owned(tid, col_shift, start, register, use_bounds, batch, params, deposit, 
             last_bx, last_by, last_bz, slot = 1 << 40, 0, 0, -1
             t = 0.0
             while t <= span:
-                if mine or ((vx >> cs) + (vy >> cs)) & 1 == tid:
+                if mine or _owner(vx, vy, cs) == tid:
                     bx, by, bz = vx >> BLOCK_SHIFT, vy >> BLOCK_SHIFT, vz >> BLOCK_SHIFT
                     if bx != last_bx or by != last_by or bz != last_bz:
                         slot = recent_slot(bx, by, bz, ra, rb)
@@ -182,7 +190,7 @@ def _owned(tid, col_shift, start, register, use_bounds, batch, params, deposit, 
             end = span + carve_vox
             n_run, run_cx, run_cy = 0, 1 << 40, 0
             while t <= end:
-                if mine or ((vx >> cs) + (vy >> cs)) & 1 == tid:
+                if mine or _owner(vx, vy, cs) == tid:
                     if (vx >> cs) != run_cx or (vy >> cs) != run_cy:
                         n_run, run_cx, run_cy = 0, vx >> cs, vy >> cs
                     bx, by, bz = vx >> BLOCK_SHIFT, vy >> BLOCK_SHIFT, vz >> BLOCK_SHIFT
