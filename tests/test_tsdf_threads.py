@@ -77,7 +77,7 @@ def test_two_threads_equal_one_thread_for_registered_profiles():
 
 
 @pytest.mark.parametrize("staging_blocks", [None, 24])
-def test_two_threads_cap_around_the_spray_axis_as_one_thread(staging_blocks):
+def test_two_threads_cap_around_the_spray_axis_as_one_thread(staging_blocks, monkeypatch):
     """With the deposit cap (dm2.fusion.tsdf.deposit) each thread caps its own columns before
     each profile's points: the serial capped kernel's field bit for bit, also when the threads
     stop and resume mid-batch (a tight staging area) and across an empty profile."""
@@ -90,6 +90,14 @@ def test_two_threads_cap_around_the_spray_axis_as_one_thread(staging_blocks):
     deposit = (2.0, 2.0, 1.0)
     one, two, uncapped = (SparseTSDF(0.5, 1.5, 4.0, initial_blocks=64, threads=n)
                           for n in (1, 2, 1))
+    resumed = []
+    real = tsdf_split._timed_run
+
+    def spy(tid, start, n, *args):
+        resumed.append(0 < start < n)
+        return real(tid, start, n, *args)
+
+    monkeypatch.setattr(tsdf_split, "_timed_run", spy)
     if staging_blocks:
         two._split_buffers = tsdf_split.SplitBuffers(capacity=staging_blocks)
     for _ in range(2):  # the second pass meets the first pass's weights around the axis
@@ -97,6 +105,7 @@ def test_two_threads_cap_around_the_spray_axis_as_one_thread(staging_blocks):
                for t in (one, two)]
         uncapped.integrate_profiles(xz, offsets, T, spot, axis, 3.0, bounds)
     assert got[0] == got[1] and got[0][1] > 0
+    assert any(resumed) == bool(staging_blocks)  # the tight area made the threads resume
     _assert_same_field(one, two)
     n = one.n_blocks  # the cap did act: less weight than without it, the same blocks
     assert n == uncapped.n_blocks
