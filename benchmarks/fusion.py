@@ -10,9 +10,8 @@ second core is idle. With the package defaults (``deposit_weight_cap`` set) the 
 each profile's spray axis are capped before its points are fused (dm2.fusion.tsdf.deposit); with
 two threads each caps its own block columns in profile order, so the field is still the serial
 kernel's bit for bit. The kernel-alone line has no cap. The CPU-time line is load-independent:
-the replay's CPU seconds outside the two threads
-plus, for each batch, the slower thread's seconds, i.e. the replay's critical path on two idle
-cores.
+the replay's CPU seconds outside the two threads plus, for each batch, the slower thread's
+seconds, i.e. the replay's critical path on two idle cores.
 
 Three profilers (640 points each) look at a growing 60 x 60 mm block while the spot rasters over
 its top, which rises 100 mm over the run. Profiles are cast analytically before timing starts.

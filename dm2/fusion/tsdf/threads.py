@@ -53,8 +53,7 @@ def fuse_split(field, register: bool, use_bounds: bool, batch, params, counts,
     :class:`~dm2.fusion.tsdf.bundles.FusionParams`, the flags as in
     :func:`dm2.fusion.tsdf.kernels.fuse_profiles`; ``deposit``: the cap around each profile's
     spray axis, as in :func:`dm2.fusion.tsdf.owned_kernels.fuse_owned`); ``counts`` (skipped,
-    fused) is added to and
-    ``field.split_cpu_s`` receives the phases' CPU seconds."""
+    fused) is added to and ``field.split_cpu_s`` receives the phases' CPU seconds."""
     n = batch.xz_S.shape[0]
     buffers = field._split_buffers
     staging = buffers.staging
