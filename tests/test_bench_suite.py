@@ -52,9 +52,11 @@ def test_smoke_control_has_no_track(smoke):
     assert doc["summary"]["false_tracks_per_control"] == {"control": 0}
 
 
-@pytest.mark.xfail(strict=True, reason="missed target: the bump run reports a false process "
-                   "finding (on the small pad the local bump lifts the median top's growth by "
-                   "20 %, which the process fit reads as a deposition excess)")
+@pytest.mark.xfail(strict=True, reason="missed target: three runs report a false process "
+                   "finding. On the 16 x 10 mm pad the first layer has no plateau, so the "
+                   "latest growth estimate is the cell's scale, and a corner dwell or a dent "
+                   "on that small top moves it by 10-15 %; the feed step's pad has no later "
+                   "estimate, and its plume-sensitive first layer reads 5 % low")
 def test_smoke_suite_meets_its_targets(smoke):
     _, doc, _ = smoke
     s = doc["summary"]

@@ -52,6 +52,16 @@ def test_systematic_offset_is_calibrated_on_the_first_layer_and_reported():
     assert layers[0]["calibration"] and layers[0]["estimate"] == pytest.approx(0.92)
 
 
+def test_without_a_plateau_the_offset_is_the_latest_estimate():
+    # no reference map: the first layer's top cannot be read where the plume width does not
+    # matter, so its height is no better a scale than the growth read since
+    fit, _ = build(lambda k: 0.90 if k == 0 else 0.93)
+    assert fit.layers[0]["plateau"] is False
+    (detail,) = fit.finding_details()
+    assert detail["kind"] == "offset" and detail["estimate"] == pytest.approx(0.93)
+    assert detail["text"].startswith("deposition efficiency 7 % below nominal since layer 0")
+
+
 def test_calibration_is_bounded():
     fit, devs = build(lambda k: 0.5)
     assert fit.layers[0]["next_scale"] == pytest.approx(1 - fit.bound)
@@ -176,3 +186,27 @@ def test_growth_is_read_where_each_layer_is_measured():
     assert fit.layers[1]["growth_vertices"] == len(xy1)
     (finding,) = fit.finding_details()
     assert finding["kind"] == "offset" and finding["estimate"] == pytest.approx(1.18, abs=0.01)
+
+
+def test_on_a_plateau_the_offset_is_the_calibrated_scale_while_later_estimates_scatter():
+    # the calibration reads the pad's flat middle; the second layer's growth reads 4 % more (a
+    # later layer's smaller top, near the edges where the efficiency curve's shape moves it):
+    # within a change, so the cell's scale stays the calibration's
+    from dm2.reference.height_map import ReferenceMap
+    from dm2.reference.plume_width import rescale_plume
+
+    sigma, cell = 2.0, 0.25
+    ref0 = ReferenceMap(pad_deposit(sigma), cell, 0, 10.0, plume_sigma_mm=sigma)
+    truth0 = pad_deposit(1.15 * sigma, scale=1.18)
+    fit = ProcessFit()
+    scale, rescale, plume = fit.update(pad_layer(0, truth0, ref0, grid_xy(32.1, 48.0)))
+    assert fit.layers[0]["plateau"] is True and scale == pytest.approx(1.18, abs=0.01)
+    h1 = ref0.heights_mm * rescale
+    rescale_plume(h1, cell, sigma, plume)
+    h1 = h1 + pad_deposit(sigma * plume, scale=scale)
+    ref1 = ReferenceMap(h1, cell, 1, 20.0, plume_sigma_mm=sigma * plume)
+    truth1 = truth0 + pad_deposit(1.15 * sigma, scale=1.18 * 1.04)
+    fit.update(pad_layer(1, truth1, ref1, grid_xy(36.1, 44.0)))
+    assert fit.layers[1]["estimate"] == pytest.approx(1.18 * 1.04, abs=0.015)
+    (finding,) = fit.finding_details()
+    assert finding["kind"] == "offset" and finding["estimate"] == fit.layers[0]["next_scale"]

@@ -69,4 +69,5 @@ def test_flat_raster_grows_its_nominal_layer_for_thirty_passes():
         model.deposit_samples(hf, spots, np.tile(DOWN, (len(spots), 1)), DT)
     centre = hf.heights_mm[window]
     assert centre.mean() == pytest.approx(n_pass * nominal, rel=0.02)
-    assert centre.std() < 0.5  # rough at the packets' scale, but not running away
+    # as smooth as a fine powder's deposit (evenly placed packets), and not running away
+    assert centre.std() < 0.12

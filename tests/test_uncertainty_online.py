@@ -1,5 +1,6 @@
 """The uncertainty's model-error terms follow what the layer itself shows: a systematic model
-error over a term's whole bin raises that term by the injected factor; a local defect in a
+error over a term's whole bin raises that term by the injected factor, a cell closer to the
+model than the fit lowers it, at most to half; a local defect in a
 minority of the bin, a global offset of the top and a small bin do not; the live columns take
 the factors and give them back."""
 
@@ -13,6 +14,7 @@ from dm2.defects.uncertainty_online import (
     FACTORS,
     MAX_INFLATION,
     MIN_BIN_VERTICES,
+    MIN_FACTOR,
     inflated_sigma_mm,
     live_factors,
     model_inflation,
@@ -43,6 +45,19 @@ def inflate(f, d, observed=None, concave=None):
                            np.zeros(n, bool) if concave is None else concave)
 
 
+def term_error(rng, f, sigma, rows, term, true_factor):
+    """Deviations at ``rows`` whose ``term`` spread is ``true_factor`` times the configured one
+    (the other terms as configured): ``(d (k,), term_sd, other_sd, whole)``, ``whole`` the RMS of
+    the bin's z that this gives (between 1 and the term's own factor)."""
+    term_sd = np.sqrt(f[rows, term] * COEF[term])
+    other_sd = np.sqrt(sigma[rows] ** 2 - term_sd ** 2)
+    d = (rng.normal(0.0, 1.0, term_sd.size) * true_factor * term_sd
+         + rng.normal(0.0, 1.0, term_sd.size) * other_sd)
+    whole = np.sqrt(np.mean((true_factor * term_sd) ** 2 + other_sd ** 2)
+                    / np.mean(sigma[rows] ** 2))
+    return d, term_sd, other_sd, whole
+
+
 def test_deviations_the_model_explains_raise_nothing():
     rng = np.random.default_rng(1)
     f, sigma, *_ = layer(rng)
@@ -59,28 +74,41 @@ def test_systematic_model_error_at_the_edges_is_recovered(true_factor):
     f, sigma, top, edge, wall = layer(rng)
     d = rng.normal(0.0, 1.0, len(sigma)) * sigma
     # the cell's edges: the plume term's spread is true_factor times the configured one
-    plume_sd = np.sqrt(f[edge, PLUME] * COEF[PLUME])
-    other_sd = np.sqrt(sigma[edge] ** 2 - plume_sd ** 2)
-    d[edge] = (rng.normal(0.0, 1.0, plume_sd.size) * true_factor * plume_sd
-               + rng.normal(0.0, 1.0, plume_sd.size) * other_sd)
+    d[edge], plume_sd, _, whole = term_error(rng, f, sigma, edge, PLUME, true_factor)
     concave = np.zeros(len(d), bool)
     concave[edge] = True  # the cell errs where the reference is concave (feet, hole rims)
     factor = inflate(f, d, concave=concave)
     # the bin's robust RMS of z mixes the plume term with the others: between the true factor
     # of the whole sigma and the plume term's own
-    whole = np.sqrt(np.mean((true_factor * plume_sd) ** 2 + other_sd ** 2)
-                    / np.mean(sigma[edge] ** 2))
     assert whole * 0.9 < factor["plume_concave"] < true_factor * 1.1
-    assert factor["plume_convex"] == 1.0 and factor["wall"] == 1.0  # no evidence there
+    assert factor["plume_convex"] == 1.0  # no vertices there: no evidence
+    assert factor["wall"] == pytest.approx(1.0, abs=0.05)  # the walls as the model predicts
     # the raised sigma: the plume term's variance times the factor squared, concave only
     raised = inflated_sigma_mm(f, COEF, factor, concave)
     assert raised[edge] == pytest.approx(np.sqrt(sigma[edge] ** 2 + (factor["plume_concave"] ** 2
                                                                      - 1) * plume_sd ** 2))
-    assert np.array_equal(raised[top], sigma[top]) and np.array_equal(raised[wall], sigma[wall])
+    assert np.array_equal(raised[top], sigma[top])
     # the same error at convex vertices raises the convex bin instead
     swapped = inflate(f, d)
     assert swapped["plume_convex"] == factor["plume_concave"]
     assert swapped["plume_concave"] == 1.0
+
+
+@pytest.mark.parametrize("true_factor", [0.7, 0.2])
+def test_walls_closer_to_the_model_than_the_fit_lower_their_term_at_most_to_half(true_factor):
+    rng = np.random.default_rng(5)
+    f, sigma, top, edge, wall = layer(rng)
+    d = rng.normal(0.0, 1.0, len(sigma)) * sigma
+    d[wall], wall_sd, other_sd, whole = term_error(rng, f, sigma, wall, WALL, true_factor)
+    factor = inflate(f, d)
+    # the bin's RMS of z: the whole sigma's share that is left, bounded below by MIN_FACTOR
+    assert factor["wall"] == pytest.approx(max(whole, MIN_FACTOR), abs=0.05)
+    assert factor["wall"] >= MIN_FACTOR and factor["wall"] < 0.95
+    assert factor["plume_convex"] == pytest.approx(1.0, abs=0.1)  # the edges as predicted
+    lowered = inflated_sigma_mm(f, COEF, factor, np.zeros(len(d), bool))
+    assert lowered[wall] == pytest.approx(np.sqrt(other_sd ** 2
+                                                  + (factor["wall"] * wall_sd) ** 2))
+    assert np.array_equal(lowered[top], sigma[top])  # floor and range stay as configured
 
 
 def test_a_local_defect_and_a_global_offset_raise_nothing_much():

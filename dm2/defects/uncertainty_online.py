@@ -1,4 +1,4 @@
-"""The model-error terms of the uncertainty, raised to what the layer itself shows.
+"""The model-error terms of the uncertainty, set to what the layer itself shows.
 
 The uncertainty model's coefficients (:mod:`dm2.defects.uncertainty`) are fitted once, on a
 cell whose physics is close to the monitor's model. Another cell's deposition departs from the
@@ -14,11 +14,17 @@ where that term dominates the predicted variance:
   where the model predicts the spread, larger where this cell's model error is larger (its bias
   included). The median ignores the bin's minority, so a defect on part of the walls or edges
   does not raise its own bound;
-* the term's variance is multiplied by the square of that RMS when it exceeds 1, at most
-  ``MAX_INFLATION`` times the configured standard deviation. It is never lowered: the fitted
-  model stays the floor.
+* the term's standard deviation is multiplied by that RMS, within ``MIN_FACTOR`` and
+  ``MAX_INFLATION``. Raised, it absorbs a cell that errs more than the one the coefficients
+  were fitted on. Lowered, it follows a cell, or a deposit, closer to the model than that one:
+  the fitted model-error terms are a conservative fit, and where the layer's own deviations
+  stay far inside them they would hide a defect there (the default run's corner overbuild,
+  measured at 0.68 mm on fresh deposit at a wall, stood inside a 0.60 mm bound whose wall and
+  convex plume terms that layer's walls and edges showed more than twice too wide). It is
+  lowered at most to half: a bin's median says how most of it behaves, and half of a fitted
+  term still covers the minority.
 
-Only the model-shape terms (``MODEL_TERMS``) are raised. The floor and range terms are the
+Only the model-shape terms (``MODEL_TERMS``) follow the layer. The floor and range terms are the
 measurement's, and a uniform offset of the whole top is the process fit's business
 (:mod:`dm2.pipeline.process_fit`): raising them would hide a global over- or underbuild.
 The plume term has two bins, concave and convex reference (where the plume's tail lands and
@@ -44,13 +50,15 @@ FACTORS = ("wall", "edge", "foot", "plume_concave", "plume_convex")
 TERM_SHARE = 0.5  # a vertex belongs to a term's bin where the term holds this share of sigma^2
 MIN_BIN_VERTICES = 100  # fewer vertices in a bin: no evidence, factor 1
 MAX_INFLATION = 3.0  # a term's standard deviation is raised at most this many times
+MIN_FACTOR = 0.5  # and lowered at most to this share of the configured one
 CHI2_1_MEDIAN = 0.45493642311957283  # median of z^2 for a standard normal z
 
 
 def model_inflation(features: np.ndarray, deviation_mm: np.ndarray, coefficients: np.ndarray,
                     observed: np.ndarray, concave: np.ndarray) -> dict[str, float]:
-    """Factors ``{name: factor >= 1}`` of :data:`FACTORS` on the model-error terms' standard
-    deviations, from one layer's vertices.
+    """Factors ``{name: MIN_FACTOR <= factor <= MAX_INFLATION}`` of :data:`FACTORS` on the
+    model-error terms' standard deviations, from one layer's vertices (1 where a bin has too
+    few vertices to say).
 
     Parameters
     ----------
@@ -82,7 +90,7 @@ def model_inflation(features: np.ndarray, deviation_mm: np.ndarray, coefficients
         if np.count_nonzero(in_bin) < MIN_BIN_VERTICES:
             continue
         rms = float(np.sqrt(np.median(z2[in_bin]) / CHI2_1_MEDIAN))
-        factors[name] = min(max(rms, 1.0), MAX_INFLATION)
+        factors[name] = min(max(rms, MIN_FACTOR), MAX_INFLATION)
     return factors
 
 

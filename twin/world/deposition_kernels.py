@@ -57,37 +57,15 @@ def uniform(state):
     return float(next_u64(state) >> np.uint64(11)) * (1.0 / 9007199254740992.0)
 
 
+# the R2 sequence's steps (1/g and 1/g^2 for the plastic number g, the root of x^3 = x + 1): the
+# two-dimensional low-discrepancy sequence whose points fill the unit square most evenly
+R2_A1 = 0.7548776662466927
+R2_A2 = 0.5698402909980532
+
+
 @njit(cache=True)
-def poisson(state, lam):
-    """Poisson draw (Knuth below 10, Hoermann's PTRS transformed rejection above)."""
-    if lam <= 0.0:
-        return 0
-    if lam < 10.0:
-        limit = math.exp(-lam)
-        k = 0
-        p = uniform(state)
-        while p > limit:
-            k += 1
-            p *= uniform(state)
-        return k
-    slam = math.sqrt(lam)
-    loglam = math.log(lam)
-    b = 0.931 + 2.53 * slam
-    a = -0.059 + 0.02483 * b
-    invalpha = 1.1239 + 1.1328 / (b - 3.4)
-    vr = 0.9277 - 3.6224 / (b - 2.0)
-    while True:
-        u = uniform(state) - 0.5
-        v = uniform(state)
-        us = 0.5 - abs(u)
-        k = math.floor((2.0 * a / us + b) * u + lam + 0.43)
-        if us >= 0.07 and v <= vr:
-            return int(k)
-        if k < 0 or (us < 0.013 and v > us):
-            continue
-        if (math.log(v) + math.log(invalpha) - math.log(a / (us * us) + b)
-                <= -lam + k * loglam - math.lgamma(k + 1.0)):
-            return int(k)
+def _frac(x):
+    return x - math.floor(x)
 
 
 # the twin's physics beyond the nominal model, packed for the kernels (see
@@ -284,9 +262,15 @@ def _splat(H, bmax, zmax, dirty, cell, x, y, vol, w, unrolled=True):
 
 
 @njit(cache=True, nogil=True)
-def spray_step(field, state, lam, spot, axis, sigma, back_mm, zeta0, plume):
-    """Draw ``Poisson(lam)`` packets from the plume at ``spot`` along ``axis`` and deposit them
-    onto ``field`` (:class:`FieldArrays`).
+def spray_step(field, state, seq, lam, spot, axis, sigma, back_mm, zeta0, plume):
+    """Send ``lam`` packets (on average) from the plume at ``spot`` along ``axis`` onto ``field``
+    (:class:`FieldArrays`).
+
+    The count is ``lam`` rounded down or up at random, so that it is ``lam`` on average; each
+    packet's place across the jet is the next point of the R2 sequence ``seq`` (float64 (2,),
+    advanced in place), carried from step to step, so that the packets cover the plume as
+    evenly as the millions of particles of a real powder jet do (see
+    :mod:`twin.world.deposition`).
 
     ``plume`` (:class:`Plume`) carries the twin's own physics: efficiency curve, porosity,
     spray-distance efficiency and the plume's profile; ``sigma`` [mm], ``back_mm`` (the nozzle
@@ -325,13 +309,15 @@ def spray_step(field, state, lam, spot, axis, sigma, back_mm, zeta0, plume):
     bulk = phys[PHYS_BULK]
     slope = phys[PHYS_STANDOFF_SLOPE]
     s_ref = phys[PHYS_STANDOFF_REF]
-    n_packets = poisson(state, lam)
+    n_packets = int(lam + uniform(state))
     w = np.empty((2 * SPLAT_RADIUS_CELLS + 1) ** 2)
     deposited = 0.0
     missed = 0
     for _ in range(n_packets):
-        u1 = 1.0 - uniform(state)
-        u2 = uniform(state)
+        seq[0] = _frac(seq[0] + R2_A1)
+        seq[1] = _frac(seq[1] + R2_A2)
+        u1 = 1.0 - seq[0]
+        u2 = seq[1]
         r = sigma * radial_offset(u1, radial)
         g1 = r * math.cos(2.0 * math.pi * u2)
         g2 = r * math.sin(2.0 * math.pi * u2)
@@ -366,14 +352,14 @@ def spray_step(field, state, lam, spot, axis, sigma, back_mm, zeta0, plume):
 
 
 @njit(cache=True, nogil=True)
-def spray_samples(field, state, lam, spots, axes, sigma, back_mm, zeta0, plume, out_vol,
+def spray_samples(field, state, seq, lam, spots, axes, sigma, back_mm, zeta0, plume, out_vol,
                   out_counts):
     """:func:`spray_step` for each executed-motion sample ``k`` (``lam[k] == 0`` skips it)."""
     for k in range(spots.shape[0]):
         if lam[k] <= 0.0:
             out_vol[k] = 0.0
             continue
-        vol, n, missed = spray_step(field, state, lam[k], spots[k], axes[k], sigma[k],
+        vol, n, missed = spray_step(field, state, seq, lam[k], spots[k], axes[k], sigma[k],
                                     back_mm[k], zeta0[k], plume)
         out_vol[k] = vol
         out_counts[0] += n
