@@ -225,17 +225,13 @@ class ProcessFit:
           twin's parts), since the first layer of the trailing run of such estimates with its
           sign: a drift or step of the process during the build;
         * ``offset``: without a change, the cell's scale off nominal by ``finding_threshold``
-          or more, since the calibration layer. Where the calibration was read on a plateau
-          of the first layer (``plateau``: where the plume width does not move the
-          reference), the scale is the calibration's: it reads the whole first layer's top,
-          flat on the plate (1,000 to 4,000 vertices on the regression parts), where a later
-          layer reads its growth on the shrinking top (60 to 700 vertices), near the edges
-          where the efficiency curve's shape moves it (on the regression parts the
-          calibrations lie within 1.6 % of the scale the twin deposits at, the latest
-          estimates up to 3.2 % off). A part too small for such a plateau (a 16 x 10 mm pad)
-          has a first layer whose height depends on the plume's width and shape as much as
-          on the deposition; there the latest estimate, read with the calibrated plume, is
-          the cell's scale. The later estimates decide whether the process changed.
+          or more, since the calibration layer. The scale is the calibration's where it was
+          read on a plateau (``plateau``: where the plume width does not move the reference):
+          the first layer's whole top (1,000-4,000 vertices on the regression parts, within
+          1.2 % of the twin's scale), where later layers read their growth on a shrinking top
+          near the edges (60-700 vertices, up to 3 % off on the same runs). Without a plateau (a 16 x 10 mm
+          pad) the first layer's height depends on the plume as much as on the deposition, and
+          the latest estimate, read with the calibrated plume, is the scale.
         """
         cal = next((e for e in self.layers if e.get("calibration")), None)
         if cal is None:

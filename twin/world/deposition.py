@@ -12,6 +12,11 @@ Model (the paper's eq. for the coating distribution, sampled instead of integrat
 * **Plume.** Each packet leaves the nozzle exit (``standoff_mm + standoff_delta_mm`` behind the
   spot along the spray axis) displaced across the jet by an isotropic 2-D Gaussian of standard
   deviation ``sigma``, and travels along the axis to the current surface (exact ray cast).
+  ``sigma = (nozzle_exit_mm / 2 + s * tan(plume_half_angle_deg)) / 2`` at standoff ``s``: the
+  jet radius grows linearly from the exit radius with the divergence half-angle and is taken as
+  two standard deviations (6.55 mm exit, 30 mm standoff, 5 deg: sigma = 2.95 mm). When
+  ``plume_sigma_mm`` is set it is sigma at the nominal standoff and scales with the same law.
+  A tilted spray therefore paints an elliptical footprint, stretched by ``1 / cos(theta)``.
   The displacements are not drawn independently: they are the successive points of one
   low-discrepancy (R2) sequence mapped through the plume's radial profile, carried over the
   model's whole life. A packet stands for a few hundred particles; drawn independently,
@@ -21,23 +26,20 @@ Model (the paper's eq. for the coating distribution, sampled instead of integrat
   cell shows. Evenly placed packets cover the plume as the real powder does (a static spot
   matches the plume's profile to 0.3 % rms) while the motion, the surface and the twin's
   physics still set where and how much sticks.
-  ``sigma = (nozzle_exit_mm / 2 + s * tan(plume_half_angle_deg)) / 2`` at standoff ``s``: the
-  jet radius grows linearly from the exit radius with the divergence half-angle and is taken as
-  two standard deviations (6.55 mm exit, 30 mm standoff, 5 deg: sigma = 2.95 mm). When
-  ``plume_sigma_mm`` is set it is sigma at the nominal standoff and scales with the same law.
-  A tilted spray therefore paints an elliptical footprint, stretched by ``1 / cos(theta)``.
 * **Sticking.** The impact angle ``theta`` is the angle between the reversed jet and the surface
   normal, a central difference over ``NORMAL_STEP_MM`` = 1.5 mm either side of the hit: the
   macroscopic surface that an efficiency curve is measured against (a nozzle tilted over a flat
   coupon), not the slope of the packets' own shot noise. One packet carries the volume of a few
   hundred CP-Ti particles (0.002 to 0.005 mm^3 against 1.4e-5 mm^3 for a 30 um particle), so
-  the twin's surface is far rougher below a millimetre than a real deposit. A normal taken over
-  0.5 mm read that roughness as impact angle and the efficiency lost on its slopes fed it back:
-  a wide flat raster (26 g/min, 30 mm/s, 2 mm spacing) roughened without bound (rms 0.14 mm
-  after 8 passes, 1.4 mm after 48) and its growth per pass fell from 0.80 to 0.37 mm, which
-  stalled the twisted tower at about 40 mm. Over 1.5 mm either side the raster keeps 0.80 mm
+  each leaves a splat far coarser than a real deposit's grain. With independently drawn
+  packets (before the R2 placement above), a normal taken over 0.5 mm read that roughness as
+  impact angle and the efficiency lost on its slopes fed it back: a wide flat raster
+  (26 g/min, 30 mm/s, 2 mm spacing) roughened without bound (rms 0.14 mm after 8 passes,
+  1.4 mm after 48) and its growth per pass fell from 0.80 to 0.37 mm, which stalled the
+  twisted tower at about 40 mm. Over 1.5 mm either side the raster keeps 0.80 mm
   per pass for 72 passes (rms 0.45 mm), while walls, corners and the jet's own footprint
-  (sigma about 3 mm) still set the angle (see ``benchmarks/tower_scale.py``).
+  (sigma about 3 mm) still set the angle (see ``benchmarks/tower_scale.py``). Evenly placed
+  packets leave that raster at 0.07 mm rms after 30 passes.
   A packet adds ``zeta(theta) * efficiency_factor`` of its volume, with
   ``zeta(theta) = deposition_efficiency * cos^2(pi/2 * (theta / critical_angle)^2)`` for
   ``theta < critical_angle`` and 0 beyond: flat near normal impact (zeta(15 deg) = 0.98 zeta(0)
