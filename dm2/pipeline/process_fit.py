@@ -229,9 +229,9 @@ class ProcessFit:
           read on a plateau (``plateau``: where the plume width does not move the reference):
           the first layer's whole top (1,000-4,000 vertices on the regression parts, within
           1.2 % of the twin's scale), where later layers read their growth on a shrinking top
-          near the edges (60-700 vertices, up to 3 % off on the same runs). Without a plateau (a 16 x 10 mm
-          pad) the first layer's height depends on the plume as much as on the deposition, and
-          the latest estimate, read with the calibrated plume, is the scale.
+          near the edges (60-700 vertices, up to 3 % off on the same runs). Without a plateau
+          (a 16 x 10 mm pad) the first layer's height depends on the plume as much as on the
+          deposition, and the latest estimate, read with the calibrated plume, is the scale.
         """
         cal = next((e for e in self.layers if e.get("calibration")), None)
         if cal is None:
