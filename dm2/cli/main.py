@@ -8,6 +8,7 @@ COMMAND_MODULES = [
     "cmd_toolpath",
     "cmd_monitor",
     "cmd_calibrate",
+    "cmd_fit",
     "cmd_run",
     "cmd_live",
     "cmd_bench",

@@ -75,6 +75,9 @@ class ProcessConfig(_Model):
     deposition_efficiency: float = Field(0.5, gt=0, le=1)  # zeta at normal impact
     plume_sigma_mm: float | None = Field(None, gt=0)  # default derived from exit and standoff
     critical_angle_deg: float = Field(75.0, gt=0, le=90)  # zeta(theta) falls to 0 here
+    # the cell's curve falls off faster than the model's by cos(theta)**this (0: the model's
+    # curve; fitted from a fault-free recording by `dm2 fit-efficiency`)
+    efficiency_cos_exponent: float = Field(0.0, ge=0, le=6)
     plume_half_angle_deg: float = Field(5.0, ge=0, lt=45)  # jet divergence past the exit
     packets_per_s: float = Field(20000.0, gt=0)  # particle packets drawn per second at full feed
 

@@ -77,9 +77,12 @@ def efficiency(cos_t, zeta0, theta_c):
     return zeta0 * c * c
 
 
-def efficiency_table(zeta0: float, theta_c: float, n: int = 4097) -> np.ndarray:
-    """:func:`efficiency` at ``n`` evenly spaced ``cos theta`` in [0, 1]."""
-    return np.array([efficiency(c, zeta0, theta_c) for c in np.linspace(0.0, 1.0, n)])
+def efficiency_table(zeta0: float, theta_c: float, n: int = 4097,
+                     cos_exponent: float = 0.0) -> np.ndarray:
+    """:func:`efficiency` times ``cos(theta) ** cos_exponent`` at ``n`` evenly spaced
+    ``cos theta`` in [0, 1]."""
+    cos_t = np.linspace(0.0, 1.0, n)
+    return np.array([efficiency(c, zeta0, theta_c) for c in cos_t]) * cos_t ** cos_exponent
 
 
 @njit(cache=True)

@@ -35,7 +35,9 @@ Model choices (documented, deliberately simple, independent of the twin's physic
   deposition-efficiency curves are (zeta(15 deg) = 0.98 zeta_0 at 75 deg), zeta(60 deg) =
   0.29 zeta_0, to 0 at ``theta_c``. (A falloff linear in ``cos theta`` already lost 2-4 % on
   the gentle slopes between raster lines once the angle is taken per cell, and left the
-  reference 0.3 mm low on a plain pad.)
+  reference 0.3 mm low on a plain pad.) A cell whose curve falls off sooner is described by
+  ``process.efficiency_cos_exponent`` ``p``: the curve times ``cos(theta)^p`` (0 by default;
+  fitted from a fault-free recording, :mod:`dm2.pipeline.curve_fit`).
 * ``sigma`` is ``process.plume_sigma_mm`` when given, else half the plume radius at the
   standoff, the plume widening from the nozzle exit with the half angle
   ``process.plume_half_angle_deg``: ``sigma = (nozzle_exit_mm / 2 + standoff_mm * tan(a)) / 2``
@@ -77,6 +79,7 @@ def deposition_efficiency(theta_rad, process) -> np.ndarray:
     """``zeta(theta)``: efficiency at spray angle ``theta`` [rad] from the surface normal."""
     x = np.asarray(theta_rad, dtype=np.float64) / math.radians(process.critical_angle_deg)
     z = process.deposition_efficiency * np.cos(0.5 * np.pi * np.clip(x, 0.0, 1.0) ** 2) ** 2
+    z = z * np.abs(np.cos(theta_rad)) ** process.efficiency_cos_exponent
     return np.where(x < 1.0, z, 0.0)
 
 
@@ -119,7 +122,8 @@ class NearNetReference:
         self._T_F_O = np.ascontiguousarray(calibration.T_F_O, dtype=np.float64)
         self._last = np.zeros(16)  # newest state and the pending piece (reference_kernels)
         self._zmax = np.zeros(1)
-        self._lut = RK.efficiency_table(process.deposition_efficiency, self._theta_c)
+        self._lut = RK.efficiency_table(process.deposition_efficiency, self._theta_c,
+                                        cos_exponent=process.efficiency_cos_exponent)
         self._deposited_mm3 = 0.0
         self._buf_spot = np.empty((64, 3))
         self._buf_axis = np.empty((64, 3))

@@ -1,0 +1,140 @@
+"""``[process] efficiency_cos_exponent`` and ``dm2 fit-efficiency``: the reference's curve takes
+the exponent; the fit recovers a known exponent from deviations that depend on it, refuses a part
+that does not show the curve, and on the twin tells a cell whose efficiency falls linearly with
+the spray angle from one that follows the model; with the fitted value the linear cell's bump is
+found and nothing else is reported."""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from dm2.cli.main import app
+from dm2.core.config import ConfigError, ProcessConfig, parse_scenario, read_toml
+from dm2.defects.classify import CLASS_NAMES
+from dm2.pipeline.curve_fit import CurveNotObservable, fit_efficiency_exponent
+from dm2.reference import kernels as RK
+from dm2.reference.model import deposition_efficiency
+
+ROOT = Path(__file__).resolve().parents[1]
+SUITES = ROOT / "scenarios" / "suites"
+runner = CliRunner()
+
+
+def test_the_exponent_scales_the_curve_by_cos_theta():
+    base = RK.efficiency_table(0.5, math.radians(75.0), n=101)
+    steep = RK.efficiency_table(0.5, math.radians(75.0), n=101, cos_exponent=2.0)
+    cos_t = np.linspace(0.0, 1.0, 101)
+    np.testing.assert_allclose(steep, base * cos_t**2)
+    assert steep[-1] == base[-1] == 0.5  # normal impact: unchanged
+    theta = np.radians([0.0, 30.0, 60.0, 80.0])
+    p = ProcessConfig(efficiency_cos_exponent=1.5)
+    np.testing.assert_allclose(deposition_efficiency(theta, p),
+                               deposition_efficiency(theta, ProcessConfig())
+                               * np.cos(theta) ** 1.5)
+
+
+def test_a_negative_exponent_is_refused_by_name():
+    with pytest.raises(ConfigError, match="efficiency_cos_exponent"):
+        parse_scenario({"schema": 1, "name": "x", "process": {"efficiency_cos_exponent": -1.0}},
+                       "bad.toml")
+
+
+def _fake_pipeline(true_exponent: float, sensitivity_mm: np.ndarray, curvature: float = 0.0):
+    """A run whose observed deviations are ``s * (p - p*) + c * (p - p*)**2`` plus fixed
+    noise, with some unobserved and outside-the-outline vertices holding nonsense."""
+    rng = np.random.default_rng(5)
+    n = sensitivity_mm.size
+    noise = rng.normal(0.0, 0.05, n)
+    vertices = rng.uniform(0.0, 50.0, (n, 3))
+    codes = np.zeros(n, dtype=np.int8)
+    codes[:50] = CLASS_NAMES.index("unobserved")
+    outside = np.zeros(n)
+    outside[50:100] = 4.0
+    calls = []
+
+    def run(process):
+        e = process.efficiency_cos_exponent - true_exponent
+        d = sensitivity_mm * e + curvature * e * e + noise
+        d[:100] = 2.5  # never used
+        calls.append(process.efficiency_cos_exponent)
+        dev = SimpleNamespace(signed_distance_mm=d, class_code=codes, vertices_O=vertices,
+                              outside_mm=outside)
+        return [SimpleNamespace(layer=0, deviation=dev)], []
+
+    return run, calls
+
+
+def test_the_fit_recovers_a_known_exponent():
+    s = np.random.default_rng(1).uniform(0.05, 0.4, 4000)
+    run, calls = _fake_pipeline(2.3, s, curvature=-0.02)
+    fit = fit_efficiency_exponent(run, ProcessConfig())
+    assert fit.exponent == pytest.approx(2.3, abs=0.03)
+    assert fit.start == 0.0 and calls[0] == 0.0
+    assert fit.start_rms_mm > 0.3 > 0.06 > fit.residual_rms_mm
+    assert len(fit.iterations) <= 4
+
+
+def test_a_model_that_matches_fits_zero():
+    s = np.random.default_rng(2).uniform(0.05, 0.4, 4000)
+    run, _ = _fake_pipeline(0.0, s)
+    fit = fit_efficiency_exponent(run, ProcessConfig())
+    assert fit.exponent == pytest.approx(0.0, abs=0.03)
+
+
+def test_a_part_without_slopes_is_refused():
+    run, _ = _fake_pipeline(1.0, np.zeros(4000))
+    with pytest.raises(CurveNotObservable, match="walls or slopes"):
+        fit_efficiency_exponent(run, ProcessConfig())
+
+
+def _fit_cli(tmp_path: Path, scenario: Path) -> float:
+    rec, out = tmp_path / f"{scenario.stem}.mcap", tmp_path / f"{scenario.stem}_curve.toml"
+    res = runner.invoke(app, ["simulate", str(scenario), "--out", str(rec)])
+    assert res.exit_code == 0, res.output
+    res = runner.invoke(app, ["fit-efficiency", str(rec), "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    text = out.read_text(encoding="utf-8")
+    assert text.startswith("# dm2 fit-efficiency")
+    again = runner.invoke(app, ["fit-efficiency", str(rec), "--out", str(out)])
+    assert again.exit_code == 2 and "exists" in again.output  # never overwritten
+    assert out.read_text(encoding="utf-8") == text
+    return tomllib.loads(text)["process"]["efficiency_cos_exponent"]
+
+
+@pytest.mark.slow
+def test_the_fit_tells_a_linear_cell_from_the_model_and_finds_its_bump(tmp_path):
+    from dm2.cli.bench_runner import run_scenario, score_scenario_run
+
+    linear = _fit_cli(tmp_path, SUITES / "model_error" / "control_box_linear.toml")
+    nominal = _fit_cli(tmp_path, SUITES / "regression" / "control_box.toml")
+    assert 1.8 <= linear <= 3.5  # the twin's linear curve falls off much sooner than cos^2
+    assert nominal <= 0.6  # the twin's default curve is close to the model's
+
+    # the linear cell's bump, monitored with the fitted curve: found with its sign and layer,
+    # and nothing else; with the model's own curve it is missed
+    path = SUITES / "model_error" / "bump_box_corner_linear.toml"
+    data = read_toml(path)
+    scores = {}
+    for p in (0.0, linear):
+        data["process"]["efficiency_cos_exponent"] = p
+        run = run_scenario(parse_scenario(data, str(path)), tmp_path / f"bump_{p}",
+                           full_report=False)
+        scores[p] = score_scenario_run(run)
+    fitted = scores[linear]
+    assert len(fitted["true_tracks"]) == 1 and not fitted["false_tracks"]
+    assert not fitted["fragments"] and fitted["false_findings"] == 0
+    assert fitted["realtime_false_alarms"] == 0
+    (track,) = fitted["tracks"]
+    assert track["kind"] == "overbuild" and track["faults"] == [0]
+    (fault,) = fitted["faults"]
+    assert fault["detected"] and fault["sign_ok"] and fault["first_layer_detected"] == 1
+    assert fault["height_mm"] == pytest.approx(fault["truth_height_mm"], abs=0.2)
+    assert fitted["expect_passed"]
+    assert not scores[0.0]["true_tracks"]
