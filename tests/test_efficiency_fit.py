@@ -138,3 +138,27 @@ def test_the_fit_tells_a_linear_cell_from_the_model_and_finds_its_bump(tmp_path)
     assert fault["height_mm"] == pytest.approx(fault["truth_height_mm"], abs=0.2)
     assert fitted["expect_passed"]
     assert not scores[0.0]["true_tracks"]
+
+
+def test_the_bench_fits_each_cell_on_its_own_fault_free_build():
+    from dm2.cli.bench_curve import calibration_scenario, cell_key, with_exponent
+    from dm2.core.config import load_scenario
+
+    sc = load_scenario(SUITES / "model_error" / "bump_box_corner_linear.toml")
+    cal = calibration_scenario(sc)
+    assert not cal.faults and sc.faults and cal.seed != sc.seed  # never the scored build
+    assert cal.part.generator == "seven_sided"
+    assert cal.twin_process == sc.twin_process and cal.process == sc.process
+    assert cell_key(cal) == cell_key(sc)  # the same cell
+    other = load_scenario(SUITES / "model_error" / "bump_box_corner_cos_wide.toml")
+    assert cell_key(other) != cell_key(sc)
+    fitted = with_exponent(sc, 2.5)
+    assert fitted.process.efficiency_cos_exponent == 2.5
+    assert sc.process.efficiency_cos_exponent == 0.0
+
+
+def test_bench_refuses_an_unknown_curve_mode(tmp_path):
+    res = runner.invoke(app, ["bench", "--suite", "smoke", "--curve", "guessed", "--out",
+                              str(tmp_path / "b")])
+    assert res.exit_code == 2 and "--curve guessed" in res.output
+    assert not (tmp_path / "b").exists()

@@ -98,6 +98,11 @@ def bench(
                                     "rehearsed and solved first on a twin whose profilers "
                                     "stand off the nominal layout, and the build is monitored "
                                     "with it (and, for comparison, with the true one)."),
+    curve: str = typer.Option("configured", "--curve", help="configured: the scenarios' "
+                              "efficiency curve; fitted: each cell's curve is first fitted "
+                              "from a fault-free calibration build on the twin (as `dm2 "
+                              "fit-efficiency` does on a recording) and the suite is "
+                              "monitored with it."),
 ) -> None:
     """Run a suite of scenarios with injected faults and score each strictly against the
     twin's truth maps (every track counts; see dm2.bench.scoring).
@@ -115,6 +120,8 @@ def bench(
     with bad_input_exits():
         if calibration not in ("true", "rehearsed"):
             raise ValueError(f"--calibration {calibration}: expected 'true' or 'rehearsed'")
+        if curve not in ("configured", "fitted"):
+            raise ValueError(f"--curve {curve}: expected 'configured' or 'fitted'")
         spec, files = resolve_suite(suite, scenario_dir() / "suites")
         if only:
             files = [f for f in files if f.stem in set(only)]
@@ -132,10 +139,21 @@ def bench(
     runs: dict[str, dict] = {}
     done_runs = {}
     chain_true, chain_cmp = {}, {}
+    curves: dict[str, dict] = {}  # cell -> its fitted curve (--curve fitted)
     t0 = time.perf_counter()
     for path, sc in scenarios:
         t1 = time.perf_counter()
         try:
+            if curve == "fitted":
+                from dm2.cli.bench_curve import cell_key, fit_cell_curve, with_exponent
+
+                key = cell_key(sc)
+                if key not in curves:
+                    curves[key] = fit_cell_curve(sc)
+                    console.print(f"  cell of {path.stem}: efficiency_cos_exponent "
+                                  f"{curves[key]['exponent']:.3f} (fitted on "
+                                  f"{curves[key]['calibration_build']})")
+                sc = with_exponent(sc, curves[key]["exponent"])
             if calibration == "rehearsed":
                 from dm2.cli.bench_calibration import compare, run_rehearsed
 
@@ -151,6 +169,8 @@ def bench(
             runs[path.stem] = {"error": f"{type(exc).__name__}: {exc}", "expect_passed": False}
             continue
         runs[path.stem] = score_scenario_run(run)
+        if curve == "fitted":
+            runs[path.stem]["curve"] = curves[key]
         done_runs[path.stem] = run
         console.print(f"  {path.stem}: {time.perf_counter() - t1:.1f} s wall, "
                       f"{run.process_s:.1f} s process, {len(run.report['layers'])} layers")
@@ -161,7 +181,7 @@ def bench(
         summary["errors"] = sorted(set(runs) - set(ok_runs))
     summary["wall_s"] = time.perf_counter() - t0
     doc = {"schema": "dm2.bench/2", "suite": spec.name, "description": spec.description,
-           "overrides": list(overrides), "runs": runs, "summary": summary}
+           "overrides": list(overrides), "curve": curve, "runs": runs, "summary": summary}
     if spec.paper:
         doc["paper"] = _paper_outputs(out_dir, done_runs)
     if calibration == "rehearsed":
