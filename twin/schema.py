@@ -51,6 +51,9 @@ class TwinProcessConfig(_Model):
     # J. Therm. Spray Technol., CP-Ti): nearly constant to about 30 deg off normal, then falling
     efficiency_curve: Literal["cos2", "cos", "linear", "plateau"] = "plateau"
     plateau_angle_deg: float = Field(30.0, ge=0, lt=90)
+    # the twin's curve times cos(theta) to this power (0: the curve alone); the twin's own, so
+    # never taken from [process], where it describes the monitor's model of the curve
+    efficiency_cos_exponent: float = Field(0.0, ge=0, le=6)
     # radial plume density exp(-(r/a)^p / 2) at equal rms width; 2 = Gaussian. Default 2.4: a
     # slightly flat-topped jet, as single cold-spray tracks are flatter on top than a Gaussian
     plume_exponent: float = Field(2.4, ge=1, le=8)

@@ -84,9 +84,9 @@ def coupon_scale(scenario) -> float:
                / (nominal.feed_g_min * nominal.deposition_efficiency)
                / (1.0 - physics.porosity) * nominal.powder_density_g_cm3
                / proc.powder_density_g_cm3)
-    if physics.efficiency_curve == FLAT_CURVE:
+    if physics.efficiency_curve == FLAT_CURVE and physics.efficiency_cos_exponent == 0.0:
         return float(factors)
-    flat = replace(physics, efficiency_curve=FLAT_CURVE)
+    flat = replace(physics, efficiency_curve=FLAT_CURVE, efficiency_cos_exponent=0.0)
     args = (float(scenario.toolpath.line_spacing_mm), float(scenario.toolpath.speed_mm_s.infill),
             int(scenario.seed))
     curve = coupon_plateau_mm(proc, physics, *args) / coupon_plateau_mm(proc, flat, *args)

@@ -264,7 +264,8 @@ def twin_process(scenario: TwinScenario) -> tuple[ProcessConfig, TwinPhysics]:
     physics = TwinPhysics(efficiency_curve=tp.efficiency_curve,
                           plateau_angle_deg=tp.plateau_angle_deg,
                           plume_exponent=tp.plume_exponent, porosity=tp.porosity,
-                          standoff_efficiency_per_mm=tp.standoff_efficiency_per_mm)
+                          standoff_efficiency_per_mm=tp.standoff_efficiency_per_mm,
+                          efficiency_cos_exponent=tp.efficiency_cos_exponent)
     return proc, physics
 
 

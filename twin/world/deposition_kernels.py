@@ -71,8 +71,10 @@ def _frac(x):
 # the twin's physics beyond the nominal model, packed for the kernels (see
 # twin.world.twin_physics.TwinPhysics.kernel_params): curve code, plateau angle [rad], volume
 # per dense volume (1 / (1 - porosity)), relative efficiency per mm of spray distance beyond
-# the reference standoff, that standoff [mm]
-PHYS_CURVE, PHYS_PLATEAU, PHYS_BULK, PHYS_STANDOFF_SLOPE, PHYS_STANDOFF_REF = range(5)
+# the reference standoff, that standoff [mm], the exponent of an extra cos(theta) factor on the
+# curve
+PHYS_CURVE, PHYS_PLATEAU, PHYS_BULK, PHYS_STANDOFF_SLOPE, PHYS_STANDOFF_REF, PHYS_COS_EXP = \
+    range(6)
 CURVE_COS2, CURVE_COS, CURVE_LINEAR, CURVE_PLATEAU = range(4)
 
 
@@ -309,6 +311,7 @@ def spray_step(field, state, seq, lam, spot, axis, sigma, back_mm, zeta0, plume)
     bulk = phys[PHYS_BULK]
     slope = phys[PHYS_STANDOFF_SLOPE]
     s_ref = phys[PHYS_STANDOFF_REF]
+    cos_exp = phys[PHYS_COS_EXP]
     n_packets = int(lam + uniform(state))
     w = np.empty((2 * SPLAT_RADIUS_CELLS + 1) ** 2)
     deposited = 0.0
@@ -340,6 +343,8 @@ def spray_step(field, state, seq, lam, spot, axis, sigma, back_mm, zeta0, plume)
             continue
         theta = math.acos(min(cos_t, 1.0))
         zeta = zeta0 * efficiency_curve(theta, theta_c, code, theta_p)
+        if cos_exp != 0.0:
+            zeta *= min(cos_t, 1.0) ** cos_exp
         if slope != 0.0:  # the nozzle exit lies t from the hit
             zeta *= max(1.0 + slope * (t - s_ref), 0.0)
         vol = v_packet * min(zeta, 1.0)

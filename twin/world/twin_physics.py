@@ -8,7 +8,9 @@ its own (:class:`TwinPhysics`, used by :class:`twin.world.deposition.SprayModel`
 * ``[process]`` keys repeated in ``[twin_process]`` override the nominal values;
 * ``plume_sigma_factor`` and ``efficiency_factor`` scale the resulting plume sigma and
   normal-impact efficiency;
-* ``efficiency_curve`` (+ ``plateau_angle_deg``): the efficiency's fall with impact angle;
+* ``efficiency_curve`` (+ ``plateau_angle_deg``): the efficiency's fall with impact angle,
+  times ``cos(theta) ** efficiency_cos_exponent`` (the twin's own exponent: never the one in
+  ``[process]``, which describes the monitor's model of the curve);
 * ``plume_exponent`` ``p``: packets leave the nozzle with the radial density
   ``exp(-(r/a)^p / 2)`` across the jet, ``a`` chosen so that the per-axis rms stays sigma
   (``p = 2``: the Gaussian). ``s = (r/a)^p / 2`` is then Gamma(2/p)-distributed, so the radius
@@ -48,6 +50,7 @@ class TwinPhysics:
     plume_exponent : float, radial super-Gaussian exponent (2 = Gaussian)
     porosity : float, pore volume fraction of the deposit
     standoff_efficiency_per_mm : float [1/mm], relative efficiency per mm of extra flight
+    efficiency_cos_exponent : float, the curve times ``cos(theta)`` to this power
     """
 
     efficiency_curve: str = "cos2"
@@ -55,6 +58,7 @@ class TwinPhysics:
     plume_exponent: float = 2.0
     porosity: float = 0.0
     standoff_efficiency_per_mm: float = 0.0
+    efficiency_cos_exponent: float = 0.0
 
     def __post_init__(self):
         if self.efficiency_curve not in CURVES:
@@ -64,6 +68,9 @@ class TwinPhysics:
             raise ValueError(f"TwinPhysics.plume_exponent: {self.plume_exponent} outside [1, 8]")
         if not 0.0 <= self.porosity < 0.5:
             raise ValueError(f"TwinPhysics.porosity: {self.porosity} outside [0, 0.5)")
+        if not 0.0 <= self.efficiency_cos_exponent <= 6.0:
+            raise ValueError(f"TwinPhysics.efficiency_cos_exponent: "
+                             f"{self.efficiency_cos_exponent} outside [0, 6]")
 
     @property
     def bulk_factor(self) -> float:
@@ -75,7 +82,8 @@ class TwinPhysics:
         spray distance at which the standoff term is neutral)."""
         return np.array([CURVES.index(self.efficiency_curve),
                          math.radians(self.plateau_angle_deg), self.bulk_factor,
-                         self.standoff_efficiency_per_mm, standoff_mm], dtype=np.float64)
+                         self.standoff_efficiency_per_mm, standoff_mm,
+                         self.efficiency_cos_exponent], dtype=np.float64)
 
     def radial_table(self) -> np.ndarray:
         """Inverse CDF of the radius across the jet in sigmas (empty for the Gaussian)."""
@@ -95,6 +103,8 @@ class TwinPhysics:
         else:
             tp = math.radians(self.plateau_angle_deg)
             z = np.where(theta <= tp, 1.0, (tc - theta) / (tc - tp))
+        if self.efficiency_cos_exponent != 0.0:
+            z = z * np.cos(np.clip(theta, 0.0, 0.5 * np.pi)) ** self.efficiency_cos_exponent
         return np.where(theta < tc, z, 0.0)
 
 
