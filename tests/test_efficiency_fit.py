@@ -165,6 +165,16 @@ def test_the_fit_tells_a_linear_cell_from_the_model_and_finds_its_bump(tmp_path)
     assert 1.8 <= linear <= 3.5  # the twin's linear curve falls off much sooner than cos^2
     assert nominal <= 0.6  # the twin's default curve is close to the model's
 
+    # the fitted table monitors a recording (dm2 monitor --config): it is what the run used
+    out = tmp_path / "monitored"
+    res = runner.invoke(app, ["monitor", str(tmp_path / "control_box_linear.mcap"), "--out",
+                              str(out), "--config", str(tmp_path / "control_box_linear_curve.toml"),
+                              "--no-analyse"])
+    assert res.exit_code == 0, res.output
+    used = tomllib.loads((out / "monitor.toml").read_text(encoding="utf-8"))
+    assert used["process"]["efficiency_cos_exponent"] == linear
+    assert used["process"]["feed_g_min"] == 26.0  # the recording's own process otherwise
+
     # the linear cell's bump, monitored with the fitted curve: found with its sign and layer,
     # and nothing else; with the model's own curve it is missed
     path = SUITES / "model_error" / "bump_box_corner_linear.toml"
@@ -210,3 +220,30 @@ def test_bench_refuses_an_unknown_curve_mode(tmp_path):
                               str(tmp_path / "b")])
     assert res.exit_code == 2 and "--curve guessed" in res.output
     assert not (tmp_path / "b").exists()
+
+
+def test_a_config_file_replaces_the_runs_process_and_monitor_keys(tmp_path):
+    from dm2.core.config import MonitorConfig
+    from dm2.core.config_file import apply_config_file
+
+    process = ProcessConfig(feed_g_min=26.0)
+    monitor = MonitorConfig(voxel_mm=0.4)
+    cell = tmp_path / "cell.toml"
+    cell.write_text("schema = 1\n[live]\nrate = 3\n[process]\nefficiency_cos_exponent = 2.5\n"
+                    "[monitor.uncertainty]\nwall_mm = 0.3\n", encoding="utf-8")
+    p, m = apply_config_file(cell, process, monitor)
+    assert p.efficiency_cos_exponent == 2.5 and p.feed_g_min == 26.0  # the run's others kept
+    assert m.voxel_mm == 0.4 and m.uncertainty.wall_mm == 0.3
+    assert m.uncertainty.floor_mm == monitor.uncertainty.floor_mm  # nested: key by key
+
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[process]\nefficiency_cos_exponnet = 2.5\n", encoding="utf-8")
+    with pytest.raises(ConfigError, match=r"(?s)bad.toml.*process.efficiency_cos_exponnet.*"
+                                          r"did you mean 'efficiency_cos_exponent'"):
+        apply_config_file(bad, process, monitor)
+    bad.write_text("[process]\nefficiency_cos_exponent = -2\n", encoding="utf-8")
+    with pytest.raises(ConfigError, match=r"(?s)bad.toml.*process.efficiency_cos_exponent.*-2"):
+        apply_config_file(bad, process, monitor)
+    bad.write_text("[toolpath]\nlayer_mm = 0.8\n", encoding="utf-8")
+    with pytest.raises(ConfigError, match=r"bad.toml: holds no \[process\] or \[monitor\]"):
+        apply_config_file(bad, process, monitor)

@@ -27,6 +27,9 @@ def fit_efficiency(
                                   "(default: the recording's attachment)."),
     map_path: Path = typer.Option(None, "--map", help="Map TOML from a cell's own topic and "
                                   "frame names onto the pipeline's."),
+    config: Path = typer.Option(None, "--config", help="Scenario or cell TOML whose [process] "
+                                "and [monitor] tables replace the recording's (the cell's feed "
+                                "rate, for a recording made by the cell itself)."),
 ) -> None:
     """Fit `[process] efficiency_cos_exponent` (how much faster than the model's curve the
     cell's deposition efficiency falls with the spray angle) from a fault-free recording.
@@ -52,7 +55,7 @@ def fit_efficiency(
         fail(f"--out {out}: exists; give a new file (nothing is overwritten)")
     with bad_input_exits():
         rec, cal, tp, monitor_cfg, process, plate_mm = _load_inputs(run, calibration, toolpath,
-                                                                      map_path)
+                                                                      map_path, config)
     run_pipeline = recording_pipeline(rec.messages, cal, monitor_cfg, plate_mm, tp)
     try:
         with console.status("replaying the recording"):

@@ -33,8 +33,9 @@ def _read_toolpath(path: Path):
 
 
 def _load_inputs(run: Path, calibration: Path | None, toolpath: Path | None,
-                 map_path: Path | None = None):
-    """Open the recording and resolve calibration, toolpath and configuration."""
+                 map_path: Path | None = None, config: Path | None = None):
+    """Open the recording and resolve calibration, toolpath and configuration (the attached
+    scenario's, then ``config``'s ``[process]`` / ``[monitor]`` tables over it)."""
     from dm2.core.calibration_io import read_calibration_toml
     from dm2.core.config import MonitorConfig, ProcessConfig, parse_scenario
     from dm2.io.bag_recording import open_recording
@@ -57,6 +58,10 @@ def _load_inputs(run: Path, calibration: Path | None, toolpath: Path | None,
         except tomllib.TOMLDecodeError as exc:
             raise ValueError(f"{run}: attached scenario is not valid TOML: {exc}") from None
         monitor_cfg, process, plate_mm = sc.monitor, sc.process, sc.cell.plate_size_mm
+    if config is not None:
+        from dm2.core.config_file import apply_config_file
+
+        process, monitor_cfg = apply_config_file(config, process, monitor_cfg)
     if hasattr(rec, "max_pose_gap_s"):  # rosbag2: tf lookups within the configured gap
         rec.max_pose_gap_s = monitor_cfg.max_pose_gap_s
     if tp is not None:
@@ -110,6 +115,10 @@ def monitor(
     map_path: Path = typer.Option(None, "--map", help="Map TOML from a cell's own topic and "
                                   "frame names onto the pipeline's (see README, 'Your own "
                                   "cell's recordings')."),
+    config: Path = typer.Option(None, "--config", help="Scenario, cell or `dm2 "
+                                "fit-efficiency` TOML whose [process] and [monitor] tables "
+                                "replace the recording's (default: the attached scenario's, "
+                                "else the package defaults)."),
     voxel_mm: float = typer.Option(None, "--voxel-mm", min=0.05, max=2.0,
                                    help="Override the TSDF voxel size [mm]."),
     live: Path = typer.Option(None, "--live", help="Cell file: monitor the live cell (EGM + "
@@ -160,10 +169,11 @@ def monitor(
     t_start = time.perf_counter()
     with bad_input_exits():
         rec, cal, tp, monitor_cfg, process, plate_mm = _load_inputs(run, calibration,
-                                                                      toolpath, map_path)
+                                                                      toolpath, map_path, config)
         if voxel_mm is not None:
             monitor_cfg = monitor_cfg.model_copy(update={"voxel_mm": voxel_mm})
-        check_output_dir(out, force=force, inputs=[run, calibration, toolpath, map_path])
+        check_output_dir(out, force=force,
+                         inputs=[run, calibration, toolpath, map_path, config])
     try:
         out.mkdir(parents=True, exist_ok=True)
         clear_outputs(out, inputs=[run])  # the earlier run's files: no stale layer survives
