@@ -89,6 +89,16 @@ def test_a_model_that_matches_fits_zero():
     assert fit.exponent == pytest.approx(0.0, abs=0.03)
 
 
+def test_a_flatter_curve_than_the_model_is_held_at_zero_and_said_so():
+    s = np.random.default_rng(3).uniform(0.05, 0.4, 4000)
+    run, calls = _fake_pipeline(-1.0, s)
+    fit = fit_efficiency_exponent(run, ProcessConfig())
+    assert fit.exponent == 0.0 and fit.at_bound
+    assert fit.iterations[0]["unbounded_step"] == pytest.approx(-1.0, abs=0.03)
+    assert calls == [0.0, 1.0]  # no replay at the bound again
+    assert fit.residual_rms_mm == fit.start_rms_mm
+
+
 def test_a_part_without_slopes_is_refused():
     run, _ = _fake_pipeline(1.0, np.zeros(4000))
     with pytest.raises(CurveNotObservable, match="walls or slopes"):

@@ -69,7 +69,8 @@ def fit_efficiency(
     header = (f"# dm2 fit-efficiency {run.name}: efficiency_cos_exponent {fit.start:g} -> "
               f"{fit.exponent:.3f}; residual RMS {fit.start_rms_mm:.4f} -> "
               f"{fit.residual_rms_mm:.4f} mm; defect tracks on the recording "
-              f"{fit.tracks_at_start} -> {fit.tracks_at_fit}\n")
+              f"{fit.tracks_at_start} -> {fit.tracks_at_fit}"
+              + ("; held at the bound" if fit.at_bound else "") + "\n")
     body = dump_toml({"process": {"efficiency_cos_exponent": round(fit.exponent, 3)}})
     try:
         with open(out, "x", encoding="utf-8") as f:
@@ -83,5 +84,9 @@ def fit_efficiency(
     table.add_row("fitted", f"{fit.exponent:.3f}", f"{fit.residual_rms_mm:.4f}",
                   str(fit.tracks_at_fit))
     console.print(table)
+    if fit.at_bound and fit.exponent == 0.0:
+        console.print("the least-squares optimum lies below 0: the cell's curve is no steeper "
+                      "than the model's, whose own curve (0) is the closest allowed",
+                      markup=False)
     console.print(f"wrote {out}: copy its [process] table into the scenario or cell file",
                   markup=False)

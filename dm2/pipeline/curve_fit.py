@@ -17,7 +17,8 @@ deviation between the two is its sensitivity ``s``, and the step is the least-sq
 ``-sum(d * s) / sum(s * s)`` over the vertices observed in both replays, inside the planned
 outline, with ``|d| <= OUTLIER_MM``. It repeats until the step is below ``TOLERANCE`` (at most
 ``MAX_ITERATIONS`` steps) and ends with a replay at the fitted value, whose residual is
-reported. A recording whose part has no slopes (``sum(s * s)`` below
+reported. The exponent stays in ``EXPONENT_RANGE``: a cell whose curve is flatter than the
+model's reads 0, said so (``at_bound``). A recording whose part has no slopes (``sum(s * s)`` below
 ``MIN_SENSITIVITY_MM2`` per vertex) does not constrain the curve and is refused.
 """
 
@@ -55,8 +56,11 @@ class CurveFit:
     start : float, the exponent the fit started from (the recording's configured one)
     iterations : list of dict, per Gauss-Newton step: ``exponent``, ``step``,
         ``residual_rms_mm`` (at the step's start), ``vertices``
-    residual_rms_mm : float [mm], RMS deviation of the fit's vertices at ``exponent``
+    residual_rms_mm : float [mm], RMS deviation of the usable vertices (observed, inside the
+        planned outline, within ``OUTLIER_MM``) at ``exponent``
     start_rms_mm : float [mm], the same at ``start``
+    at_bound : bool, the last step was held at a bound of :data:`EXPONENT_RANGE` (at 0: the
+        cell's curve is no steeper than the model's; the model's own curve is the closest)
     tracks_at_start, tracks_at_fit : int, defect tracks the monitor raised on the recording
         at ``start`` and at ``exponent`` (a fault-free build: both ideally 0)
     """
@@ -68,6 +72,7 @@ class CurveFit:
     start_rms_mm: float = float("nan")
     tracks_at_start: int = 0
     tracks_at_fit: int = 0
+    at_bound: bool = False
 
 
 @dataclass
@@ -118,6 +123,12 @@ def _rms(d: np.ndarray) -> float:
     return float(np.sqrt(np.mean(d * d))) if d.size else float("nan")
 
 
+def _replay_rms(replay: _Replay) -> float:
+    """RMS deviation over one replay's usable vertices (what start and fit are compared by)."""
+    d = [dev[usable] for _, dev, usable in replay.deviations.values()]
+    return _rms(np.concatenate(d)) if d else float("nan")
+
+
 def fit_efficiency_exponent(run_pipeline: Callable[[ProcessConfig], tuple],
                             process: ProcessConfig,
                             progress: Callable[[str], None] | None = None) -> CurveFit:
@@ -140,7 +151,8 @@ def fit_efficiency_exponent(run_pipeline: Callable[[ProcessConfig], tuple],
     start = float(process.efficiency_cos_exponent)
     p = start
     here = _replay(run_pipeline, process, p)
-    fit = CurveFit(exponent=p, start=start, tracks_at_start=here.tracks)
+    fit = CurveFit(exponent=p, start=start, tracks_at_start=here.tracks,
+                   start_rms_mm=_replay_rms(here))
     for _ in range(MAX_ITERATIONS):
         h = PROBE_STEP if p + PROBE_STEP <= hi else -PROBE_STEP
         probe = _replay(run_pipeline, process, p + h)
@@ -154,19 +166,20 @@ def fit_efficiency_exponent(run_pipeline: Callable[[ProcessConfig], tuple],
                 "record a part with walls or slopes")
         step = -float(np.dot(d0, s) / np.dot(s, s))
         new = float(np.clip(p + step, lo, hi))
-        fit.iterations.append({"exponent": p, "step": new - p, "residual_rms_mm": _rms(d0),
-                               "vertices": int(d0.size)})
-        if np.isnan(fit.start_rms_mm):
-            fit.start_rms_mm = _rms(d0)
+        fit.at_bound = new != p + step
+        fit.iterations.append({"exponent": p, "step": new - p, "unbounded_step": step,
+                               "residual_rms_mm": _rms(d0), "vertices": int(d0.size)})
         if progress is not None:
             progress(f"exponent {p:.3f}: residual RMS {_rms(d0):.4f} mm over {d0.size} "
-                     f"vertices, step {new - p:+.3f}")
+                     f"vertices, step {new - p:+.3f}"
+                     + (f" (the bound; unbounded {step:+.3f})" if fit.at_bound else ""))
+        if new == p:  # held at a bound: nothing to replay
+            break
         p = new
         here = _replay(run_pipeline, process, p)
         if abs(fit.iterations[-1]["step"]) < TOLERANCE:
             break
-    d_fit, _ = _paired(here, here)
-    fit.exponent, fit.residual_rms_mm, fit.tracks_at_fit = p, _rms(d_fit), here.tracks
+    fit.exponent, fit.residual_rms_mm, fit.tracks_at_fit = p, _replay_rms(here), here.tracks
     return fit
 
 
