@@ -277,6 +277,24 @@ def test_process_findings_detect_global_faults_or_are_judged_against_the_twin_sc
     assert not s["faults"][0]["detected"] and s["findings"][0]["verdict"] == "false"
 
 
+def test_a_finding_at_the_layer_the_fault_began_detects_it_before_its_truth_onset():
+    """A feed step acting from layer 0 whose effect reaches 0.5 mm at layer 2 (FEED_STEP_DEV):
+    a finding of its sign since layer 0 detects it, one of the other sign or since a layer
+    before the fault began does not."""
+    fault = truth("feed_step", 1)
+    fault["faults"][0]["layers"] = [0, 1, 2, 3]
+    rep = _with_findings(report({}), ("offset", 1.3, 1, 0), ("offset", 0.8, -1, 0))
+    s = score_run(rep, fault, truth_maps=maps(FEED_STEP_DEV), expected_process_scale=0.95)
+    (f,) = s["faults"]
+    assert f["onset_layer"] == 2 and f["detected"] and f["detected_by"] == "process finding"
+    assert f["first_layer_detected"] == 0 and f["onset_delay_layers"] == -2
+    assert [x["verdict"] for x in s["findings"]] == ["true", "false"]
+    fault["faults"][0]["layers"] = [3, 4]  # began at layer 3: a finding since 0 is not it
+    s = score_run(_with_findings(report({}), ("offset", 1.3, 1, 0)), fault,
+                  truth_maps=maps(FEED_STEP_DEV), expected_process_scale=0.95)
+    assert s["findings"][0]["verdict"] == "false" and not s["faults"][0]["detected"]
+
+
 def test_an_offset_on_a_control_is_correct_within_the_tolerance_of_the_twin_scale():
     zero = {k: np.zeros((N, N)) for k in LAYERS}
     tol = scoring.FINDING_TOLERANCE

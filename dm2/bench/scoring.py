@@ -42,7 +42,10 @@ real-time false alarm
 process finding
     the run's report states the deposition scale off nominal (report.json ``process``
     ``finding_details``: kind, estimate, sign, first layer). It **detects** a global fault (not
-    a bump, dent or corner dwell) of its sign whose onset is within one layer of the finding's.
+    a bump, dent or corner dwell) of its sign when the finding's first layer is within one layer
+    of the fault's onset or of the first layer the fault acts in (its window's start in the
+    truth): a change found at the layer it began is found, though the part shows it only once
+    its effect has grown to 0.5 mm.
     Otherwise an ``offset`` finding (the cell's scale) is **correct** when its estimate is within
     :data:`FINDING_TOLERANCE` (3 %) of the scale the twin's ``[twin_process]`` deposits at
     (``expected_process_scale``), and any other finding is a **false finding**, counted with the
@@ -244,7 +247,9 @@ def _score_findings(report, faults, scores, expected_scale) -> list[dict]:
         for f, sc in zip(faults, scores, strict=True):
             if f["kind"] in LOCAL_FAULTS or sc["onset_layer"] is None:
                 continue
-            if int(f.get("sign") or 1) == sign and abs(since - sc["onset_layer"]) <= 1:
+            window = f.get("layers") or ()
+            starts = (sc["onset_layer"], *([int(window[0])] if len(window) else []))
+            if int(f.get("sign") or 1) == sign and any(abs(since - k) <= 1 for k in starts):
                 verdict = "true"
                 first = sc["first_layer_detected"]
                 if not sc["detected"] or first is None or since < first:  # the earliest counts
