@@ -34,7 +34,7 @@ def fit_efficiency(
     """Fit `[process] efficiency_cos_exponent` (how much faster than the model's curve the
     cell's deposition efficiency falls with the spray angle) from a fault-free recording.
 
-    The recording is replayed 3-9 times; the fitted value, the residual deviation before and
+    The recording is replayed 2-9 times; the fitted value, the residual deviation before and
     after and the tracks the monitor raised on the recording at each are printed, and the
     value is written to OUT as a `[process]` table. Exit 2 when the part has no walls or slopes
     (a flat pad does not show the curve) or OUT exists.
