@@ -13,6 +13,13 @@ from pathlib import Path
 
 import typer
 
+from dm2.cli.cmd_monitor import (
+    CALIBRATION_OPTION,
+    CONFIG_OPTION,
+    MAP_OPTION,
+    TOOLPATH_OPTION,
+    load_inputs,
+)
 from dm2.cli.common import app, bad_input_exits, console, fail
 
 
@@ -21,15 +28,10 @@ def fit_efficiency(
     run: Path = typer.Argument(..., help="Recording of a fault-free build: MCAP or a rosbag2 "
                                "bag (folder or .db3)."),
     out: Path = typer.Option(..., "--out", "-o", help="TOML file to write (must not exist)."),
-    calibration: Path = typer.Option(None, "--calibration", help="Calibration TOML (default: "
-                                     "the recording's attachment, else its /tf_static)."),
-    toolpath: Path = typer.Option(None, "--toolpath", help="Toolpath CSV or RAPID module "
-                                  "(default: the recording's attachment)."),
-    map_path: Path = typer.Option(None, "--map", help="Map TOML from a cell's own topic and "
-                                  "frame names onto the pipeline's."),
-    config: Path = typer.Option(None, "--config", help="Scenario or cell TOML whose [process] "
-                                "and [monitor] tables replace the recording's (the cell's feed "
-                                "rate, for a recording made by the cell itself)."),
+    calibration: Path = CALIBRATION_OPTION,
+    toolpath: Path = TOOLPATH_OPTION,
+    map_path: Path = MAP_OPTION,
+    config: Path = CONFIG_OPTION,
 ) -> None:
     """Fit `[process] efficiency_cos_exponent` (how much faster than the model's curve the
     cell's deposition efficiency falls with the spray angle) from a fault-free recording.
@@ -43,7 +45,6 @@ def fit_efficiency(
     """
     from rich.table import Table
 
-    from dm2.cli.cmd_monitor import _load_inputs
     from dm2.core.toml_write import dump_toml
     from dm2.pipeline.curve_fit import (
         CurveNotObservable,
@@ -54,8 +55,8 @@ def fit_efficiency(
     if out.exists():
         fail(f"--out {out}: exists; give a new file (nothing is overwritten)")
     with bad_input_exits():
-        rec, cal, tp, monitor_cfg, process, plate_mm = _load_inputs(run, calibration, toolpath,
-                                                                      map_path, config)
+        rec, cal, tp, monitor_cfg, process, plate_mm = load_inputs(run, calibration, toolpath,
+                                                                     map_path, config)
     run_pipeline = recording_pipeline(rec.messages, cal, monitor_cfg, plate_mm, tp)
     try:
         with console.status("replaying the recording"):

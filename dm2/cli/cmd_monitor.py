@@ -32,8 +32,21 @@ def _read_toolpath(path: Path):
     return read_csv(path)
 
 
-def _load_inputs(run: Path, calibration: Path | None, toolpath: Path | None,
-                 map_path: Path | None = None, config: Path | None = None):
+# the options that resolve a recording's inputs (load_inputs), shared by every command that
+# replays one
+CALIBRATION_OPTION = typer.Option(None, "--calibration", help="Calibration TOML (default: the "
+                                  "recording's attachment, else its /tf_static).")
+TOOLPATH_OPTION = typer.Option(None, "--toolpath", help="Toolpath CSV or RAPID module (default: "
+                               "the recording's attachment); splits layers without layer marks.")
+MAP_OPTION = typer.Option(None, "--map", help="Map TOML from a cell's own topic and frame names "
+                          "onto the pipeline's (see README, 'Your own cell's recordings').")
+CONFIG_OPTION = typer.Option(None, "--config", help="Scenario, cell or `dm2 fit-efficiency` TOML "
+                             "whose [process] and [monitor] tables replace the recording's "
+                             "(default: the attached scenario's, else the package defaults).")
+
+
+def load_inputs(run: Path, calibration: Path | None, toolpath: Path | None,
+                map_path: Path | None = None, config: Path | None = None):
     """Open the recording and resolve calibration, toolpath and configuration (the attached
     scenario's, then ``config``'s ``[process]`` / ``[monitor]`` tables over it)."""
     from dm2.core.calibration_io import read_calibration_toml
@@ -107,18 +120,10 @@ def monitor(
     run: Path = typer.Argument(None, help="Recording: MCAP (from `dm2 simulate` or the "
                                "cell), a rosbag2 bag folder, or a .db3 bag."),
     out: Path = typer.Option(..., "--out", "-o", help="Folder for the per-layer surfaces."),
-    calibration: Path = typer.Option(None, "--calibration", help="Calibration TOML (default: "
-                                     "the recording's attachment, else its /tf_static)."),
-    toolpath: Path = typer.Option(None, "--toolpath", help="Toolpath CSV or RAPID module "
-                                  "(default: the recording's attachment); splits layers "
-                                  "without layer marks."),
-    map_path: Path = typer.Option(None, "--map", help="Map TOML from a cell's own topic and "
-                                  "frame names onto the pipeline's (see README, 'Your own "
-                                  "cell's recordings')."),
-    config: Path = typer.Option(None, "--config", help="Scenario, cell or `dm2 "
-                                "fit-efficiency` TOML whose [process] and [monitor] tables "
-                                "replace the recording's (default: the attached scenario's, "
-                                "else the package defaults)."),
+    calibration: Path = CALIBRATION_OPTION,
+    toolpath: Path = TOOLPATH_OPTION,
+    map_path: Path = MAP_OPTION,
+    config: Path = CONFIG_OPTION,
     voxel_mm: float = typer.Option(None, "--voxel-mm", min=0.05, max=2.0,
                                    help="Override the TSDF voxel size [mm]."),
     live: Path = typer.Option(None, "--live", help="Cell file: monitor the live cell (EGM + "
@@ -168,8 +173,8 @@ def monitor(
 
     t_start = time.perf_counter()
     with bad_input_exits():
-        rec, cal, tp, monitor_cfg, process, plate_mm = _load_inputs(run, calibration,
-                                                                      toolpath, map_path, config)
+        rec, cal, tp, monitor_cfg, process, plate_mm = load_inputs(run, calibration,
+                                                                     toolpath, map_path, config)
         if voxel_mm is not None:
             monitor_cfg = monitor_cfg.model_copy(update={"voxel_mm": voxel_mm})
         check_output_dir(out, force=force,

@@ -17,9 +17,10 @@ deviation between the two is its sensitivity ``s``, and the step is the least-sq
 ``-sum(d * s) / sum(s * s)`` over the vertices observed in both replays, inside the planned
 outline, with ``|d| <= OUTLIER_MM``. It repeats until the step is below ``TOLERANCE`` (at most
 ``MAX_ITERATIONS`` steps) and ends with a replay at the fitted value, whose residual is
-reported. The exponent stays in ``EXPONENT_RANGE``: a cell whose curve is flatter than the
-model's reads 0, said so (``at_bound``). A recording whose part has no slopes (``sum(s * s)`` below
-``MIN_SENSITIVITY_MM2`` per vertex) does not constrain the curve and is refused.
+reported. The exponent stays in ``EXPONENT_RANGE``: a step held at a bound ends the fit there,
+said so (``at_bound``); a cell whose curve is flatter than the model's reads 0. A recording
+whose part has no slopes (``sum(s * s)`` below ``MIN_SENSITIVITY_MM2`` per vertex) does not
+constrain the curve and is refused.
 """
 
 from __future__ import annotations
@@ -54,8 +55,8 @@ class CurveFit:
     ----------
     exponent : float, the fitted ``efficiency_cos_exponent``
     start : float, the exponent the fit started from (the recording's configured one)
-    iterations : list of dict, per Gauss-Newton step: ``exponent``, ``step``,
-        ``residual_rms_mm`` (at the step's start), ``vertices``
+    iterations : list of dict, per Gauss-Newton step: ``exponent``, ``step`` (as taken, within
+        the bounds), ``unbounded_step``, ``residual_rms_mm`` (at the step's start), ``vertices``
     residual_rms_mm : float [mm], RMS deviation of the usable vertices (observed, inside the
         planned outline, within ``OUTLIER_MM``) at ``exponent``
     start_rms_mm : float [mm], the same at ``start``
