@@ -56,6 +56,7 @@ import numpy as np
 
 from dm2.fusion.tsdf import kernels as K
 from dm2.fusion.tsdf.bundles import FusionParams, profile_batch, ray_batch
+from dm2.fusion.tsdf.column_carve import carve_columns
 from dm2.fusion.tsdf.dense import gather_dense
 from dm2.fusion.tsdf.deposit import cap_columns, cap_near_axis, fuse_profiles_capped
 from dm2.fusion.tsdf.threads import NO_DEPOSIT, SplitBuffers, fuse_split
@@ -264,6 +265,18 @@ class SparseTSDF:
                                np.ascontiguousarray(xy[:, 0]), np.ascontiguousarray(xy[:, 1]),
                                np.asarray(z_lo_mm, np.float64), np.asarray(z_hi_mm, np.float64),
                                float(weight_cap)))
+
+    def carve_buried_in_columns(self, xy_O, z_lo_mm, z_hi_mm, stale_below: float) -> int:
+        """Carve the stale free slabs enclosed by material in the voxel columns holding
+        ``xy_O (k, 2)`` [mm], walked from ``z_hi_mm (k,)`` down to ``z_lo_mm (k,)``, whose free
+        voxels weigh less than ``stale_below`` (dm2.fusion.tsdf.column_carve); returns how many
+        voxels were carved."""
+        xy = np.asarray(xy_O, np.float64).reshape(-1, 2)
+        return int(carve_columns(self._table_keys, self._table_slots, self.voxels, self.touched,
+                                 self.voxel_mm, np.ascontiguousarray(xy[:, 0]),
+                                 np.ascontiguousarray(xy[:, 1]), np.asarray(z_lo_mm, np.float64),
+                                 np.asarray(z_hi_mm, np.float64), float(self.truncation_mm),
+                                 float(stale_below)))
 
     def _grow(self, extra: int = 0) -> None:
         """Room for ``extra`` more blocks plus one ray's worth: the block arrays and the hash
