@@ -20,6 +20,7 @@ from dm2.core.config_errors import model_named
 from dm2.core.config_uncertainty import UncertaintyConfig
 
 SCHEMA_VERSION = 1
+MAX_EFFICIENCY_COS_EXPONENT = 6.0  # [process] efficiency_cos_exponent's upper bound
 
 
 class ConfigError(ValueError):
@@ -77,7 +78,7 @@ class ProcessConfig(_Model):
     critical_angle_deg: float = Field(75.0, gt=0, le=90)  # zeta(theta) falls to 0 here
     # the cell's curve falls off faster than the model's by cos(theta)**this (0: the model's
     # curve; fitted from a fault-free recording by `dm2 fit-efficiency`)
-    efficiency_cos_exponent: float = Field(0.0, ge=0, le=6)
+    efficiency_cos_exponent: float = Field(0.0, ge=0, le=MAX_EFFICIENCY_COS_EXPONENT)
     plume_half_angle_deg: float = Field(5.0, ge=0, lt=45)  # jet divergence past the exit
     packets_per_s: float = Field(20000.0, gt=0)  # particle packets drawn per second at full feed
 

@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from dm2.core.config import MonitorConfig, ProcessConfig
+from dm2.core.config import MAX_EFFICIENCY_COS_EXPONENT, MonitorConfig, ProcessConfig
 from dm2.defects.classify import CLASS_NAMES
 
 PROBE_STEP = 1.0  # exponent step of the sensitivity replay
@@ -38,7 +38,7 @@ TOLERANCE = 0.05  # a step this small ends the fit
 MAX_ITERATIONS = 4
 OUTLIER_MM = 3.0  # deviations beyond this are not curve error (and not used)
 MIN_SENSITIVITY_MM2 = 1e-4  # mean s^2 [mm^2] per vertex below which the curve is not seen
-EXPONENT_RANGE = (0.0, 6.0)  # the config's bounds
+EXPONENT_RANGE = (0.0, MAX_EFFICIENCY_COS_EXPONENT)  # the config's bounds
 PAIR_MM = 0.01  # a vertex of one replay and the other's nearest within this are the same
 _UNOBSERVED = CLASS_NAMES.index("unobserved")
 

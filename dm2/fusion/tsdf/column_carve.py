@@ -38,7 +38,7 @@ import numpy as np
 from numba import njit
 
 from dm2.fusion.tsdf.carve import CARVE_RUN_VOXELS, CARVE_WEIGHT
-from dm2.fusion.tsdf.kernels import BLOCK, BLOCK_SHIFT, hash_find, pack_key
+from dm2.fusion.tsdf.kernels import voxel_at
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
@@ -58,12 +58,10 @@ def carve_columns(table_keys, table_slots, voxels, touched, voxel_mm, x_mm, y_mm
         material_above = False
         n_run = 0
         for iz in range(iz1, iz0 - 1, -1):
-            slot = hash_find(table_keys, table_slots,
-                             pack_key(ix >> BLOCK_SHIFT, iy >> BLOCK_SHIFT, iz >> BLOCK_SHIFT))
+            slot, li = voxel_at(table_keys, table_slots, ix, iy, iz)
             if slot < 0:
                 n_run = -1
                 continue
-            li = (ix & (BLOCK - 1)) + BLOCK * ((iy & (BLOCK - 1)) + BLOCK * (iz & (BLOCK - 1)))
             w = voxels[slot, li, 1]
             if w <= 0.0:
                 n_run = -1  # unobserved: the run below it is not enclosed

@@ -22,7 +22,7 @@ import math
 import numpy as np
 from numba import njit
 
-from dm2.fusion.tsdf.kernels import BLOCK, BLOCK_SHIFT, fuse_profiles, hash_find, pack_key
+from dm2.fusion.tsdf.kernels import BLOCK, BLOCK_SHIFT, fuse_profiles, hash_find, pack_key, voxel_at
 
 
 @njit(cache=True, inline="always")
@@ -125,11 +125,9 @@ def cap_columns(table_keys, table_slots, voxels, voxel_mm, x_mm, y_mm, z_lo_mm, 
         iz0 = int(math.floor(z_lo_mm[k] / voxel_mm))
         iz1 = int(math.floor(z_hi_mm[k] / voxel_mm))
         for iz in range(iz0, iz1 + 1):
-            slot = hash_find(table_keys, table_slots,
-                             pack_key(ix >> BLOCK_SHIFT, iy >> BLOCK_SHIFT, iz >> BLOCK_SHIFT))
+            slot, li = voxel_at(table_keys, table_slots, ix, iy, iz)
             if slot < 0:
                 continue
-            li = (ix & (BLOCK - 1)) + BLOCK * ((iy & (BLOCK - 1)) + BLOCK * (iz & (BLOCK - 1)))
             if voxels[slot, li, 1] > weight_cap:
                 voxels[slot, li, 1] = weight_cap
                 n += 1

@@ -83,6 +83,15 @@ def hash_find(table_keys, table_slots, key):
         h = (h + 1) & mask
 
 
+@njit(cache=True, inline="always")
+def voxel_at(table_keys, table_slots, ix, iy, iz):
+    """``(slot, index within the block)`` of voxel ``(ix, iy, iz)``; slot -1: not stored."""
+    slot = hash_find(table_keys, table_slots,
+                     pack_key(ix >> BLOCK_SHIFT, iy >> BLOCK_SHIFT, iz >> BLOCK_SHIFT))
+    li = (ix & (BLOCK - 1)) + BLOCK * ((iy & (BLOCK - 1)) + BLOCK * (iz & (BLOCK - 1)))
+    return slot, li
+
+
 @njit(cache=True)
 def hash_insert(table_keys, table_slots, key, slot):
     mask = table_keys.shape[0] - 1
