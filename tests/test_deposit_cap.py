@@ -51,3 +51,25 @@ def test_growth_after_the_last_observation_is_the_unseen_part():
     assert np.allclose(seen.unseen(ReferenceMap(live.copy(), cell)).heights_mm[:, col], 1.1)
     seen.observe(xy, 9.0, live)  # seen again: nothing unseen left
     assert not seen.unseen(ReferenceMap(live.copy(), cell)).heights_mm.any()
+
+
+def test_observing_marks_every_cell_within_reach_of_each_point_as_a_plain_loop_does():
+    rng = np.random.default_rng(12)
+    cell, shape = 0.25, (60, 80)
+    live = rng.random(shape)
+    seen = SeenReference(shape, cell, radius_mm=0.25)  # one cell of reach
+    # a profile line (several points per cell, so consecutive points share cells), points
+    # off the plate and NaN
+    t = np.linspace(0.0, 1.0, 400)
+    xy = np.column_stack([-1.0 + 22.0 * t, 2.0 + 12.0 * t ** 2])
+    xy[50] = np.nan
+    seen.observe(xy, 3.0, live)
+    want = np.zeros(shape, bool)
+    for x, y in xy:
+        if not (x >= 0 and y >= 0 and x / cell < shape[1] and y / cell < shape[0]):
+            continue
+        i, j = int(y // cell), int(x // cell)
+        want[max(i - 1, 0):i + 2, max(j - 1, 0):j + 2] = True
+    assert np.array_equal(np.isfinite(seen.stamp_s), want)
+    assert np.all(seen.stamp_s[want] == 3.0)
+    assert np.array_equal(seen.heights_mm[want], live[want])

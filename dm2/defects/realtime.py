@@ -152,7 +152,7 @@ class RealtimeDeviation:
         self._maps = tuple(ColumnMaps(self.deviation_map_mm, self.flag_map, self.first_flag_s,
                                       self._alarmed, self.flag_count, self._weight_map,
                                       self.strong_map, self.measured_map_mm,
-                                      self.expected_map_mm))
+                                      self.expected_map_mm, self._overspray))
         self._params = tuple(CompareParams(np.float32(monitor_cfg.min_weight), self.voxel_mm,
                                            float(monitor_cfg.delta_global_mm), self._bound,
                                            self._edge_mm))
@@ -229,7 +229,6 @@ class RealtimeDeviation:
         gi, gj, dev, flag, newly = compare_columns(
             d, np.asarray(weight, np.float32), (i0, j0, k0), window, self._maps, self._params,
             float(stamp_s))
-        self.strong_map[gj, gi] &= ~self._overspray[gj, gi]  # overspray: no alarm of its own
         n_over = int(np.count_nonzero(flag == OVER))
         n_under = int(np.count_nonzero(flag == UNDER))
         # a patch can only reach the alarm area, or hold a persistent column, through a column

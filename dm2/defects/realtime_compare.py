@@ -38,6 +38,7 @@ class ColumnMaps(NamedTuple):
     strong: np.ndarray  # bool, flagged and beyond the confidence bound
     measured_mm: np.ndarray  # float64 [mm, O], measured crossing height at the last observation
     expected_mm: np.ndarray  # float64 [mm, O], the reference there at the last observation
+    overspray: np.ndarray  # bool, read only: on the plate outside the outline, never strong
 
 
 class ReferenceWindow(NamedTuple):
@@ -125,7 +126,7 @@ def compare_columns(d, w, origin_voxel, window, maps, params, stamp_s):
     i0, j0, k0 = origin_voxel
     hw, curvature, laplacian, plume_mm2 = window
     deviation_map, flag_map, first_flag_s, alarmed, flag_count, weight_map, strong_map, \
-        measured_map, expected_map = maps
+        measured_map, expected_map, overspray = maps
     min_weight, voxel_mm, delta_mm, bound, edge_mm = params
     with_curvature = curvature.shape[0] > 0
     with_laplacian = laplacian.shape[0] > 0
@@ -183,7 +184,7 @@ def compare_columns(d, w, origin_voxel, window, maps, params, stamp_s):
                               + hgt * hgt + edge * edge + plume * plume)
                 lim = kb * sig
             f = OVER if e > delta_mm else (UNDER if e < -delta_mm else 0)
-            strong_map[y, x] = f != 0 and abs(e) > lim
+            strong_map[y, x] = f != 0 and abs(e) > lim and not overspray[y, x]
             weight_map[y, x] = wcross[ii, jj]
             deviation_map[y, x] = e
             if f != 0 and flag_map[y, x] != f:

@@ -79,12 +79,16 @@ def cell_of(x_mm, y_mm, cell_mm, ny, nx):
 @njit(cache=True, nogil=True)
 def _observe_cells(xy_O, cell_mm, reach, stamp_s, reference_heights_mm, heights_mm, stamps_s):
     """Cells within ``reach`` cells of each point ``xy_O (n, 2)`` [mm] on the plate (clipped
-    to its edge) take the reference's height and ``stamp_s``."""
+    to its edge) take the reference's height and ``stamp_s``. A point in the same cell as the
+    point before it writes nothing new (a profile's points are a few per cell) and is
+    skipped."""
     ny, nx = heights_mm.shape
+    last_i = last_j = -1
     for k in range(xy_O.shape[0]):
         i0, j0 = cell_of(xy_O[k, 0], xy_O[k, 1], cell_mm, ny, nx)
-        if i0 < 0:
+        if i0 < 0 or (i0 == last_i and j0 == last_j):
             continue
+        last_i, last_j = i0, j0
         for i in range(max(i0 - reach, 0), min(i0 + reach, ny - 1) + 1):
             for j in range(max(j0 - reach, 0), min(j0 + reach, nx - 1) + 1):
                 heights_mm[i, j] = reference_heights_mm[i, j]
