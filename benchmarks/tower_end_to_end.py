@@ -2,7 +2,9 @@
 its stage times, real-time factor, peak RSS, track count and the reconstruction per layer band
 against the twin's true surface.
 
-Printed:
+Printed (``--runs`` runs of ``dm2 run``, 3 by default: each run's wall time, peak RSS and the
+load average after it; the wall time below is their median, the peak RSS their maximum; stage
+times, tracks and the reconstruction are the last run's, kept with ``--out``):
 
 - the CPU model, the number of cores and the load average before and after the run (the
   machine may be shared: timings are only comparable at a similar load);
@@ -28,7 +30,7 @@ Printed:
   (on the twin, overspray that later layers' tilted contour jets put on the walls below);
 - the track count of the report.
 
-    .venv/bin/python benchmarks/tower_end_to_end.py [--duration S] [--band 8] [--out DIR]
+    .venv/bin/python benchmarks/tower_end_to_end.py [--duration S] [--runs 3] [--band 8] [--out DIR]
     .venv/bin/python benchmarks/tower_end_to_end.py --analyse DIR   (a folder kept with --out)
 """
 
@@ -39,6 +41,7 @@ import json
 import os
 import platform
 import shutil
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -151,7 +154,9 @@ def main() -> None:
     ap.add_argument("--cover-mm", type=float, default=1.0)
     ap.add_argument("--stale-layers", type=int, default=16,
                     help="a vertex unchanged for this many layers counts as stale")
-    ap.add_argument("--out", type=Path, default=None, help="keep the run folder here")
+    ap.add_argument("--runs", type=int, default=3,
+                    help="runs of dm2 run: median wall time, maximum peak RSS")
+    ap.add_argument("--out", type=Path, default=None, help="keep the last run's folder here")
     ap.add_argument("--analyse", type=Path, default=None, metavar="RUN_DIR",
                     help="only print the figures of a run folder this script kept with --out")
     args = ap.parse_args()
@@ -169,12 +174,23 @@ def main() -> None:
         run_dir = args.out.absolute()
         run_dir.parent.mkdir(parents=True, exist_ok=True)
     try:
-        wall, rss_mib, rc = run_child(args, run_dir)
-        print(f"load average after: {load_avg()}")
+        walls, rss_all = [], []
+        for k in range(max(args.runs, 1)):
+            last = k == max(args.runs, 1) - 1
+            scratch = None if last else Path(tempfile.mkdtemp(prefix="dm2-tower-run-"))
+            target = run_dir if last else scratch / "run"
+            wall, rss_mib, rc = run_child(args, target)
+            if rc != 0:
+                log = (target.parent / f"{target.name}.log").read_text()[-3000:]
+                raise SystemExit(f"dm2 run failed (exit {rc}):\n{log}")
+            print(f"run {k + 1}/{max(args.runs, 1)}: wall {wall:.1f} s, peak RSS {rss_mib:.0f} "
+                  f"MiB; load average after: {load_avg()}")
+            walls.append(wall)
+            rss_all.append(rss_mib)
+            if scratch is not None:
+                shutil.rmtree(scratch, ignore_errors=True)
+        wall, rss_mib = statistics.median(walls), max(rss_all)
         (run_dir.parent / f"{run_dir.name}.wall").write_text(f"{wall} {rss_mib}\n")
-        if rc != 0:
-            log = (run_dir.parent / f"{run_dir.name}.log").read_text()[-3000:]
-            raise SystemExit(f"dm2 run failed (exit {rc}):\n{log}")
         report(run_dir, wall, rss_mib, args)
     finally:
         if tmp is not None:
@@ -197,6 +213,7 @@ def report(run_dir: Path, wall: float, rss_mib: float, args) -> None:
     n_layers = len(rep.get("layers", []))
     if wall > 0:
         print(f"{args.scenario}: {process_s:.0f} s of process, {n_layers} layers; dm2 run wall "
+              f"(median) "
               f"{wall:.1f} s = {process_s / wall:.1f}x real time; peak RSS {rss_mib:.0f} MiB")
     else:  # a folder not written by this script: no child wall time or RSS
         wall = t["wall_s"]
