@@ -1,12 +1,16 @@
 """The compiled marching cubes of the surface extraction (dm2.fusion.marching_cubes): bit for bit
 skimage's Lewiner marching cubes, and, through mesh_volume, a surface on the true zero level
-with outward normals, nothing in cubes with an unobserved corner and the weight interpolated."""
+with outward normals, nothing in cubes with an unobserved corner and the weight interpolated
+(dm2.fusion.chunk_mesh) bit for bit as scipy's trilinear map_coordinates."""
 
 import numpy as np
 import pytest
+from scipy.ndimage import map_coordinates
 from skimage.measure import marching_cubes as skimage_marching_cubes
 
-from dm2.fusion.marching_cubes import marching_cubes, observed_surface
+from dm2.core.tolerances import GRID_FRACTION_TOL
+from dm2.fusion.chunk_mesh import chunk_surface, observed_surface
+from dm2.fusion.marching_cubes import marching_cubes
 from dm2.fusion.surface import mesh_volume
 
 CENTRE = np.array([16.3, 15.8, 16.1])
@@ -105,3 +109,27 @@ def test_a_corner_exactly_on_the_level_makes_no_zero_area_triangle():
     v, f, _ = observed_surface(d, w, 1.5, 1.0, 1.0)
     area = np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
     assert area.min() > 0
+
+
+def test_vertex_weight_and_box_faces_equal_scipys_trilinear_interpolation_bit_for_bit():
+    rng = np.random.default_rng(5)
+    n_checked = n_border = 0
+    for d, _, spacing in volumes():
+        w = rng.uniform(0.0, 30.0, d.shape).astype(np.float32)
+        w[rng.random(d.shape) < 0.1] = 0.0
+        d = d[:, : d.shape[0], : d.shape[0]]  # a cube, as a chunk's box is
+        w = np.ascontiguousarray(w[:, : d.shape[0], : d.shape[0]])
+        out = chunk_surface(d.copy(), w, 1.5, 0.0, spacing)
+        if out is None:
+            continue
+        v, f, nrm, wv, border = out
+        g = v / spacing  # float32, as the vertices are
+        expected = map_coordinates(w, g.T, order=1, mode="nearest").astype(np.float32)
+        np.testing.assert_array_equal(wv.view(np.uint32), expected.view(np.uint32))
+        n = d.shape[0] - 1
+        np.testing.assert_array_equal(
+            border, np.any((np.abs(g) < GRID_FRACTION_TOL) | (np.abs(g - n) < GRID_FRACTION_TOL),
+                           axis=1))
+        n_checked += 1
+        n_border += int(border.sum())
+    assert n_checked >= 20 and n_border > 100

@@ -2,7 +2,7 @@
 
 The field is cut into chunks of ``CHUNK_BLOCKS**3`` blocks. Each chunk is gathered into a dense
 sub-volume with a one-voxel apron on its upper faces and triangulated with skimage's marching
-cubes (compiled: :mod:`dm2.fusion.marching_cubes`), only in cubes whose eight corners were
+cubes (compiled: :mod:`dm2.fusion.chunk_mesh`), only in cubes whose eight corners were
 observed with weight ``>= min_weight``. Chunk meshes are cached; an update re-meshes only the
 chunks whose blocks (or apron) were touched since the last extraction;
 :meth:`SurfaceExtractor.premesh` meshes touched chunks ahead of time (a live loop's idle
@@ -25,10 +25,8 @@ import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
-from scipy.ndimage import map_coordinates
 
-from dm2.core.tolerances import GRID_FRACTION_TOL
-from dm2.fusion.marching_cubes import observed_surface
+from dm2.fusion.chunk_mesh import chunk_surface
 from dm2.fusion.surface_assemble import assemble
 from dm2.fusion.surface_mesh import SurfaceMesh, read_ply
 from dm2.fusion.tsdf import kernels as K
@@ -95,27 +93,25 @@ def mesh_volume(d: np.ndarray, w: np.ndarray, origin: np.ndarray, voxel_mm: floa
     (vertices_O (k, 3) [mm], faces (f, 3) int64, weight (k,) float32, normals_O (k, 3),
     on_border (k,) bool) or None
     """
-    n = d.shape[0] - 1
-    vox = voxel_mm
-    mesh = observed_surface(d, w, truncation_mm, min_weight, vox)
+    mesh = chunk_surface(d, w, truncation_mm, min_weight, voxel_mm)
     if mesh is None:
         return None
-    verts, faces, normals = mesh
-    g = verts / vox  # [voxels, box frame]
-    wv = map_coordinates(w, g.T, order=1, mode="nearest").astype(np.float32)
-    verts_O = verts + (origin + 0.5) * vox  # voxel centres sit at (i + 0.5) * voxel
+    verts, faces, normals, weight, on_border = mesh
+    verts_O = verts + (origin + 0.5) * voxel_mm  # voxel centres sit at (i + 0.5) * voxel
     # vertices on the chunk's faces are shared with a neighbour; only they are merged
-    border = np.any((np.abs(g) < GRID_FRACTION_TOL) | (np.abs(g - n) < GRID_FRACTION_TOL), axis=1)
-    return verts_O, faces.astype(np.int64), wv, -normals.astype(np.float64), border
+    return verts_O, faces, weight, -normals.astype(np.float64), on_border
 
 
 class ChunkVolume:
-    """A chunk's dense TSDF/weight box copied at a gather, meshed once, on first use."""
+    """A chunk's dense TSDF/weight box, meshed once, on first use: copied at a gather, or
+    (``copy`` a function returning the box) copied when it is meshed, on the meshing thread."""
 
     __slots__ = ("_args", "_mesh", "_lock")
 
-    def __init__(self, d, w, origin, voxel_mm, truncation_mm, min_weight):
-        self._args = (d, w, origin, voxel_mm, truncation_mm, min_weight)
+    def __init__(self, d=None, w=None, origin=None, voxel_mm=None, truncation_mm=None,
+                 min_weight=None, copy=None):
+        self._args = copy if copy is not None else \
+            (d, w, origin, voxel_mm, truncation_mm, min_weight)
         self._mesh = None
         self._lock = threading.Lock()
 
@@ -123,7 +119,8 @@ class ChunkVolume:
         """The chunk's mesh tuple (see :func:`mesh_volume`) or None."""
         with self._lock:
             if self._args is not None:
-                self._mesh, self._args = mesh_volume(*self._args), None  # frees the copies
+                args = self._args() if callable(self._args) else self._args
+                self._mesh, self._args = mesh_volume(*args), None  # frees the copies
             return self._mesh
 
 
@@ -180,13 +177,17 @@ class SurfaceExtractor:
         self._premeshed: dict[tuple[int, int, int], tuple | None] = {}
 
     def update(self) -> SurfaceMesh:
-        """Re-mesh chunks touched since the last call and return the whole surface."""
-        return self.gather().result()
+        """Re-mesh chunks touched since the last call and return the whole surface (the boxes
+        are copied by the threads that mesh them: the field does not change meanwhile)."""
+        return self._gather(copy_now=False).result()
 
     def gather(self) -> PendingSurface:
         """What :meth:`update` does up to marching cubes: copy the boxes of the chunks touched
         since the last call (meshes made by :meth:`premesh` are taken as they are); the
         returned surface is meshed and assembled when asked for."""
+        return self._gather(copy_now=True)
+
+    def _gather(self, copy_now: bool) -> PendingSurface:
         n = self.tsdf.n_blocks
         fresh = np.flatnonzero(self.tsdf.touched[:n])
         for c in _chunks_of(K.unpack_keys(self.tsdf.block_keys[fresh])):
@@ -203,7 +204,7 @@ class SurfaceExtractor:
         if len(blocks):
             for c in _chunks_of(blocks):
                 m = self._premeshed.pop(c, _MISSING)
-                self._chunks[c] = self._volume(np.array(c)) if m is _MISSING else m
+                self._chunks[c] = self._volume(np.array(c), copy_now) if m is _MISSING else m
         self._premeshed.clear()
         self._todo.clear()
         return PendingSurface(self._chunks_in_order(), self.tsdf.voxel_mm)
@@ -242,13 +243,16 @@ class SurfaceExtractor:
             self._premeshed[c] = self._volume(np.array(c)).mesh()
         return True
 
-    def _volume(self, chunk: np.ndarray) -> ChunkVolume:
-        """Copy one chunk's dense box (with its one-voxel upper apron)."""
+    def _volume(self, chunk: np.ndarray, copy_now: bool = True) -> ChunkVolume:
+        """One chunk's dense box (with its one-voxel upper apron), copied now or when meshed."""
         n = CHUNK_BLOCKS * BLOCK
         origin = chunk * n
-        d, w = self.tsdf.dense(origin, (n + 1, n + 1, n + 1))
-        return ChunkVolume(d, w, origin, self.tsdf.voxel_mm, self.tsdf.truncation_mm,
-                           self.min_weight)
+
+        def copy():
+            d, w = self.tsdf.dense(origin, (n + 1, n + 1, n + 1))
+            return d, w, origin, self.tsdf.voxel_mm, self.tsdf.truncation_mm, self.min_weight
+
+        return ChunkVolume(*copy()) if copy_now else ChunkVolume(copy=copy)
 
     def assemble(self) -> SurfaceMesh:
         """The surface from the chunk meshes cached now (volumes still pending are meshed)."""
