@@ -103,15 +103,15 @@ def mesh_volume(d: np.ndarray, w: np.ndarray, origin: np.ndarray, voxel_mm: floa
 
 
 class ChunkVolume:
-    """A chunk's dense TSDF/weight box, meshed once, on first use: copied at a gather, or
-    (``copy`` a function returning the box) copied when it is meshed, on the meshing thread."""
+    """A chunk's dense TSDF/weight box, meshed once, on first use.
+
+    ``box`` is :func:`mesh_volume`'s arguments (the box copied at a gather), or a function
+    that returns them (the box copied when it is meshed, on the meshing thread)."""
 
     __slots__ = ("_args", "_mesh", "_lock")
 
-    def __init__(self, d=None, w=None, origin=None, voxel_mm=None, truncation_mm=None,
-                 min_weight=None, copy=None):
-        self._args = copy if copy is not None else \
-            (d, w, origin, voxel_mm, truncation_mm, min_weight)
+    def __init__(self, box):
+        self._args = box
         self._mesh = None
         self._lock = threading.Lock()
 
@@ -252,7 +252,7 @@ class SurfaceExtractor:
             d, w = self.tsdf.dense(origin, (n + 1, n + 1, n + 1))
             return d, w, origin, self.tsdf.voxel_mm, self.tsdf.truncation_mm, self.min_weight
 
-        return ChunkVolume(*copy()) if copy_now else ChunkVolume(copy=copy)
+        return ChunkVolume(copy() if copy_now else copy)
 
     def assemble(self) -> SurfaceMesh:
         """The surface from the chunk meshes cached now (volumes still pending are meshed)."""
