@@ -2,9 +2,9 @@
 faces are merged, triangles that the merge made degenerate dropped, normals renormalised.
 
 Runs over the whole surface at every update (the chunk meshes are cached, their union is not),
-so it is kept to a few passes: only the vertices on chunk faces are grouped (a stable sort of
-their rounded positions; each copy maps to its first copy), and the renumbering, the face remap
-and the normalisation are one compiled pass.
+so it is kept to a few passes: only the vertices on chunk faces are grouped (a hash table of
+their rounded positions; each copy maps to its first copy, the lowest-numbered), and the
+renumbering, the face remap and the normalisation are one compiled pass.
 """
 
 from __future__ import annotations
@@ -52,6 +52,37 @@ def _compact(target, verts, faces, weight, normals, floor):
     return v_out, f_out[:m], w_out, n_out
 
 
+@njit(cache=True, nogil=True)
+def _first_copies(verts, on_border, step):
+    """``target (n,)``: each vertex's first copy, the lowest-numbered vertex of ``on_border``
+    (increasing indices) at the same position rounded to ``step`` [mm]; itself for the rest.
+    An open-addressing table of the rounded positions (``np.rint``, as ``np.round``)."""
+    n = verts.shape[0]
+    target = np.arange(n)
+    m = on_border.shape[0]
+    size = 16
+    while size < 2 * m:
+        size *= 2
+    mask = size - 1
+    keys = np.empty((size, 3), np.int64)
+    first = np.full(size, -1, np.int64)
+    for k in range(m):
+        i = on_border[k]
+        kx = np.int64(np.rint(verts[i, 0] / step))
+        ky = np.int64(np.rint(verts[i, 1] / step))
+        kz = np.int64(np.rint(verts[i, 2] / step))
+        h = ((kx * 73856093) ^ (ky * 19349663) ^ (kz * 83492791)) & mask
+        while first[h] >= 0:
+            if keys[h, 0] == kx and keys[h, 1] == ky and keys[h, 2] == kz:
+                target[i] = first[h]
+                break
+            h = (h + 1) & mask
+        else:
+            keys[h, 0], keys[h, 1], keys[h, 2] = kx, ky, kz
+            first[h] = i
+    return target
+
+
 def assemble(parts: list, voxel_mm: float) -> SurfaceMesh:
     """Join chunk mesh tuples (None entries skipped; see :func:`dm2.fusion.surface.mesh_volume`)
     into one surface, merging the vertices chunks share on their faces."""
@@ -64,13 +95,6 @@ def assemble(parts: list, voxel_mm: float) -> SurfaceMesh:
     weight = np.concatenate([p[2] for p in parts])
     normals = np.concatenate([p[3] for p in parts])
     on_border = np.flatnonzero(np.concatenate([p[4] for p in parts]))
-    key = np.round(verts[on_border] / (GRID_FRACTION_TOL * voxel_mm)).astype(np.int64)
-    order = np.lexsort(key.T[::-1])  # stable: a group's first entry is its first copy
-    sorted_key = key[order]
-    starts = np.ones(len(order), dtype=bool)
-    starts[1:] = np.any(sorted_key[1:] != sorted_key[:-1], axis=1)
-    first = order[np.flatnonzero(starts)]
-    target = np.arange(len(verts))
-    target[on_border[order]] = on_border[first[np.cumsum(starts) - 1]]
+    target = _first_copies(verts, on_border, GRID_FRACTION_TOL * voxel_mm)
     v, f, w, nrm = _compact(target, verts, faces, weight, normals, DIVISOR_FLOOR)
     return SurfaceMesh(v, f, w, nrm)
