@@ -16,7 +16,7 @@ import numpy as np
 from numba import njit
 
 from dm2.core.tolerances import GRID_FRACTION_TOL
-from dm2.fusion.marching_cubes import _lewiner, _skimage_output
+from dm2.fusion.marching_cubes import marching_cubes
 
 __all__ = ["chunk_surface", "observed_surface"]
 
@@ -147,10 +147,10 @@ def chunk_surface(d: np.ndarray, w: np.ndarray, truncation_mm: float, min_weight
     seen, both_signs = _prepare(d, w, np.float32(truncation_mm), np.float32(min_weight))
     if not both_signs:
         return None
-    verts, faces, normals = _lewiner(np.ascontiguousarray(d, np.float32), seen)
-    if not len(verts):
+    try:
+        verts, faces, normals = marching_cubes(d, seen, voxel_mm)
+    except RuntimeError:
         return None  # no zero crossing inside the visited cubes
-    verts, faces, normals = _skimage_output(verts, faces, normals, np.float64(voxel_mm))
     out = _observed_finish(verts, faces, normals, seen, np.ascontiguousarray(w, np.float32),
                            np.float32(voxel_mm), np.float32(GRID_FRACTION_TOL))
     return out if len(out[1]) else None
