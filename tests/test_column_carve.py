@@ -97,9 +97,7 @@ def _carve_oracle(d, w, stale_below, truncation_mm):
     d, w = d.copy(), w.copy()
     above, run, n = False, [], 0
     for k in range(len(d) - 1, -1, -1):
-        if w[k] <= 0:
-            run = None
-        elif d[k] > 0:
+        if w[k] <= 0 or d[k] > 0:  # unobserved or free
             if above and w[k] < stale_below and run is not None and len(run) < CARVE_RUN_VOXELS:
                 run.append(k)
             else:
@@ -142,3 +140,63 @@ def test_the_column_carve_equals_its_plain_statement_bit_for_bit():
             np.testing.assert_array_equal(w1[i, j], we)
             expected += ne
     assert n == expected > 50
+
+
+def test_unobserved_voxels_inside_an_enclosed_stale_slab_are_carved_with_it():
+    """Material seen up to 2 mm and, after growth, a new top band at 6 mm; between them stale
+    free voxels with a gap no ray reached (weight 0): the whole slab is buried material. The
+    same column with nothing observed above the gap (a dent) and with a free voxel of the slab
+    seen again since the cap are kept as they are."""
+    rng = np.random.default_rng(9)
+    tsdf = SparseTSDF(0.5, 1.5, weight_cap=8.0)
+    for z in (1.0, 4.0, 7.0):  # allocate the blocks of 0-8 mm
+        _vertical(tsdf, rng, 0, 8, z, 4_000)
+    nz = 16
+    # voxel k holds 0.5 k - 0.5 (k + 1) mm: material to 2 mm, free 2-3, gap 3-4, free 4-5.5,
+    # the new top's band 5.5-6.5, free above
+    col = np.array([-1.0, -0.8, -0.6, -0.4, 0.3, 0.8, 0.0, 0.0, 1.2, 1.5, 1.5, -1.2, -0.3,
+                    0.2, 0.7, 1.5], np.float32)
+    wts = np.array([1, 1, 1, 1, 1, 1, 0, 0, 1, 1, 1, 4, 6, 6, 5, 3], np.float32)
+    dent, dent_w = col.copy(), wts.copy()
+    dent[11:], dent_w[11:] = 0.0, 0.0  # nothing observed above the gap
+    seen = wts.copy()
+    seen[8] = 3.0  # a free voxel of the slab seen again since the cap
+    columns = {0: (col, wts), 2: (dent, dent_w), 4: (col, seen)}
+    for i, (dc, wc) in columns.items():
+        for k in range(nz):
+            s = K.hash_find(tsdf._table_keys, tsdf._table_slots, K.pack_key(0, 0, k >> 3))
+            li = i + 8 * (0 + 8 * (k & 7))
+            tsdf.voxels[s, li, 0], tsdf.voxels[s, li, 1] = dc[k], wc[k]
+    xy = np.array([[(i + 0.5) * 0.5, 0.25] for i in columns])
+    n = tsdf.carve_buried_in_columns(xy, np.zeros(3), np.full(3, 7.9), 2.0)
+    assert n == 7  # 2.0-5.5 mm of the first column: free, the gap, free
+    d, w = tsdf.dense(np.array([0, 0, 0]), (5, 1, nz))
+    np.testing.assert_array_equal(d[0, 0, 4:11], -1.5)
+    np.testing.assert_array_equal(w[0, 0, 4:11], CARVE_WEIGHT)
+    np.testing.assert_array_equal(d[0, 0, :4], col[:4])
+    np.testing.assert_array_equal(d[0, 0, 11:], col[11:])
+    for i, (dc, wc) in ((2, (dent, dent_w)), (4, (col, seen))):
+        observed = wc > 0  # unobserved voxels read back as +truncation
+        np.testing.assert_array_equal(d[i, 0][observed], dc[observed])
+        np.testing.assert_array_equal(w[i, 0], wc)
+
+
+def test_at_the_stream_end_the_buried_slab_is_carved_and_nothing_is_capped():
+    """``update(cap=False)`` (the session's finish, before the last layer closes) carves the
+    same slab as a layer mark would, leaves every other voxel as it was, and leaves the columns'
+    growth to count from their last cap."""
+    tsdf, heights, grown = _build()
+    buried, again = (10.1, 30.1), (50.1, 30.1)
+    before_d, before_w = tsdf.dense(np.array([0, 0, -8]), (120, 120, 40))
+    capped_before = grown.capped_mm.copy()
+    heights[:] = 5.5
+    grown.update(heights, cap=False)
+    assert grown.carved_voxels > 0
+    assert _crossings(tsdf, *buried) == [pytest.approx(5.0, abs=0.02)]
+    d, w = tsdf.dense(np.array([0, 0, -8]), (120, 120, 40))
+    changed = (d != before_d) | (w != before_w)
+    assert np.all((w[changed] == CARVE_WEIGHT) & (d[changed] == -tsdf.truncation_mm))
+    assert {(i, j) for i, j in np.argwhere(changed.any(axis=2))} == \
+        {(int(x / tsdf.voxel_mm), int(y / tsdf.voxel_mm)) for x, y in _carved_columns(tsdf)}
+    assert len(_crossings(tsdf, *again)) == 2  # seen again: kept, and not capped
+    np.testing.assert_array_equal(grown.capped_mm, capped_before)

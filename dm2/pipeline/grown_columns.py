@@ -63,8 +63,10 @@ class GrownColumns:
         if rescale != 1.0 or plume != 1.0:
             self.capped_mm[:] = heights_mm
 
-    def update(self, heights_mm: np.ndarray) -> None:
-        """Cap the columns the reference ``heights_mm`` grew in since their last cap."""
+    def update(self, heights_mm: np.ndarray, cap: bool = True) -> None:
+        """Cap the columns the reference ``heights_mm`` grew in since their last cap, after
+        carving their enclosed stale free slabs; ``cap=False`` (the stream's end, where no
+        profile follows to take over a capped column) carves only."""
         if self.weight_cap is None:
             return
         box = deposit_box(heights_mm, 0)
@@ -82,5 +84,7 @@ class GrownColumns:
         xy = np.column_stack([x, y])
         self.carved_voxels += self.tsdf.carve_buried_in_columns(
             xy, old[rows, cols] - BURIED_DEPTH_MM, hi, self.weight_cap + 1.0)
+        if not cap:
+            return
         self.capped_voxels += self.tsdf.cap_weights_in_columns(xy, lo, hi, self.weight_cap)
         old[rows, cols] = new[rows, cols]

@@ -237,6 +237,7 @@ class MonitoringSession:
                 for m, _ in self.gates.flush():
                     self._feed(m, False)
             self._advance()
+            self.grown.update(self.reference.heights_mm, cap=False)  # as at a mark; no cap
             t0 = time.perf_counter()
             self.fusion.finish()
             self._queue_observed()
