@@ -9,7 +9,7 @@ from scipy.ndimage import map_coordinates
 from skimage.measure import marching_cubes as skimage_marching_cubes
 
 from dm2.core.tolerances import GRID_FRACTION_TOL
-from dm2.fusion.chunk_mesh import chunk_surface, observed_surface
+from dm2.fusion.chunk_mesh import chunk_surface
 from dm2.fusion.marching_cubes import marching_cubes
 from dm2.fusion.surface import mesh_volume
 
@@ -83,9 +83,9 @@ def test_unobserved_corners_leave_their_cubes_open_and_weight_is_interpolated():
     d, w = sphere()
     w[20:] = 0.5  # below min_weight from x = 20 on: cubes reaching x >= 20 are not meshed
     w[:8] = 3.0
-    v, f, normals = observed_surface(d.copy(), w, 1.5, 1.0, 1.0)
+    v, f, normals = chunk_surface(d.copy(), w, 1.5, 1.0, 1.0)[:3]
     assert v[:, 0].max() <= 19.0 and len(f) > 100
-    full, _, _ = observed_surface(*sphere(), 1.5, 1.0, 1.0)
+    full = chunk_surface(*sphere(), 1.5, 1.0, 1.0)[0]
     assert np.count_nonzero(full[:, 0] <= 19.0) == len(v)  # the same surface up to x = 19
     _, _, wv, _, _ = mesh_volume(d.copy(), w, np.zeros(3, np.int64), 1.0, 1.5, 1.0)
     low = v[:, 0] < 7
@@ -98,7 +98,7 @@ def test_never_updated_voxels_read_as_free_space():
     d, w = sphere()
     w[:, :, :12] = 0.0  # never updated: whatever d holds there is replaced by the truncation
     d[:, :, :12] = -5.0
-    v, _, _ = observed_surface(d, w, 1.5, 1.0, 1.0)
+    v = chunk_surface(d, w, 1.5, 1.0, 1.0)[0]
     assert np.all(d[:, :, :12] == np.float32(1.5))
     assert v[:, 2].min() >= 12.0
 
@@ -106,7 +106,7 @@ def test_never_updated_voxels_read_as_free_space():
 def test_a_corner_exactly_on_the_level_makes_no_zero_area_triangle():
     d, w = sphere()
     d[16, 16, 26] = 0.0  # the sphere's top passes through a grid point
-    v, f, _ = observed_surface(d, w, 1.5, 1.0, 1.0)
+    v, f = chunk_surface(d, w, 1.5, 1.0, 1.0)[:2]
     area = np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
     assert area.min() > 0
 

@@ -18,7 +18,7 @@ from numba import njit
 from dm2.core.tolerances import GRID_FRACTION_TOL
 from dm2.fusion.marching_cubes import marching_cubes
 
-__all__ = ["chunk_surface", "observed_surface"]
+__all__ = ["chunk_surface"]
 
 
 @njit(cache=True, nogil=True)
@@ -154,10 +154,3 @@ def chunk_surface(d: np.ndarray, w: np.ndarray, truncation_mm: float, min_weight
     out = _observed_finish(verts, faces, normals, seen, np.ascontiguousarray(w, np.float32),
                            np.float32(voxel_mm), np.float32(GRID_FRACTION_TOL))
     return out if len(out[1]) else None
-
-
-def observed_surface(d: np.ndarray, w: np.ndarray, truncation_mm: float, min_weight: float,
-                     voxel_mm: float):
-    """:func:`chunk_surface`'s ``(vertices, faces, normals)``, or None."""
-    out = chunk_surface(d, w, truncation_mm, min_weight, voxel_mm)
-    return None if out is None else out[:3]
