@@ -155,3 +155,29 @@ def test_expectations_no_tracks_global_and_local(monitored):
     res = check_expectations([local] + monitored.tracker.tracks,
                              ExpectConfig(no_tracks=True, no_local_tracks=True))
     assert [(r["passed"], r["track_ids"]) for r in res] == [(False, [1]), (False, [7])]
+
+
+def test_expected_global_track_met_by_a_process_finding_of_its_sign():
+    """A process finding reports a global over- or underbuild of the whole part: it meets an
+    expected global track of its sign and no other expectation (local kinds, absent tracks)."""
+    from dm2.defects.track import Track
+    from dm2.report.report_json import check_expectations
+
+    over = {"kind": "offset", "quantity": "deposition scale", "estimate": 1.10, "sign": 1,
+            "since_layer": 0, "text": "deposition efficiency 10 % above nominal since layer 0"}
+    expect = ExpectConfig(
+        tracks=(ExpectTrack(kind="overbuild", near_mm=(60.0, 60.0), within_mm=15.0,
+                            from_layer=4),
+                ExpectTrack(kind="underbuild"), ExpectTrack(kind="local_overbuild")),
+        absent=(ExpectTrack(kind="underbuild"),))
+    under = Track(id=3, kind="underbuild", first_layer=2, last_layer=5)
+    res = check_expectations([under], expect, [over])
+    assert res == [
+        {"expect": "overbuild track near [60.0, 60.0]", "passed": True, "track_ids": [],
+         "findings": [over["text"]]},
+        {"expect": "underbuild track", "passed": True, "track_ids": [3]},
+        {"expect": "local_overbuild track", "passed": False, "track_ids": []},
+        {"expect": "no underbuild track", "passed": False, "track_ids": [3]}]
+    # without the finding, or with one of the other sign, the overbuild is missed
+    for findings in ((), ({**over, "sign": -1},)):
+        assert check_expectations([under], expect, findings)[0]["passed"] is False

@@ -183,7 +183,8 @@ def run(
     print_summary(report, new_tracks)
     for e in report.get("expectations", []):
         mark = "[green]met[/]" if e.get("passed") else "[red]missed[/]"
-        console.print(f"expectation {e.get('expect')}: {mark}")
+        by = "".join(f" (process finding: {f})" for f in e.get("findings") or [])
+        console.print(f"expectation {e.get('expect')}: {mark}{by}")
     if done.reconstruction:
         rms = [v["rms_mm"] for v in done.reconstruction.values()]
         console.print(f"reconstruction vs the twin's true surface: RMS {np.median(rms):.3f} mm "

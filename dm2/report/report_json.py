@@ -125,21 +125,35 @@ def compare_with_truth(tracks: list[Track], faults: list[dict], within_mm: float
     return out
 
 
-def check_expectations(tracks: list[Track], expect) -> list[dict]:
+FINDING_SIGN = {"overbuild": 1, "underbuild": -1}  # the global kinds a process finding reports
+
+
+def check_expectations(tracks: list[Track], expect, findings=()) -> list[dict]:
     """Hold the tracks to a scenario's ``[expect]`` section; one result per expectation.
 
     ``no_tracks`` concerns global over/underbuild tracks: local deviations are allowed
     individually (paper sec. 6) and reported as early warnings; ``no_local_tracks`` holds
     those to zero as well.
+
+    ``findings`` are the run's process findings (report.json ``process.finding_details``). A
+    finding reports a global over- or underbuild of the whole part, from its ``since_layer`` to
+    the end of the run, so an expected global ``overbuild`` (``underbuild``) track is also met
+    by a finding of sign +1 (-1), wherever the expectation places it; the result names the
+    findings in ``findings``. Local kinds and the ``absent`` and ``no_tracks`` checks concern
+    tracks only (a finding is scored on its own by the bench).
     """
     results = []
     for e in expect.tracks:
         hits = [t for t in tracks if t.kind == e.kind
                 and (e.from_layer is None or t.last_layer >= e.from_layer)
                 and (e.near_mm is None or _track_near(t, e.near_mm, e.within_mm) <= e.within_mm)]
-        results.append({"expect": f"{e.kind} track" + (f" near {list(e.near_mm)}" if e.near_mm
-                                                        else ""),
-                        "passed": bool(hits), "track_ids": [t.id for t in hits]})
+        found = [f["text"] for f in findings
+                 if e.kind in FINDING_SIGN and int(f["sign"]) == FINDING_SIGN[e.kind]]
+        res = {"expect": f"{e.kind} track" + (f" near {list(e.near_mm)}" if e.near_mm else ""),
+               "passed": bool(hits or found), "track_ids": [t.id for t in hits]}
+        if found:
+            res["findings"] = found
+        results.append(res)
     for e in getattr(expect, "absent", ()):
         hits = [t for t in tracks if t.kind == e.kind
                 and (e.from_layer is None or t.last_layer >= e.from_layer)
@@ -224,7 +238,8 @@ def build_report(results, tracks: list[Track], *, dropped: dict | None = None,
         faults = fault_truth.get("faults", []) if isinstance(fault_truth, dict) else fault_truth
         doc["fault_truth"] = compare_with_truth(tracks, list(faults))
     if expect is not None:
-        doc["expectations"] = check_expectations(tracks, expect)
+        findings = ((sections or {}).get("process") or {}).get("finding_details") or ()
+        doc["expectations"] = check_expectations(tracks, expect, findings)
     return _clean(doc)
 
 
