@@ -38,8 +38,8 @@ def test_growth_after_the_last_observation_is_the_unseen_part():
     live = np.zeros((40, 40))
     live[:, :20] = 0.8  # the left half sprayed once
     seen = SeenReference(live.shape, cell, radius_mm=0.0)
-    xy = np.column_stack([np.full(80, 2.0), np.linspace(0.05, 9.95, 80)])  # a profile line
-    seen.observe(xy, 1.0, live)
+    xy = np.column_stack([np.full(80, 2.0), np.linspace(0.05, 9.95, 80), np.full(80, 0.8)])
+    seen.observe(xy, 1.0, live)  # a profile line
     live[:, :20] += 0.5  # sprayed again: nobody has looked since
     ref = ReferenceMap(live.copy(), cell)
     unseen = seen.unseen(ref)
@@ -61,15 +61,31 @@ def test_observing_marks_every_cell_within_reach_of_each_point_as_a_plain_loop_d
     # a profile line (several points per cell, so consecutive points share cells), points
     # off the plate and NaN
     t = np.linspace(0.0, 1.0, 400)
-    xy = np.column_stack([-1.0 + 22.0 * t, 2.0 + 12.0 * t ** 2])
-    xy[50] = np.nan
-    seen.observe(xy, 3.0, live)
+    xyz = np.column_stack([-1.0 + 22.0 * t, 2.0 + 12.0 * t ** 2, rng.normal(5.0, 1.0, 400)])
+    xyz[50] = np.nan
+    seen.surface_mm[:] = -3.0  # an earlier observation's surface (another stamp)
+    seen.observe(xyz, 3.0, live)
     want = np.zeros(shape, bool)
-    for x, y in xy:
+    lowest = np.full(shape, np.inf)
+    last = None
+    for x, y, z in xyz:
         if not (x >= 0 and y >= 0 and x / cell < shape[1] and y / cell < shape[0]):
             continue
         i, j = int(y // cell), int(x // cell)
+        if (i, j) == last:  # a point in the cell of the point before writes nothing new
+            continue
+        last = (i, j)
         want[max(i - 1, 0):i + 2, max(j - 1, 0):j + 2] = True
+        box = lowest[max(i - 1, 0):i + 2, max(j - 1, 0):j + 2]
+        np.minimum(box, z, out=box)
     assert np.array_equal(np.isfinite(seen.stamp_s), want)
     assert np.all(seen.stamp_s[want] == 3.0)
     assert np.array_equal(seen.heights_mm[want], live[want])
+    # the seen surface: the lowest marking point of this stamp, the earlier one replaced
+    assert np.array_equal(seen.surface_mm[want], lowest[want])
+    assert np.all(seen.surface_mm[~want] == -3.0)
+    # expected now: that height plus the reference's growth since (none never seen)
+    snap = seen.surface(ReferenceMap(live + 0.5, cell))
+    seen.surface_mm[:] = 0.0  # the snapshot is a copy
+    assert np.allclose(snap.heights_mm[want], lowest[want] + 0.5)
+    assert np.all(snap.heights_mm[~want] == -np.inf)

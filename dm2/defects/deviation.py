@@ -18,6 +18,7 @@ from numba import njit, prange
 
 from dm2.defects.classify import classify_vertices, curvature_and_areas
 from dm2.defects.footprint import mark_overspray
+from dm2.defects.stale import stale_gap_mm
 from dm2.defects.uncertainty import coefficients, uncertainty_features
 from dm2.defects.uncertainty_online import inflated_sigma_mm, model_inflation
 from dm2.reference.height_map import ReferenceMap
@@ -219,6 +220,9 @@ class LayerDeviation:
     unseen_mm : (n,) float64 [mm] or None, the reference's growth at each vertex since the
         profilers last saw it (dm2.pipeline.seen_reference): an underbuild that small is not
         measured, only not yet seen
+    stale_mm : (n,) float64 [mm] or None, how far a vertex lies below the surface last seen all
+        around it, beyond a margin (dm2.defects.stale): an old top the new one grew over
+        unseen, not an underbuild
     model_inflation : {term: factor} or None, how far this layer's own deviations raised the
         uncertainty's model-error terms (dm2.defects.uncertainty_online)
     """
@@ -239,6 +243,7 @@ class LayerDeviation:
     normals_O: np.ndarray | None = None
     unseen_mm: np.ndarray | None = None
     model_inflation: dict | None = None
+    stale_mm: np.ndarray | None = None
 
     @property
     def n_vertices(self) -> int:
@@ -251,7 +256,8 @@ class LayerDeviation:
 
 def layer_deviation(surface, reference: ReferenceMap, monitor_cfg, layer: int | None = None,
                     stamp_s: float | None = None, outline=None,
-                    uncertainty: bool = True, unseen=None) -> LayerDeviation:
+                    uncertainty: bool = True, unseen=None,
+                    seen_surface=None) -> LayerDeviation:
     """Signed deviation, uncertainty and classification of a measured surface.
 
     ``monitor_cfg`` supplies ``delta_global_mm``, ``delta_local``, ``min_weight``,
@@ -259,16 +265,21 @@ def layer_deviation(surface, reference: ReferenceMap, monitor_cfg, layer: int | 
     dm2.defects.footprint.PlannedOutline) enables the overspray class; ``uncertainty=False``
     classifies on the deviation alone (the paper's rule). ``unseen`` (a ReferenceMap of the
     reference's growth since each column was last observed, or None) shrinks an underbuild by
-    that growth: the measurement there predates the last deposit.
+    that growth: the measurement there predates the last deposit. ``seen_surface`` (a
+    dm2.defects.stale.SeenSurface, or None) shrinks it by how far a vertex lies below what the
+    profilers last saw all around it (a stale top, :mod:`dm2.defects.stale`).
     """
     v, f, w = _surface_arrays(surface)
     d, foot = closest_on_reference(v, reference)
+    normals = getattr(surface, "normals_O", None)
+    curv = curvature_and_areas(v, f, normals, return_normals=True)
     unseen_mm = None
     if unseen is not None:
         unseen_mm = np.maximum(unseen.height_at(v[:, :2]), 0.0)
-        d = np.where(d < 0.0, np.minimum(d + unseen_mm, 0.0), d)
-    normals = getattr(surface, "normals_O", None)
-    curv = curvature_and_areas(v, f, normals, return_normals=True)
+    stale_mm = stale_gap_mm(v, seen_surface, unseen_mm)
+    lift = sum(x for x in (unseen_mm, stale_mm) if x is not None)
+    if unseen_mm is not None or stale_mm is not None:
+        d = np.where(d < 0.0, np.minimum(d + lift, 0.0), d)
     ref_curv = reference.mean_curvature_at(foot[:, :2])
     sigma = inflation = None
     if uncertainty:
@@ -290,4 +301,4 @@ def layer_deviation(surface, reference: ReferenceMap, monitor_cfg, layer: int | 
     return LayerDeviation(layer, v, f, w, d, foot, code, classes.local_metric,
                           classes.mean_curvature, classes.vertex_area_mm2,
                           float(reference.stamp_s if stamp_s is None else stamp_s), sigma,
-                          outside, curv[2], unseen_mm, inflation)
+                          outside, curv[2], unseen_mm, inflation, stale_mm)

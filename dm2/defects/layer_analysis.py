@@ -109,17 +109,20 @@ class LayerAnalysis:
         self.spill = SpillStore(keep) if keep is not None else None
 
     def analyse_layer(self, surface, reference: ReferenceMap, layer: int | None = None,
-                      stamp_s: float | None = None, unseen: ReferenceMap | None = None
-                      ) -> LayerResult:
+                      stamp_s: float | None = None, unseen: ReferenceMap | None = None,
+                      seen_surface=None) -> LayerResult:
         """Deviation, segmentation and tracking of one layer's surface; returns its result.
-        ``unseen``: the reference's growth since each column was last observed (or None)."""
+        ``unseen``: the reference's growth since each column was last observed (or None);
+        ``seen_surface``: the height last seen per column (dm2.defects.stale.SeenSurface, or
+        None)."""
         layer = reference.layer if layer is None else int(layer)
         t0 = time.perf_counter()
         compared = reference
         if self.same_grid and reference.cell_mm < self.cfg.voxel_mm:
             compared = reference.resampled(self.cfg.voxel_mm)
         dev = layer_deviation(surface, compared, self.cfg, layer, stamp_s, outline=self.outline,
-                              uncertainty=self.uncertainty, unseen=unseen)
+                              uncertainty=self.uncertainty, unseen=unseen,
+                              seen_surface=seen_surface)
         t1 = time.perf_counter()
         regions = segment_regions(dev, self.cfg.min_region_area_mm2,
                                   self.cfg.min_region_volume_mm3)

@@ -120,6 +120,7 @@ class ProcessFit:
         normals = _normals_z(dev)
         top = (dev.class_code != UNOBSERVED) & (normals >= TOP_NZ)
         top &= ~np.isin(dev.class_code, DEFECT_CLASSES)  # the process where no defect is
+        top &= _not_stale(dev)
         if dev.outside_mm is not None:
             top &= dev.outside_mm <= 0.0
         top &= _on_plateau(reference, dev.foot_O, top)
@@ -299,6 +300,7 @@ def _plume_factor(result, scale: float, bound: float) -> float:
     if ref is None or not ref.plume_sigma_mm > 0:
         return 1.0
     ok = (dev.class_code != UNOBSERVED) & ~np.isin(dev.class_code, DEFECT_CLASSES)
+    ok &= _not_stale(dev)
     if dev.outside_mm is not None:
         ok &= dev.outside_mm <= 2.0 * ref.plume_sigma_mm
     P = ref.plume_sensitivity_at(dev.foot_O[:, :2])
@@ -372,3 +374,10 @@ def _normals_z(dev) -> np.ndarray:
     _, _, normals = curvature_and_areas(dev.vertices_O, dev.faces, return_normals=True,
                                         smooth_iterations=0)
     return np.abs(normals[:, 2])
+
+
+def _not_stale(dev) -> np.ndarray | bool:
+    """The vertices that are a surface the profilers saw: a stale top (dm2.defects.stale) is
+    an old one, not the process's."""
+    stale = getattr(dev, "stale_mm", None)
+    return True if stale is None else np.asarray(stale) == 0.0

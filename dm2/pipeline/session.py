@@ -264,7 +264,7 @@ class MonitoringSession:
                     return False
             step = self._ops.popleft()
             if isinstance(step, Observed):
-                self.seen.observe(step.points_O[:, :2], step.stamp_s, self.reference.heights_mm)
+                self.seen.observe(step.points_O, step.stamp_s, self.reference.heights_mm)
                 if self._reobserved is not None:
                     self._reobserved.observe(step.points_O, step.stamp_s, self.reference.heights_mm)
             elif isinstance(step, LayerStarted):
@@ -351,7 +351,7 @@ class MonitoringSession:
         if ref is None:  # no layer marks in the stream: take the reference now
             ref = self.reference.end_layer(done.layer)
         stamp = None if not np.isfinite(done.stamp_s) else done.stamp_s
-        unseen = self.seen.unseen(ref)
+        unseen = (self.seen.unseen(ref), self.seen.surface(ref))
         self._taken_layer = done.layer
         if self.process_fit is not None:
             self._fit_due_s = done.stamp_s + FIT_APPLY_DELAY_S
@@ -384,13 +384,13 @@ class MonitoringSession:
         self.seen.calibrated(self.reference, rescale, plume)
         self.grown.calibrated(self.reference.heights_mm, rescale, plume)
 
-    def _analyse(self, done: LayerSurface, ref, stamp, unseen=None) -> None:
+    def _analyse(self, done: LayerSurface, ref, stamp, unseen=(None, None)) -> None:
         t0 = time.perf_counter()
         surface = done.surface
         if surface.vertices_O.shape[0] == 0:
             log.warning("layer %d: no surface was reconstructed; skipped", done.layer)
             return
-        result = self.defects.analyse_layer(surface, ref, done.layer, stamp, unseen)
+        result = self.defects.analyse_layer(surface, ref, done.layer, stamp, *unseen)
         if self.process_fit is not None:  # applied at _fit_due_s (_apply_fit)
             # with the bound's model-error factors the layer measured (for the live columns)
             self._pending_fit = (*self.process_fit.update(result),
