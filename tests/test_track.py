@@ -41,6 +41,23 @@ def test_merge_split_and_end():
     assert all(t.ended for t in tr.tracks) and tr.active == []
 
 
+def test_a_track_holding_two_regions_is_matched_against_both_next_layer():
+    """A region merged into a track that continues elsewhere belongs to it: the next layer's
+    region in its place continues that track instead of opening a new one."""
+    tr = RegionTracker(margin_mm=0.5)
+    assert tr.update(0, [region(0, 0, 20), region(0, 30, 34)]) == [1, 2]
+    # the second region reaches the first track's box: it merges into track 1, which also
+    # continues in the first region (the larger one, recorded in its history)
+    assert tr.update(1, [region(1, 0, 20), region(1, 19.8, 34, area=10.0)]) == [1, 1]
+    t1, t2 = tr.tracks
+    assert t2.ended and t2.merged_into == 1
+    assert t1.bbox_min_O[0] == 0.0 and t1.bbox_max_O[0] == 34.0  # both regions' boxes
+    # only the merged region's place stays flagged: still track 1, no new track
+    assert tr.update(2, [region(2, 30, 34)]) == [1]
+    assert len(tr.tracks) == 2 and not t1.ended
+    assert states(t1) == [(0, "new"), (1, "split"), (2, "shrinking")]
+
+
 def test_growth_rates_and_trend():
     tr = RegionTracker()
     for layer, (x1, h) in enumerate([(4, 0.5), (5, 0.7), (6, 0.9), (7, 1.1)]):

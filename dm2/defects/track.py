@@ -20,7 +20,11 @@ ids are numbered in the order tracks are confirmed. Per layer a track is in one 
   on the area change (beyond ``area_tolerance``) and otherwise on the height change (beyond
   ``height_tolerance_mm``);
 * ``merged``: several tracks met one region; it continues the oldest confirmed one (among
-  candidates only: one seen global before local-only ones, then the oldest), the others end;
+  candidates only: one seen global before local-only ones, then the oldest), the others end.
+  A track that so holds several regions in a layer (its history records the largest) is
+  matched against all their boxes in the next layer: the region it took over stays its own,
+  not a new track (on the full twisted tower, one flank region had been reported as four
+  tracks in turn);
 * ``split``: one track met several regions; the largest continues it, the rest start new tracks
   (their ``parent`` is the split track);
 * ``ended``: no region continued it this layer.
@@ -276,6 +280,9 @@ class RegionTracker:
 
     def _record(self, t: Track, r: Region, state: str) -> None:
         if t.history and t.history[-1]["layer"] == r.layer:  # a merge already recorded it
+            # it holds this region too: the next layer is matched against all it holds
+            t.bbox_min_O = np.minimum(t.bbox_min_O, r.bbox_min_O)
+            t.bbox_max_O = np.maximum(t.bbox_max_O, r.bbox_max_O)
             return
         if t.history:
             prev = t.history[-1]
