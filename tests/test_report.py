@@ -181,3 +181,9 @@ def test_expected_global_track_met_by_a_process_finding_of_its_sign():
     # without the finding, or with one of the other sign, the overbuild is missed
     for findings in ((), ({**over, "sign": -1},)):
         assert check_expectations([under], expect, findings)[0]["passed"] is False
+    # the inspection sheet names what met it
+    from dm2.report.html import _truth
+    sheet = _truth({"expectations": res})
+    assert ("<td class='l'>overbuild track near [60.0, 60.0]</td><td>met</td><td class='l'>"
+            f"process finding: {over['text']}</td>") in sheet
+    assert "<td class='l'>no underbuild track</td><td>MISSED</td><td class='l'>3</td>" in sheet

@@ -351,16 +351,16 @@ class MonitoringSession:
         if ref is None:  # no layer marks in the stream: take the reference now
             ref = self.reference.end_layer(done.layer)
         stamp = None if not np.isfinite(done.stamp_s) else done.stamp_s
-        unseen = (self.seen.unseen(ref), self.seen.surface(ref))
+        since_seen = (self.seen.unseen(ref), self.seen.surface(ref))  # growth, where expected
         self._taken_layer = done.layer
         if self.process_fit is not None:
             self._fit_due_s = done.stamp_s + FIT_APPLY_DELAY_S
             if self.process_fit.calibrating:  # this layer may calibrate: watch its top
                 self._reobserved = ReobservedTop(ref, done.stamp_s, self._fit_due_s)
         if self._worker is None:
-            self._analyse(done, ref, stamp, unseen)
+            self._analyse(done, ref, stamp, since_seen)
         else:  # meshed (done.surface) and analysed on the worker
-            self._worker.submit(done, ref, stamp, unseen)
+            self._worker.submit(done, ref, stamp, since_seen)
 
     def _apply_fit(self) -> None:
         """Apply the process fit of the layer analysed last at a fixed point of the stream
@@ -384,13 +384,13 @@ class MonitoringSession:
         self.seen.calibrated(self.reference, rescale, plume)
         self.grown.calibrated(self.reference.heights_mm, rescale, plume)
 
-    def _analyse(self, done: LayerSurface, ref, stamp, unseen=(None, None)) -> None:
+    def _analyse(self, done: LayerSurface, ref, stamp, since_seen=(None, None)) -> None:
         t0 = time.perf_counter()
         surface = done.surface
         if surface.vertices_O.shape[0] == 0:
             log.warning("layer %d: no surface was reconstructed; skipped", done.layer)
             return
-        result = self.defects.analyse_layer(surface, ref, done.layer, stamp, *unseen)
+        result = self.defects.analyse_layer(surface, ref, done.layer, stamp, *since_seen)
         if self.process_fit is not None:  # applied at _fit_due_s (_apply_fit)
             # with the bound's model-error factors the layer measured (for the live columns)
             self._pending_fit = (*self.process_fit.update(result),

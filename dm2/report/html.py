@@ -88,8 +88,8 @@ def _truth(report: dict) -> str:
             left=(0, 1)))
     if report.get("expectations"):
         rows = [[e["expect"], "met" if e["passed"] else "MISSED",
-                 "; ".join([str(i) for i in e.get("track_ids") or []]
-                           + [f"process finding: {f}" for f in e.get("findings") or []])]
+                 "; ".join(filter(None, [", ".join(str(i) for i in e.get("track_ids") or [])]
+                                  + [f"process finding: {f}" for f in e.get("findings") or []]))]
                 for e in report["expectations"]]
         parts.append("<h2>Expectations</h2>" + _table(rows, ["expectation", "result",
                                                              "tracks or findings"], left=(0, 2)))
