@@ -10,7 +10,7 @@ from test_deviation import CELL, MON, pad_heights, top_surface
 from dm2.defects.classify import UNDERBUILD
 from dm2.defects.deviation import layer_deviation
 from dm2.defects.segment import segment_regions
-from dm2.defects.stale import STALE_MARGIN_MM, STALE_REACH_MM, SeenSurface, stale_gap_mm
+from dm2.defects.stale import STALE_MARGIN_MM, STALE_REACH_MM, TOP_MIN_NZ, SeenSurface, stale_gap_mm
 from dm2.reference.height_map import ReferenceMap
 
 PATCH = (55.0, 65.0)  # x and y range [mm] of the old top, 3.2 mm below the new one
@@ -80,3 +80,20 @@ def test_the_gap_counts_beyond_the_margin_below_everything_seen_within_reach():
                   [7.5 - STALE_REACH_MM - 0.3, 7.0, 2.0]])  # farther in: lifted
     assert np.allclose(stale_gap_mm(v, seen), [3.0, 0, 0, 0, 0, 0, 3.0])
     assert stale_gap_mm(v, None) is None
+
+
+def test_an_up_facing_vertex_is_also_held_to_its_own_cell():
+    """Inside an old top, a cell last seen long ago on that old top (expected 1 mm above it)
+    holds the window's lowest value down; a vertex that faces up is lifted by its own cell,
+    which was seen on the new top. A wall's vertex in the same place is not."""
+    cell = 0.25
+    seen = SeenSurface(np.full((40, 40), 5.0), cell)
+    seen.heights_mm[12, 13] = 3.0  # a neighbour last seen on the old top at 2.0 (+1 mm grown)
+    v = np.array([[3.1, 3.1, 2.0], [3.1, 3.1, 2.0]])
+    up = np.cos(np.radians(44.0))
+    n = np.array([[0.0, np.sqrt(1.0 - up * up), up], [1.0, 0.0, 0.0]])
+    assert n[0, 2] >= TOP_MIN_NZ > np.cos(np.radians(46.0))
+    assert np.allclose(stale_gap_mm(v, seen), [0.0, 0.0])  # the window's 3.0: within margin
+    assert np.allclose(stale_gap_mm(v, seen, None, n), [3.0, 0.0])
+    # the unseen growth of its own column counts first: 2.5 mm of it leaves 0.5, not stale
+    assert np.allclose(stale_gap_mm(v, seen, np.array([2.5, 2.5]), n), [0.0, 0.0])

@@ -16,12 +16,15 @@ growth since. A vertex that lies more than ``STALE_MARGIN_MM`` below the lowest 
 profilers saw: :func:`stale_gap_mm` is that gap, and the deviation adds it to an underbuild
 as it adds the unseen growth (:func:`dm2.defects.deviation.layer_deviation`), so the vertex
 reads as the lowest surface expected around it. The old top and the steep mesh that joins it to
-the seen top around it are both such vertices. What was seen stays the evidence:
+the seen top around it are both such vertices. A vertex that faces up (a top, ``n_z >=
+TOP_MIN_NZ``) is also held to its own cell alone: inside an old top, cells last seen long ago
+(whose points stood on the old top, and whose reference grew less since than the part did)
+would otherwise hold the whole patch down. What was seen stays the evidence:
 
 * a dent or a clog whose own points mark its cells reads at its own depth;
 * a wall has the cells beyond it (the plate, a hole's floor, a lower flank: seen low, the
-  reference grown little there since) or cells never seen within the reach: its vertices are
-  never lifted, and neither is a top at an edge;
+  reference grown little there since) or cells never seen within the reach: its vertices (not
+  up-facing) are never lifted, and neither is a top at an edge (its own cell saw that top);
 * a column no profile point ever marked is not lifted (its growth is not unseen either).
 
 The margin covers what a seen point may stand above a sound surface within the reach: 0.5 mm
@@ -37,6 +40,7 @@ from scipy.ndimage import minimum_filter
 
 STALE_MARGIN_MM = 1.0  # a surface this far below the lowest point seen around it is stale
 STALE_REACH_MM = 0.5  # "around": the cells within this distance (a square window)
+TOP_MIN_NZ = float(np.cos(np.radians(45.0)))  # a vertex faces up (a top) from this n_z on
 
 
 @dataclass(frozen=True)
@@ -72,14 +76,20 @@ class SeenSurface:
 
 
 def stale_gap_mm(vertices_O: np.ndarray, seen: SeenSurface | None,
-                 unseen_mm: np.ndarray | None = None) -> np.ndarray | None:
+                 unseen_mm: np.ndarray | None = None,
+                 normals_O: np.ndarray | None = None) -> np.ndarray | None:
     """How far [mm] (n,) each vertex, raised by its column's unseen growth ``unseen_mm`` (n,)
     (or None), lies below the lowest surface expected around it
-    (:meth:`SeenSurface.lowest_near`), where that is more than :data:`STALE_MARGIN_MM`; 0
-    elsewhere. None without a seen surface."""
+    (:meth:`SeenSurface.lowest_near`), where that is more than :data:`STALE_MARGIN_MM`; an
+    up-facing vertex (``normals_O`` given, ``n_z >= TOP_MIN_NZ``) is also compared with its own
+    cell alone. 0 elsewhere. None without a seen surface."""
     if seen is None:
         return None
     v = np.asarray(vertices_O, np.float64)
     z = v[:, 2] if unseen_mm is None else v[:, 2] + np.asarray(unseen_mm, np.float64)
     gap = seen.lowest_near(v[:, :2]) - z
+    if normals_O is not None:
+        up = np.asarray(normals_O, np.float64)[:, 2] >= TOP_MIN_NZ
+        own = seen.lowest_near(v[:, :2], reach_mm=0.0) - z
+        gap = np.where(up & (own > gap), own, gap)
     return np.where(gap > STALE_MARGIN_MM, gap, 0.0)
