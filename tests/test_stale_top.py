@@ -97,3 +97,25 @@ def test_an_up_facing_vertex_is_also_held_to_its_own_cell():
     assert np.allclose(stale_gap_mm(v, seen, None, n), [3.0, 0.0])
     # the unseen growth of its own column counts first: 2.5 mm of it leaves 0.5, not stale
     assert np.allclose(stale_gap_mm(v, seen, np.array([2.5, 2.5]), n), [0.0, 0.0])
+
+
+def test_the_layer_statistics_keep_what_was_lifted_in_sight():
+    """What the rule lifts is never hidden: report.json's layer statistics carry the lifted
+    area (the old top and its steep rim: what read as underbuild without the rule) and the
+    largest gap; a dent seen at its depth lifts nothing and stays an underbuild."""
+    from dm2.defects.layer_analysis import LayerAnalysis
+
+    ref_h, meas, patch = _stale_pad()
+    ref = ReferenceMap(ref_h, CELL, layer=9)
+    surf = top_surface(meas)
+    plain = LayerAnalysis(MON).analyse_layer(surf, ref, 9).statistics()
+    under = plain["area_by_class_mm2"]["underbuild"]
+    assert under > 150.0 and "stale_top" not in plain
+    lifted = LayerAnalysis(MON).analyse_layer(surf, ref, 9, None, None, _seen(ref_h))
+    stats = lifted.statistics()
+    assert stats["stale_top"]["max_gap_mm"] == 3.2 and lifted.regions == []
+    assert abs(stats["stale_top"]["area_mm2"] - under) < 5.0
+    assert stats["area_by_class_mm2"]["underbuild"] == 0.0
+    dent = LayerAnalysis(MON).analyse_layer(surf, ref, 9, None, None, _seen(meas)).statistics()
+    assert dent["stale_top"] == {"area_mm2": 0.0, "max_gap_mm": 0.0}
+    assert dent["area_by_class_mm2"]["underbuild"] == under

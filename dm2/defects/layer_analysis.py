@@ -47,7 +47,9 @@ class LayerResult:
     timing_s: dict = field(default_factory=dict)
 
     def statistics(self) -> dict:
-        """Per-layer summary: deviation percentiles and area per class [mm^2]."""
+        """Per-layer summary: deviation percentiles and area per class [mm^2]; with the seen
+        surface, ``stale_top``: the area [mm^2] of the vertices read as an old top grown over
+        unseen and the largest gap [mm] they were lifted by."""
         dev = self.deviation
         areas = dev.vertex_areas()
         seen = dev.class_code != CLASS_NAMES.index("unobserved")
@@ -57,6 +59,11 @@ class LayerResult:
                                        for k, name in enumerate(CLASS_NAMES)}}
         if dev.model_inflation is not None:  # dm2.defects.uncertainty_online
             stats["uncertainty_inflation"] = dict(dev.model_inflation)
+        stale = getattr(dev, "stale_mm", None)
+        if stale is not None:  # what the stale-top rule lifted (dm2.defects.stale), in sight
+            lifted = stale > 0.0
+            stats["stale_top"] = {"area_mm2": float(areas[lifted].sum()),
+                                  "max_gap_mm": float(stale.max()) if lifted.any() else 0.0}
         if d.size:
             w = areas[seen]
             stats.update({
