@@ -1,6 +1,7 @@
 """The twisted tower end to end: ``dm2 run twisted_tower --no-record`` in a child process, then
-its stage times, real-time factor, peak RSS, track count and the reconstruction per layer band
-against the twin's true surface.
+its stage times, real-time factor, peak RSS, track count (and the area of the tracked regions
+summed over the layers, per kind: what was flagged and tracked, however the regions were
+grouped into tracks) and the reconstruction per layer band against the twin's true surface.
 
 Printed (``--runs`` runs of ``dm2 run``, 3 by default: each run's wall time, peak RSS and the
 load average after it; the wall time below is their median, the peak RSS their maximum; stage
@@ -222,7 +223,15 @@ def report(run_dir: Path, wall: float, rss_mib: float, args) -> None:
     for name, s in stages.items():
         extra = f" ({s / max(n_layers, 1):.2f} s per layer)" if name == "layer analysis" else ""
         print(f"  {name:>32s}: {s:7.1f} s{extra}")
-    print(f"tracks: {len(rep.get('tracks', []))}")
+    # the tracked area over all layers does not depend on how regions are grouped into tracks
+    tracked: dict[str, float] = {}
+    for lay in rep.get("layers", []):
+        for reg in lay.get("regions", []):
+            if reg.get("track_id") is not None:
+                tracked[reg["kind"]] = tracked.get(reg["kind"], 0.0) + float(reg["area_mm2"])
+    print(f"tracks: {len(rep.get('tracks', []))}; area in tracked regions, summed over the "
+          "layers: " + (", ".join(f"{k} {v:.0f} mm2" for k, v in sorted(tracked.items()))
+                        or "none"))
     layers = sorted(int(k) for k in rep.get("reconstruction", {}))
     print(f"reconstruction per {args.band}-layer band (all written vertices vs the twin's true "
           f"surface at each layer's end; coverage: true built surface within {args.cover_mm:g} "
