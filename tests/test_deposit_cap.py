@@ -85,7 +85,8 @@ def test_observing_marks_every_cell_within_reach_of_each_point_as_a_plain_loop_d
     assert np.array_equal(seen.surface_mm[want], lowest[want])
     assert np.all(seen.surface_mm[~want] == -3.0)
     # expected now: that height plus the reference's growth since (none never seen)
-    snap = seen.surface(ReferenceMap(live + 0.5, cell))
+    grown, snap = seen.since_seen(ReferenceMap(live + 0.5, cell))
     seen.surface_mm[:] = 0.0  # the snapshot is a copy
     assert np.allclose(snap.heights_mm[want], lowest[want] + 0.5)
     assert np.all(snap.heights_mm[~want] == -np.inf)
+    assert np.allclose(grown.heights_mm[want], 0.5) and not grown.heights_mm[~want].any()

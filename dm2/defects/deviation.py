@@ -277,9 +277,9 @@ def layer_deviation(surface, reference: ReferenceMap, monitor_cfg, layer: int | 
     if unseen is not None:
         unseen_mm = np.maximum(unseen.height_at(v[:, :2]), 0.0)
     stale_mm = stale_gap_mm(v, seen_surface, unseen_mm, curv[2])
-    lift = sum(x for x in (unseen_mm, stale_mm) if x is not None)
-    if unseen_mm is not None or stale_mm is not None:
-        d = np.where(d < 0.0, np.minimum(d + lift, 0.0), d)
+    lifts = [x for x in (unseen_mm, stale_mm) if x is not None]
+    if lifts:
+        d = np.where(d < 0.0, np.minimum(d + sum(lifts), 0.0), d)
     ref_curv = reference.mean_curvature_at(foot[:, :2])
     sigma = inflation = None
     if uncertainty:

@@ -64,7 +64,8 @@ class SeenSurface:
         was never seen."""
         xy = np.asarray(xy_O, np.float64).reshape(-1, 2)
         r = max(int(np.ceil(reach_mm / self.cell_mm - 1e-9)), 0)
-        low = minimum_filter(self.heights_mm, size=2 * r + 1, mode="constant", cval=-np.inf)
+        low = self.heights_mm if r == 0 else minimum_filter(self.heights_mm, size=2 * r + 1,
+                                                             mode="constant", cval=-np.inf)
         ny, nx = low.shape
         with np.errstate(invalid="ignore"):
             i = np.floor(xy[:, 0] / self.cell_mm)

@@ -17,7 +17,7 @@ growing while the measured surface stood still.
 
 It keeps as well the height of the lowest profile point that marked each cell at its last
 observation; with the reference's growth since, that is where the surface is expected now
-(:meth:`SeenReference.surface`). A surface the fused one holds well below that all around it is
+(:meth:`SeenReference.since_seen`). A surface the fused one holds well below that all around it is
 an old top the new one grew over unseen (:mod:`dm2.defects.stale`).
 """
 
@@ -56,14 +56,6 @@ class SeenReference:
                        float(stamp_s), reference_heights_mm, self.heights_mm, self.stamp_s,
                        self.surface_mm)
 
-    def surface(self, reference: ReferenceMap) -> SeenSurface:
-        """Where each cell's surface is expected now: the lowest point's height at its last
-        observation plus the reference's growth since (:meth:`unseen`); ``-inf`` where no
-        profile point ever fell."""
-        seen = np.isfinite(self.stamp_s)
-        grown = np.maximum(np.nan_to_num(reference.heights_mm - self.heights_mm), 0.0)
-        return SeenSurface(np.where(seen, self.surface_mm + grown, -np.inf), self.cell_mm)
-
     def calibrated(self, reference, rescale: float, plume: float) -> None:
         """The process calibration: ``reference`` (the NearNetReference) scaled what it
         deposited so far by ``rescale``; its plume is widened by ``plume`` here, and the seen
@@ -77,9 +69,18 @@ class SeenReference:
     def unseen(self, reference: ReferenceMap) -> ReferenceMap:
         """The reference's growth since each column's last observation (0 where no profile
         point ever fell), as a new map on the reference's grid."""
-        grown = np.where(np.isfinite(self.stamp_s), reference.heights_mm - self.heights_mm, 0.0)
-        return ReferenceMap(np.maximum(np.nan_to_num(grown), 0.0), reference.cell_mm,
-                            reference.layer, reference.stamp_s)
+        return self.since_seen(reference)[0]
+
+    def since_seen(self, reference: ReferenceMap) -> tuple[ReferenceMap, SeenSurface]:
+        """:meth:`unseen` and where each cell's surface is expected now (the lowest point's
+        height at its last observation plus that growth; ``-inf`` where no profile point ever
+        fell), the growth computed once."""
+        seen = np.isfinite(self.stamp_s)
+        grown = np.maximum(np.nan_to_num(
+            np.where(seen, reference.heights_mm - self.heights_mm, 0.0)), 0.0)
+        expected = SeenSurface(np.where(seen, self.surface_mm + grown, -np.inf), self.cell_mm)
+        return (ReferenceMap(grown, reference.cell_mm, reference.layer, reference.stamp_s),
+                expected)
 
 
 @njit(cache=True, inline="always")

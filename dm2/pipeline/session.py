@@ -351,7 +351,7 @@ class MonitoringSession:
         if ref is None:  # no layer marks in the stream: take the reference now
             ref = self.reference.end_layer(done.layer)
         stamp = None if not np.isfinite(done.stamp_s) else done.stamp_s
-        since_seen = (self.seen.unseen(ref), self.seen.surface(ref))  # growth, where expected
+        since_seen = self.seen.since_seen(ref)  # (growth, where the surface is expected)
         self._taken_layer = done.layer
         if self.process_fit is not None:
             self._fit_due_s = done.stamp_s + FIT_APPLY_DELAY_S

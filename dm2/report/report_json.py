@@ -125,6 +125,14 @@ def compare_with_truth(tracks: list[Track], faults: list[dict], within_mm: float
     return out
 
 
+def _matching(tracks: list[Track], e) -> list[Track]:
+    """The tracks of expectation ``e``'s kind, seen up to ``e.from_layer`` or later, within
+    ``e.within_mm`` of ``e.near_mm`` (each only where given)."""
+    return [t for t in tracks if t.kind == e.kind
+            and (e.from_layer is None or t.last_layer >= e.from_layer)
+            and (e.near_mm is None or _track_near(t, e.near_mm, e.within_mm) <= e.within_mm)]
+
+
 FINDING_SIGN = {"overbuild": 1, "underbuild": -1}  # the global kinds a process finding reports
 
 
@@ -144,9 +152,7 @@ def check_expectations(tracks: list[Track], expect, findings=()) -> list[dict]:
     """
     results = []
     for e in expect.tracks:
-        hits = [t for t in tracks if t.kind == e.kind
-                and (e.from_layer is None or t.last_layer >= e.from_layer)
-                and (e.near_mm is None or _track_near(t, e.near_mm, e.within_mm) <= e.within_mm)]
+        hits = _matching(tracks, e)
         found = [f["text"] for f in findings
                  if e.kind in FINDING_SIGN and int(f["sign"]) == FINDING_SIGN[e.kind]]
         res = {"expect": f"{e.kind} track" + (f" near {list(e.near_mm)}" if e.near_mm else ""),
@@ -155,9 +161,7 @@ def check_expectations(tracks: list[Track], expect, findings=()) -> list[dict]:
             res["findings"] = found
         results.append(res)
     for e in getattr(expect, "absent", ()):
-        hits = [t for t in tracks if t.kind == e.kind
-                and (e.from_layer is None or t.last_layer >= e.from_layer)
-                and (e.near_mm is None or _track_near(t, e.near_mm, e.within_mm) <= e.within_mm)]
+        hits = _matching(tracks, e)
         results.append({"expect": f"no {e.kind} track" + (f" near {list(e.near_mm)}" if e.near_mm
                                                            else ""),
                         "passed": not hits, "track_ids": [t.id for t in hits]})
