@@ -225,6 +225,25 @@ def test_the_bench_fits_each_cell_on_its_own_fault_free_build():
     assert sc.process.efficiency_cos_exponent == 0.0
 
 
+def test_a_cell_is_fitted_on_its_first_scenario_of_the_whole_suite():
+    """``--only`` must not change a scenario's curve: its cell's calibration build takes the
+    seed of the cell's first scenario in the suite, as in the full run."""
+    from dm2.bench.suites import resolve_suite
+    from dm2.cli.bench_curve import calibration_scenario, cell_key, cell_sources
+    from dm2.core.config import load_scenario
+
+    _, files = resolve_suite("model_error", SUITES)
+    suite = [load_scenario(f) for f in files]
+    sources = cell_sources(suite)
+    assert len(sources) == 4  # the four cells of the model-error suite
+    dent = next(sc for sc in suite if sc.name.endswith("dent_hole_wall_narrow_lean"))
+    first = next(sc for sc in suite if cell_key(sc) == cell_key(dent))
+    assert first.name.endswith("bump_box_corner_narrow_lean") and first is not dent
+    assert sources[cell_key(dent)] is first
+    assert calibration_scenario(sources[cell_key(dent)]).seed == first.seed + 7919
+    assert all(cell_key(sc) == k for k, sc in sources.items())
+
+
 def test_bench_refuses_an_unknown_curve_mode(tmp_path):
     res = runner.invoke(app, ["bench", "--suite", "smoke", "--curve", "guessed", "--out",
                               str(tmp_path / "b")])

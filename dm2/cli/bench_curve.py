@@ -28,6 +28,16 @@ def cell_key(sc) -> str:
     return json.dumps({k: d.get(k) for k in CELL_SECTIONS}, sort_keys=True)
 
 
+def cell_sources(suite_scenarios) -> dict:
+    """``{cell_key: scenario}``: the first scenario of each cell in the whole suite's order,
+    whose seed the cell's calibration build takes. Computed over the whole suite, so that a run
+    of some scenarios (``--only``) monitors each with the curve the full suite gives it."""
+    firsts: dict = {}
+    for sc in suite_scenarios:
+        firsts.setdefault(cell_key(sc), sc)
+    return firsts
+
+
 def calibration_scenario(sc):
     """The fault-free calibration build of ``sc``'s cell (see the module docstring)."""
     from dm2.core.config import parse_scenario

@@ -123,11 +123,18 @@ def bench(
         if curve not in ("configured", "fitted"):
             raise ValueError(f"--curve {curve}: expected 'configured' or 'fitted'")
         spec, files = resolve_suite(suite, scenario_dir() / "suites")
+        suite_files = files
         if only:
             files = [f for f in files if f.stem in set(only)]
             if not files:
                 raise ValueError(f"--only {only}: no such scenario in suite '{spec.name}'")
         scenarios = [(f, load_suite_scenario(f, overrides)) for f in files]
+        if curve == "fitted":  # each cell's curve is fitted on its first scenario's seed
+            from dm2.cli.bench_curve import cell_sources
+
+            loaded = {f: sc for f, sc in scenarios}
+            sources = cell_sources(loaded.get(f) or load_suite_scenario(f, overrides)
+                                   for f in suite_files)
         out_dir = (out or Path("runs") / f"bench-{datetime.now():%Y%m%d-%H%M%S}-{spec.name}")
         out_dir = out_dir.absolute()
         kept = prepare_output_dir(out_dir, force=force)
@@ -149,7 +156,7 @@ def bench(
 
                 key = cell_key(sc)
                 if key not in curves:
-                    curves[key] = fit_cell_curve(sc)
+                    curves[key] = fit_cell_curve(sources[key])
                     console.print(f"  cell of {path.stem}: efficiency_cos_exponent "
                                   f"{curves[key]['exponent']:.3f} (fitted on "
                                   f"{curves[key]['calibration_build']})")
