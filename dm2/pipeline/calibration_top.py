@@ -18,7 +18,7 @@ place, both the calibration layer's reference and, carried from the nearest cali
 within ``MATCH_MM``, how far the measurement stood from it. :meth:`growth_ratio` is the
 area-weighted median growth of the measurement over that of the reference, read as the
 reference's growth plus the median difference of the two, the way the calibration reads a
-height (:func:`dm2.pipeline.process_fit._top_heights`).
+height (:func:`dm2.pipeline.process_top.top_heights`).
 """
 
 from __future__ import annotations

@@ -14,24 +14,22 @@ observed top (vertices inside the planned outline, ``|n_z| >= TOP_NZ``, not unob
 
 * **First layer: calibration.** The ratio of the measured to the reference top height after the
   first layer with enough top is the cell's deposition scale ``s_0`` (efficiency x feed against
-  nominal), within ``1 +- bound``, read where the plume width does not move the reference
-  when enough of the top is such (:func:`plume_insensitive`); the plume width is the
-  least-squares factor that explains the layer's edges (:func:`_plume_factor`), within
-  ``1 +- PLUME_BOUND``. The reference deposited so far is scaled and blurred by them and
-  deposits with them from then on. A fault spanning the whole build from its first layer at
-  one rate cannot be told from such an offset; it is reported as a process finding, not
-  hidden.
+  nominal), within ``1 +- bound``, read where the plume width does not move the reference when
+  enough of the top is such (:func:`~.process_top.plume_insensitive`); the plume width is the
+  least-squares factor that explains the layer's edges (:func:`~.process_top.plume_factor`), within
+  ``1 +- PLUME_BOUND``. The reference deposited so far is scaled and blurred by them and deposits
+  with them from then on. A fault spanning the whole build from its first layer at one rate cannot
+  be told from such an offset; it is reported as a process finding, not hidden.
 * **Later layers: a slow follower.** The estimate ``s_hat`` is the measured growth since the
-  calibration layer over the growth the reference would have had at the nominal process, read
-  on the layer's own top vertices against the calibration layer at the same places
-  (:class:`dm2.pipeline.calibration_top.CalibrationTop`), on those where the plume width does
-  not matter when enough are (:func:`plume_insensitive`). Where too few of them lie on the
-  calibration layer's top it is read as the two layers' top heights. The scale moves towards
-  it by at most ``rate_per_layer`` per layer (from then on only; what was deposited stays as it
-  was) and stays within ``1 +- bound``. So a slow drift is absorbed over many layers and still
-  reported, and a fault faster or larger than that (an efficiency drift of 25 %/layer, a feed
-  step of 40 %) is measured as a defect. The plume width is not followed after the
-  calibration.
+  calibration layer over the growth the reference would have had at the nominal process, read on the
+  layer's own top vertices against the calibration layer at the same places
+  (:class:`dm2.pipeline.calibration_top.CalibrationTop`), on those where the plume width does not
+  matter when enough are (:func:`~.process_top.plume_insensitive`). Where too few of them lie on the
+  calibration layer's top it is read as the two layers' top heights. The scale moves towards it by
+  at most ``rate_per_layer`` per layer (from then on only; what was deposited stays as it was) and
+  stays within ``1 +- bound``. So a slow drift is absorbed over many layers and still reported, and
+  a fault faster or larger than that (an efficiency drift of 25 %/layer, a feed step of 40 %) is
+  measured as a defect. The plume width is not followed after the calibration.
 
 What the fit absorbs is never hidden: every layer's height ratio (measured over nominal top
 height), estimate, applied scale and the calibrated plume factor are in report.json
@@ -45,16 +43,21 @@ from __future__ import annotations
 import numpy as np
 
 from dm2.defects.classify import DEFECT_CLASSES, UNOBSERVED
-from dm2.pipeline.calibration_top import CalibrationTop, weighted_median
+from dm2.pipeline.calibration_top import CalibrationTop
+from dm2.pipeline.process_top import (
+    MIN_HEIGHT_MM,
+    MIN_TOP_VERTICES,
+    TOP_NZ,
+    normals_z,
+    not_stale,
+    on_plateau,
+    plume_factor,
+    plume_insensitive,
+    top_heights,
+)
 
-TOP_NZ = 0.95  # |n_z| of a vertex counted as the part's top
-MIN_TOP_VERTICES = 50  # fewer top vertices: no estimate this layer
-MIN_HEIGHT_MM = 0.2  # reference thinner than this on the top: no estimate
-PLATEAU_SLOPE = 0.1  # reference slope [mm/mm] of the plateau the scale is measured on
-PLATEAU_FRACTION = 0.7  # of the top's 95th-percentile reference height
 CHANGE_FACTOR = 2.0  # a change of the process: twice the finding threshold off the calibration
 PLUME_BOUND = 0.25  # the calibrated plume width stays within 1 +- this of nominal
-PLUME_MIN_SENSITIVITY_MM = 0.05  # vertices whose height barely depends on the plume width
 
 
 def process_fit_on(monitor_cfg) -> bool:
@@ -117,13 +120,13 @@ class ProcessFit:
         its plume width is to be widened by (both 1 except at the calibration layer)."""
         dev = result.deviation
         reference = getattr(result, "reference", None)
-        normals = _normals_z(dev)
+        normals = normals_z(dev)
         top = (dev.class_code != UNOBSERVED) & (normals >= TOP_NZ)
         top &= ~np.isin(dev.class_code, DEFECT_CLASSES)  # the process where no defect is
-        top &= _not_stale(dev)
+        top &= not_stale(dev)
         if dev.outside_mm is not None:
             top &= dev.outside_mm <= 0.0
-        top &= _on_plateau(reference, dev.foot_O, top)
+        top &= on_plateau(reference, dev.foot_O, top)
         entry = {"layer": int(result.layer), "applied_scale": self.scale, "estimate": None,
                  "top_vertices": int(top.sum())}
         rescale = plume = 1.0
@@ -134,7 +137,7 @@ class ProcessFit:
             area = getattr(dev, "vertex_area_mm2", None)
             area = np.ones(seen_ref.size) if area is None else np.asarray(area)[top]
             xy_top, z_top = dev.foot_O[top, :2], dev.vertices_O[top, 2]
-            ref, meas = _top_heights(seen_ref, z_top, area)
+            ref, meas = top_heights(seen_ref, z_top, area)
             if ref >= MIN_HEIGHT_MM:
                 # the reference's growth since the last update was deposited at self.scale
                 grown = max(ref - self._last_ref_mm, 0.0)
@@ -148,7 +151,7 @@ class ProcessFit:
                     est = entry["height_ratio"]
                     flat = plume_insensitive(reference, xy_top, MIN_TOP_VERTICES)
                     if flat is not None:  # read where the plume width does not matter
-                        ref_flat, meas_flat = _top_heights(seen_ref[flat], z_top[flat],
+                        ref_flat, meas_flat = top_heights(seen_ref[flat], z_top[flat],
                                                            area[flat])
                         est = meas_flat / ref_flat * self.scale
                     entry["plateau"] = flat is not None
@@ -160,7 +163,7 @@ class ProcessFit:
                                          "scale": self.scale}
                     self._last_ref_mm = ref * rescale
                     entry["calibration"] = True
-                    plume = _plume_factor(result, new, self.plume_bound)
+                    plume = plume_factor(result, new, self.plume_bound)
                     entry["plume_factor"] = plume
                     if reference is not None:
                         self._top = CalibrationTop(reference, self.scale, xy_top, z_top,
@@ -209,7 +212,7 @@ class ProcessFit:
         new = float(np.clip(est, 1 - self.bound, 1 + self.bound))
         rescale = new / cal["scale"]
         self._last_ref_mm = cal["ref"] * rescale
-        plume = _plume_factor(cal["result"], new, self.plume_bound)
+        plume = plume_factor(cal["result"], new, self.plume_bound)
         if self._top is not None:
             self._top.calibrate(new, plume)
         entry.update({"fused_estimate": entry["estimate"], "estimate": est,
@@ -286,98 +289,3 @@ class ProcessFit:
                 "calibration": "first layer", "rate_per_layer": self.rate_per_layer,
                 "bound": self.bound, "scale": self.scale, "layers": self.layers,
                 "findings": self.findings(), "finding_details": self.finding_details()}
-
-
-def _plume_factor(result, scale: float, bound: float) -> float:
-    """The plume width against nominal that the first layer's edges show.
-
-    A plume a fraction ``r`` wider moves the reference by ``r * P`` with ``P = sigma^2
-    laplacian(h)`` (ReferenceMap.plume_sensitivity_at): the least-squares ``r`` of
-    ``measured - scale * seen = scale * r * P`` over the observed, defect-free vertices within
-    two plume widths of the outline where ``|P|`` matters, one pass trimmed at 3 MAD."""
-    ref = getattr(result, "reference", None)
-    dev = result.deviation
-    if ref is None or not ref.plume_sigma_mm > 0:
-        return 1.0
-    ok = (dev.class_code != UNOBSERVED) & ~np.isin(dev.class_code, DEFECT_CLASSES)
-    ok &= _not_stale(dev)
-    if dev.outside_mm is not None:
-        ok &= dev.outside_mm <= 2.0 * ref.plume_sigma_mm
-    P = ref.plume_sensitivity_at(dev.foot_O[:, :2])
-    ok &= np.abs(P) >= PLUME_MIN_SENSITIVITY_MM
-    if ok.sum() < MIN_TOP_VERTICES:
-        return 1.0
-    seen = dev.foot_O[ok, 2]
-    if getattr(dev, "unseen_mm", None) is not None:
-        seen = seen - dev.unseen_mm[ok]
-    area = getattr(dev, "vertex_area_mm2", None)
-    w = np.ones(seen.size) if area is None else np.asarray(area)[ok]
-    y = dev.vertices_O[ok, 2] - scale * seen
-    x = scale * P[ok]
-    r = float(np.sum(w * x * y) / np.sum(w * x * x))
-    res = y - r * x
-    mad = float(np.median(np.abs(res - np.median(res)))) * 1.4826
-    keep = np.abs(res) <= 3.0 * max(mad, 1e-6)
-    if keep.sum() >= MIN_TOP_VERTICES:
-        r = float(np.sum((w * x * y)[keep]) / np.sum((w * x * x)[keep]))
-    return float(np.clip(1.0 + r, 1.0 - bound, 1.0 + bound))
-
-
-def _on_plateau(reference, foot_O, top) -> np.ndarray:
-    """Vertices whose reference is on the part's plateau: slope at most ``PLATEAU_SLOPE`` and
-    at least ``PLATEAU_FRACTION`` of the top's 95th-percentile height. The edges' ramps are
-    left out: there the plume width decides the height (a plume a few per cent wider than
-    modelled lowers them), not the deposition scale."""
-    if reference is None or not np.any(top):
-        return np.ones(top.shape, bool)
-    h = foot_O[:, 2]
-    slope = np.linalg.norm(reference.gradient_at(foot_O[:, :2]), axis=-1)
-    return (slope <= PLATEAU_SLOPE) & (h >= PLATEAU_FRACTION * np.percentile(h[top], 95))
-
-
-def plume_insensitive(reference, xy_O: np.ndarray, enough: int) -> np.ndarray | None:
-    """The calibration's scale is read where the plume width does not matter: the mask of the
-    points ``xy_O (n, 2)`` [mm] where ``reference`` (a ReferenceMap) moves less than
-    ``PLUME_MIN_SENSITIVITY_MM`` with its plume width (its ``sigma^2 laplacian``,
-    :meth:`ReferenceMap.plume_sensitivity_at`), or None when fewer than ``enough`` are, or
-    without a reference whose plume width is known.
-
-    A narrow part's plateau is not flat at the plume's scale: on a 7 mm wide ring its
-    ``sigma^2 laplacian`` is -0.17 mm at the median, so a plume 15 % wider than modelled lowers
-    it by 0.03 mm, 3 % of a first layer, and a scale read there comes out that much low. The
-    plume width is then fitted at that scale on the edges, where it does matter
-    (:func:`_plume_factor`). A part with no such top (a bracket's thin walls) keeps the
-    whole plateau."""
-    if reference is None or not reference.plume_sigma_mm > 0 or not len(xy_O):
-        return None
-    flat = np.abs(reference.plume_sensitivity_at(xy_O)) < PLUME_MIN_SENSITIVITY_MM
-    return flat if flat.sum() >= enough else None
-
-
-def _top_heights(seen_ref: np.ndarray, z: np.ndarray, area: np.ndarray) -> tuple[float, float]:
-    """``(reference, measured)`` top heights [mm]: the reference's area-weighted median, and
-    the measured top as the reference's plus the median difference (a flat top's
-    marching-cubes vertices crowd at the voxel-centre levels, so their own median sticks to a
-    voxel plane, 0.1 mm low on a thin first layer)."""
-    ref = weighted_median(seen_ref, area)
-    return ref, ref + weighted_median(z - seen_ref, area)
-
-
-def _normals_z(dev) -> np.ndarray:
-    """|n_z| (n,) of the layer mesh's vertex normals."""
-    from dm2.defects.classify import curvature_and_areas
-
-    if dev.normals_O is not None:
-        return np.abs(dev.normals_O[:, 2])
-    if dev.n_vertices == 0:
-        return np.zeros(0)
-    _, _, normals = curvature_and_areas(dev.vertices_O, dev.faces, return_normals=True,
-                                        smooth_iterations=0)
-    return np.abs(normals[:, 2])
-
-
-def _not_stale(dev) -> np.ndarray | bool:
-    """The vertices that are a surface the profilers saw: a stale top (dm2.defects.stale) is
-    an old one, not the process's."""
-    stale = getattr(dev, "stale_mm", None)
-    return True if stale is None else np.asarray(stale) == 0.0

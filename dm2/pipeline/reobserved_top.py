@@ -18,7 +18,7 @@ measured-minus-reference difference over the cells seen, against the reference's
 the scale the calibration then uses, when at least ``MIN_CELLS`` cells were seen (else the
 calibration keeps the fused layer's estimate). Like the fused layer's estimate, it is read only
 on the cells where the plume width does not move the reference, when at least ``MIN_CELLS``
-of those were seen (:func:`dm2.pipeline.process_fit.plume_insensitive`). Cells near a flagged
+of those were seen (:func:`dm2.pipeline.process_top.plume_insensitive`). Cells near a flagged
 defect of the calibration layer are left out, as the fused layer's estimate leaves out defect
 vertices.
 """
@@ -29,7 +29,7 @@ import numpy as np
 from numba import njit
 from scipy.spatial import cKDTree
 
-from dm2.pipeline.process_fit import (
+from dm2.pipeline.process_top import (
     MIN_HEIGHT_MM,
     PLATEAU_FRACTION,
     PLATEAU_SLOPE,
