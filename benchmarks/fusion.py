@@ -55,6 +55,7 @@ from dm2.fusion.tsdf.field import MIN_SPLIT_POINTS, SparseTSDF  # noqa: E402
 
 OPENMP_IDLE_S = 1.0  # after Open3D's last call, before ours is timed alone
 EXTRACTION_REPEATS = 7  # at least this many timings of each extraction from scratch
+MERGED = MonitorConfig(ray_merge_voxels=0.5)  # neighbouring points as one ray (profile_merge)
 
 
 def make_stream(frames: int):
@@ -132,19 +133,24 @@ def peer(cal, msgs, repeats: int) -> None:
     """Open3D's VoxelBlockGrid on the same stream: speed, extraction and accuracy beside ours."""
     cfg = MonitorConfig()
     profiles = open3d_peer.synced_profiles(cal, msgs, cfg.max_pose_gap_s, cfg.reorder_window_s)
-    rates, ours, o3d_field = [], [], None
+    rates, ours, merged, o3d_field = [], [], [], None
     for _ in range(repeats):  # interleaved with ours, so both see the same machine load
         o3d_field, dt = open3d_peer.open3d_run(profiles, cfg.voxel_mm, cfg.truncation_voxels)
         rates.append(o3d_field.points / dt)
         mon, elapsed, _ = run_once(cal, msgs, False)
         ours.append(mon.points_fused / elapsed)
+        mon, elapsed, _ = run_once(cal, msgs, False, cfg=MERGED)
+        merged.append(mon.points_fused / elapsed)
     o3d_rate, ours_pts_s = statistics.median(rates), statistics.median(ours)
     print(f"Open3D VoxelBlockGrid on the same stream ({os.environ['OMP_NUM_THREADS']} threads, "
           f"{cfg.voxel_mm} mm voxels, +-{cfg.truncation_voxels:g} voxels, 8^3 blocks, one depth "
           f"image per profile, poses given), median of {repeats}: {o3d_rate / 1e6:.2f} M "
           f"points/s; ours end to end (sync + registration + TSDF, batched, 2 threads), "
           f"interleaved with it: {ours_pts_s / 1e6:.2f} M points/s: ratio "
-          f"{ours_pts_s / o3d_rate:.2f}x")
+          f"{ours_pts_s / o3d_rate:.2f}x; with [monitor] ray_merge_voxels = "
+          f"{MERGED.ray_merge_voxels} (neighbouring points as one ray): "
+          f"{statistics.median(merged) / 1e6:.2f} M points/s: ratio "
+          f"{statistics.median(merged) / o3d_rate:.2f}x")
     mon = run_once(cal, msgs, False)[0]
     ours_t, o3d_t = [], []
     # not interleaved: Open3D's OpenMP threads spin-wait after each call and took a core from
@@ -168,6 +174,9 @@ def peer(cal, msgs, repeats: int) -> None:
     smsgs, _ = raster_run(scene, cal, raster_lines((35, 85), np.arange(35, 86, 2.0), 10.0),
                           step_mm=1.0, noise_mm=0.05, seed=3)
     mon = run_once(cal, smsgs, False)[0]
+    ours_merged = open3d_peer.surface_error(SurfaceExtractor(
+        run_once(cal, smsgs, False, cfg=MERGED)[0].tsdf, cfg.min_weight).update().vertices_O,
+        scene.sdf)
     still = MonitorConfig(deposit_weight_cap=None, weight_cap=1e4)  # no deposit, no window
     mon_still = run_once(cal, smsgs, False, cfg=still)[0]
     sprof = open3d_peer.synced_profiles(cal, smsgs, cfg.max_pose_gap_s, cfg.reorder_window_s)
@@ -190,7 +199,9 @@ def peer(cal, msgs, repeats: int) -> None:
           f"(|sdf| at the vertices): ours RMS {ours[0]:.3f} mm, p95 {ours[1]:.3f} mm "
           f"({ours[2]} vertices; with the spray assumed off, no deposit cap and weights "
           f"averaged up to 1e4 like Open3D's: RMS {ours_still[0]:.3f} mm, p95 "
-          f"{ours_still[1]:.3f} mm, {ours_still[2]} vertices); Open3D (grid shifted a quarter "
+          f"{ours_still[1]:.3f} mm, {ours_still[2]} vertices; with ray_merge_voxels "
+          f"{MERGED.ray_merge_voxels}: RMS {ours_merged[0]:.3f} mm, p95 {ours_merged[1]:.3f} mm, "
+          f"{ours_merged[2]} vertices); Open3D (grid shifted a quarter "
           f"voxel, open3d_peer) RMS {theirs[0]:.3f} mm, p95 {theirs[1]:.3f} mm "
           f"({theirs[2]} vertices); extraction from scratch, median of {ext_repeats}: ours "
           f"{statistics.median(ours_t):.3f} s, Open3D {statistics.median(o3d_t):.3f} s")

@@ -136,6 +136,10 @@ class InputGateConfig(_Model):
 class MonitorConfig(_Model):
     voxel_mm: float = Field(0.5, gt=0, le=2.0)
     truncation_voxels: float = Field(3.0, gt=0)
+    # consecutive profile points within this many voxels of a run's first (along the line and
+    # in range) are fused as one ray of their mean, weighted by their number
+    # (dm2.fusion.profile_merge); 0: every point its own ray
+    ray_merge_voxels: float = Field(0.0, ge=0, le=1.0)
     active_radius_mm: float | None = Field(None, gt=0)  # default: two plume sigmas
     weight_cap: float = Field(8.0, gt=0)
     # where the spray spot passes, earlier observations are buried: their weight is capped at

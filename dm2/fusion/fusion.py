@@ -24,6 +24,7 @@ from dm2.core.config import MonitorConfig, ProcessConfig
 from dm2.core.messages import Calibration, Toolpath
 from dm2.core.plume import plume_sigma_mm
 from dm2.fusion.layers import LayerTracker
+from dm2.fusion.profile_merge import merge_profile_points
 from dm2.fusion.registration import profile_frames, register_profile, spot_B
 from dm2.fusion.surface import PendingSurface, SurfaceExtractor, SurfaceMesh
 from dm2.fusion.sync import StreamSync, SyncedProfile
@@ -154,6 +155,7 @@ class TsdfFusion:
         self._sensor_row = {sid: i for i, sid in enumerate(calibration.T_B_S)}
         self._T_B_S = np.stack([np.asarray(T, np.float64) for T in calibration.T_B_S.values()])
         self._T_F_O = np.ascontiguousarray(calibration.T_F_O, np.float64)
+        self._merge_mm = float(monitor_cfg.ray_merge_voxels) * voxel
 
     # --------------------------------------------------------------------------------- input
     @property
@@ -272,7 +274,8 @@ class TsdfFusion:
         with ``deposit_weight_cap``, each profile is fused after the weights around its spray
         axis are capped (dm2.fusion.tsdf.deposit: the spot has moved on since the previous
         profile, about a millimetre; per profile, so neither the batching nor the path before
-        decides where)."""
+        decides where); with ``ray_merge_voxels``, neighbouring points of a profile go as one
+        ray (dm2.fusion.profile_merge)."""
         if b <= a:
             return
         cap = self.cfg.deposit_weight_cap
@@ -282,9 +285,13 @@ class TsdfFusion:
             for j in range(a, b):  # per profile, so the batching does not matter
                 points_O, _ = register_profile(xz[offsets[j]:offsets[j + 1]], T_O_S[j])
                 self.observed_points.append((points_O, stamps[j]))
+        xz_rays, off_rays, count = xz[lo:hi], offsets[a: b + 1] - lo, None
+        if self._merge_mm > 0.0:  # neighbouring points as one ray (dm2.fusion.profile_merge)
+            xz_rays, off_rays, count = merge_profile_points(
+                np.ascontiguousarray(xz_rays), np.ascontiguousarray(off_rays), self._merge_mm)
         fused, n_out = self.tsdf.integrate_profiles(
-            xz[lo:hi], offsets[a: b + 1] - lo, T_O_S[a:b], spots_O[a:b], axes_O[a:b],
-            self.active_radius_mm, self.bounds_O, deposit)
+            xz_rays, off_rays, T_O_S[a:b], spots_O[a:b], axes_O[a:b], self.active_radius_mm,
+            self.bounds_O, deposit, count)
         if n_out:
             self._point_drops["out_of_range"] += n_out
         self.points_fused += fused

@@ -41,14 +41,16 @@ this before an active update), ``max_weight`` (stored weights never exceed this)
 ``use_bounds`` flag)."""
 
 Batch = namedtuple("Batch", [
-    "origins_O", "points_O", "active", "xz_S", "offsets", "T_O_S", "spot_O", "axis_O"])
+    "origins_O", "points_O", "active", "xz_S", "offsets", "T_O_S", "spot_O", "axis_O", "count"])
 Batch.__doc__ = """One batch of rays (read with ``register=False``) or of profiles
 (``register=True``); the other kind's fields are empty (:func:`ray_batch`,
 :func:`profile_batch`). Rays: ``origins_O, points_O (n, 3)`` float64 [mm, O] and
 ``active (n,)`` bool. Profiles: ``xz_S (n, 2)`` float64 [mm, S] laser-plane points, profile
 ``k`` owning ``xz_S[offsets[k]:offsets[k + 1]]`` (``offsets (k + 1,)`` int64; for rays
 ``[0, n]``), ``T_O_S (k, 4, 4)`` float64 sensor poses in ``O``, ``spot_O (k, 3)`` float64
-[mm, O] deposition spot and ``axis_O (k, 3)`` float64 unit spray axis in ``O``."""
+[mm, O] deposition spot and ``axis_O (k, 3)`` float64 unit spray axis in ``O``. Both kinds:
+``count (n,)`` int64, how many measured points each ray stands for (its weight's multiple:
+:mod:`dm2.fusion.profile_merge`; 1 for rays given in ``O``)."""
 
 Staging = namedtuple("Staging", ["keys", "table_keys", "table_slots", "state"])
 Staging.__doc__ = """One thread's blocks allocated during a two-thread run: ``keys
@@ -74,12 +76,13 @@ def ray_batch(origins_O, points_O, active):
     offsets = np.array([0, points_O.shape[0]], dtype=np.int64)
     none3 = np.zeros((0, 3))
     return Batch(origins_O, points_O, active, points_O, offsets, np.zeros((0, 4, 4)), none3,
-                 none3)
+                 none3, np.ones(points_O.shape[0], dtype=np.int64))
 
 
 @njit(cache=True, nogil=True)
-def profile_batch(xz_S, offsets, T_O_S, spot_O, axis_O):
+def profile_batch(xz_S, offsets, T_O_S, spot_O, axis_O, count):
     """A :class:`Batch` of profiles (C-contiguous arrays as in :class:`Batch`); the ray fields
     are empty."""
     none3 = np.zeros((0, 3))
-    return Batch(none3, none3, np.zeros(0, np.bool_), xz_S, offsets, T_O_S, spot_O, axis_O)
+    return Batch(none3, none3, np.zeros(0, np.bool_), xz_S, offsets, T_O_S, spot_O, axis_O,
+                 count)

@@ -84,10 +84,10 @@ def cap_near_axis(table_keys, table_slots, voxels, voxel_mm, spot_O, axis_O, rad
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
-def fuse_profiles_capped(xz_S, offsets, T_O_S, spot_O, axis_O, voxel_mm, truncation_mm,
-                         active_weight_cap, max_weight, active_r2_mm2, bounds_lo, bounds_hi,
-                         use_bounds, start, table_keys, table_slots, block_keys, voxels, touched,
-                         state, counts, radius_mm, half_length_mm, weight_cap):
+def fuse_profiles_capped(xz_S, offsets, T_O_S, spot_O, axis_O, count, voxel_mm,
+                         truncation_mm, active_weight_cap, max_weight, active_r2_mm2, bounds_lo,
+                         bounds_hi, use_bounds, start, table_keys, table_slots, block_keys,
+                         voxels, touched, state, counts, radius_mm, half_length_mm, weight_cap):
     """:func:`~dm2.fusion.tsdf.kernels.fuse_profiles` one profile at a time, each after
     :func:`cap_near_axis` around its own spray axis, in one call (the arguments are theirs).
     Returns the index of the first point not handled because the field must grow; a call
@@ -104,9 +104,10 @@ def fuse_profiles_capped(xz_S, offsets, T_O_S, spot_O, axis_O, voxel_mm, truncat
                           radius_mm, half_length_mm, weight_cap)
             at = 0
         done = fuse_profiles(xz_S[a:b], offsets[c:c + 2] - a, T_O_S[c:c + 1], spot_O[c:c + 1],
-                             axis_O[c:c + 1], voxel_mm, truncation_mm, active_weight_cap,
-                             max_weight, active_r2_mm2, bounds_lo, bounds_hi, use_bounds, at,
-                             table_keys, table_slots, block_keys, voxels, touched, state, counts)
+                             axis_O[c:c + 1], count[a:b], voxel_mm, truncation_mm,
+                             active_weight_cap, max_weight, active_r2_mm2, bounds_lo, bounds_hi,
+                             use_bounds, at, table_keys, table_slots, block_keys, voxels, touched,
+                             state, counts)
         if done < b - a:
             return a + done
     return xz_S.shape[0]

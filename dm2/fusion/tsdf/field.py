@@ -189,7 +189,8 @@ class SparseTSDF:
     def integrate_profiles(self, xz_S: np.ndarray, offsets: np.ndarray, T_O_S: np.ndarray,
                            spot_O: np.ndarray, axis_O: np.ndarray, active_radius_mm: float,
                            bounds_O: tuple | None = None,
-                           deposit: tuple | None = None) -> tuple[int, int]:
+                           deposit: tuple | None = None,
+                           count: np.ndarray | None = None) -> tuple[int, int]:
         """Register profiles into ``O`` (eq 1) and fuse them, in one pass without temporaries.
 
         Parameters
@@ -203,11 +204,13 @@ class SparseTSDF:
         deposit : optional ``(radius_mm, half_length_mm, weight_cap)``: before each profile is
             fused, the weights around its spray axis are capped (:mod:`.deposit`; with two
             threads each caps its own block columns)
+        count : optional (n,) int64, how many measured points each ``xz_S`` point stands for
+            (:mod:`dm2.fusion.profile_merge`; its weight's multiple); 1 each by default
 
         Returns
         -------
-        (fused, out_of_range) : numbers of points fused and of points skipped (behind the
-        sensor, ``z <= 0``, or outside ``bounds_O``)
+        (fused, out_of_range) : numbers of measured points fused and of those skipped (behind
+        the sensor, ``z <= 0``, or outside ``bounds_O``), each point counted ``count`` times
         """
         xz = np.ascontiguousarray(xz_S, dtype=np.float64)
         off = np.ascontiguousarray(offsets, dtype=np.int64)
@@ -215,12 +218,15 @@ class SparseTSDF:
         T = np.ascontiguousarray(T_O_S, dtype=np.float64)
         spot = np.ascontiguousarray(spot_O, dtype=np.float64)
         axis = np.ascontiguousarray(axis_O, dtype=np.float64)
+        mult = (np.ones(xz.shape[0], dtype=np.int64) if count is None else
+                np.ascontiguousarray(count, dtype=np.int64))
         if xz.ndim != 2 or xz.shape[1] != 2 or k < 0 or T.shape != (k, 4, 4) or \
-                spot.shape != (k, 3) or axis.shape != (k, 3) or \
+                spot.shape != (k, 3) or axis.shape != (k, 3) or mult.shape != xz.shape[:1] or \
                 (k and (off[0] != 0 or off[-1] != xz.shape[0] or np.any(np.diff(off) < 0))):
             raise ValueError(f"SparseTSDF.integrate_profiles: xz_S {xz.shape}, offsets "
                              f"{off.shape}, T_O_S {T.shape}, spot_O {spot.shape}, axis_O "
-                             f"{axis.shape} do not describe one batch of profiles")
+                             f"{axis.shape}, count {mult.shape} do not describe one batch of "
+                             f"profiles")
         use_bounds = bounds_O is not None
         lo, hi = (np.asarray(bounds_O[0], np.float64), np.asarray(bounds_O[1], np.float64)) \
             if use_bounds else (_NO_BOUNDS, _NO_BOUNDS)
@@ -231,11 +237,11 @@ class SparseTSDF:
         kernel, cap = (K.fuse_profiles, ()) if deposit is None else \
             (fuse_profiles_capped, tuple(float(x) for x in deposit))
         if self.threads == 2 and n >= MIN_SPLIT_POINTS:
-            fuse_split(self, True, use_bounds, profile_batch(xz, off, T, spot, axis),
+            fuse_split(self, True, use_bounds, profile_batch(xz, off, T, spot, axis, mult),
                        self._params(r2, lo, hi), counts, cap or NO_DEPOSIT)
             start = n
         while start < n:  # flat arguments: a call from Python per profile (see bundles)
-            start = kernel(xz, off, T, spot, axis, self.voxel_mm, self.truncation_mm,
+            start = kernel(xz, off, T, spot, axis, mult, self.voxel_mm, self.truncation_mm,
                            self.weight_cap, self.inactive_weight_cap, r2, lo, hi, use_bounds,
                            start, self._table_keys, self._table_slots, self.block_keys,
                            self.voxels, self.touched, self._state, counts, *cap)

@@ -175,7 +175,7 @@ def integrate_rays(origins_O, points_O, active, voxel_mm, truncation_mm, active_
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
-def fuse_profiles(xz_S, offsets, T_O_S, spot_O, axis_O, voxel_mm, truncation_mm,
+def fuse_profiles(xz_S, offsets, T_O_S, spot_O, axis_O, count, voxel_mm, truncation_mm,
                   active_weight_cap, max_weight, active_r2_mm2, bounds_lo, bounds_hi, use_bounds,
                   start, table_keys, table_slots, block_keys, voxels, touched, state, counts):
     """Register and fuse a batch of profiles (paper eq 1, then eqs 2-5), from point ``start``
@@ -192,7 +192,7 @@ def fuse_profiles(xz_S, offsets, T_O_S, spot_O, axis_O, voxel_mm, truncation_mm,
     counted in ``counts[1]``. Returns the index of the first point not handled because the
     block arrays or the hash table need to grow (``len(xz_S)`` when done).
     """
-    batch = profile_batch(xz_S, offsets, T_O_S, spot_O, axis_O)
+    batch = profile_batch(xz_S, offsets, T_O_S, spot_O, axis_O, count)
     params = FusionParams(voxel_mm, truncation_mm, active_weight_cap, max_weight, active_r2_mm2,
                           bounds_lo, bounds_hi)
     table = BlockHash(table_keys, table_slots)
@@ -222,7 +222,7 @@ def _fuse(register, use_bounds, batch, params, start, table, block_keys, voxels,
     ``voxels[slot, li, 0]`` is the signed distance, ``voxels[slot, li, 1]`` the weight.
     """
     # the bundles' fields, read once here: a field read in a loop would be reference-counted
-    origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, axis_O = batch
+    origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, axis_O, count = batch
     voxel_mm, truncation_mm, active_weight_cap, max_weight, active_r2_mm2, bounds_lo, \
         bounds_hi = params
     table_keys, table_slots = table.keys, table.slots
@@ -245,10 +245,11 @@ def _fuse(register, use_bounds, batch, params, start, table, block_keys, voxels,
                     state[0] + MAX_NEW_BLOCKS_PER_RAY > table_limit:
                 return i
             ok, ox, oy, oz, dx, dy, dz, r, act = point_ray(
-                register, i, pose, xz_S, origins_O, points_O, active, active_r2_mm2, bounds_lo,
-                bounds_hi, use_bounds, truncation_mm, counts)
+                register, i, pose, xz_S, origins_O, points_O, active, count, active_r2_mm2,
+                bounds_lo, bounds_hi, use_bounds, truncation_mm, counts)
             if not ok:
                 continue
+            n_i = count[i]
             behind = (behind_scale(xz_S, i, offsets[k], offsets[k + 1]) if register else
                       ray_behind_scale(origins_O, points_O, i, points_O.shape[0], r))
             vx, vy, vz, span, tmx, tmy, tmz, d, steps = \
@@ -265,7 +266,7 @@ def _fuse(register, use_bounds, batch, params, start, table, block_keys, voxels,
                         ra, rb = (bx, by, bz, slot), ra
                     last_bx, last_by, last_bz = bx, by, bz
                 update_voxel(voxels, slot, vx, vy, vz, d, truncation_mm, inv_trunc, act,
-                             active_weight_cap, max_weight, behind)
+                             active_weight_cap, max_weight, behind, n_i)
                 t, vx, vy, vz, tmx, tmy, tmz, d = dda_step(vx, vy, vz, tmx, tmy, tmz, d, steps)
             if not act:
                 continue

@@ -124,7 +124,7 @@ def _owned(tid, col_shift, start, register, use_bounds, batch, params, deposit, 
     """The loop of :func:`fuse_owned`, inlined with ``register`` and ``use_bounds`` as
     constants."""
     # the bundles' fields, read once here: a field read in a loop would be reference-counted
-    origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, axis_O = batch
+    origins_O, points_O, active, xz_S, offsets, T_O_S, spot_O, axis_O, count = batch
     voxel_mm, truncation_mm, active_weight_cap, max_weight, active_r2_mm2, bounds_lo, \
         bounds_hi = params
     table_keys, table_slots = table.keys, table.slots
@@ -151,10 +151,11 @@ def _owned(tid, col_shift, start, register, use_bounds, batch, params, deposit, 
             if st_state[0] + MAX_NEW_BLOCKS_PER_RAY > st_capacity:
                 return i
             ok, ox, oy, oz, dx, dy, dz, r, act = point_ray(
-                register, i, pose, xz_S, origins_O, points_O, active, active_r2_mm2, bounds_lo,
-                bounds_hi, use_bounds, truncation_mm, counts)
+                register, i, pose, xz_S, origins_O, points_O, active, count, active_r2_mm2,
+                bounds_lo, bounds_hi, use_bounds, truncation_mm, counts)
             if not ok:
                 continue
+            n_i = count[i]
             # the columns of the ray's walk (an active ray walks on beyond its band, carving)
             cx0, cx1, cy0, cy1 = walk_columns(ox, oy, dx, dy, r, truncation_mm,
                                               carve_mm if act else 0.0, inv_vox, cs)
@@ -182,7 +183,7 @@ def _owned(tid, col_shift, start, register, use_bounds, batch, params, deposit, 
                             ra, rb = (bx, by, bz, slot), ra
                         last_bx, last_by, last_bz = bx, by, bz
                     update_voxel(voxels, slot, vx, vy, vz, d, truncation_mm, inv_trunc, act,
-                                 active_weight_cap, max_weight, behind)
+                                 active_weight_cap, max_weight, behind, n_i)
                 t, vx, vy, vz, tmx, tmy, tmz, d = dda_step(vx, vy, vz, tmx, tmy, tmz, d, steps)
             if not act:
                 continue

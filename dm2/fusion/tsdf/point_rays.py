@@ -30,15 +30,16 @@ def profile_pose(T_O_S, spot_O, axis_O, k):
 
 
 @njit(cache=True, inline="always")
-def point_ray(register, i, pose, xz_S, origins_O, points_O, active, active_r2_mm2, bounds_lo,
-              bounds_hi, use_bounds, truncation_mm, counts):
+def point_ray(register, i, pose, xz_S, origins_O, points_O, active, count, active_r2_mm2,
+              bounds_lo, bounds_hi, use_bounds, truncation_mm, counts):
     """The ray of point ``i``: ``ok, ox, oy, oz, dx, dy, dz, r, act``.
 
     ``register``: point ``xz_S[i]`` of the profile whose :func:`profile_pose` is ``pose``
     (skipped behind the sensor, ``z <= 0``, or with ``use_bounds`` outside
-    ``[bounds_lo, bounds_hi]``: ``counts[0] += 1``), active when within
+    ``[bounds_lo, bounds_hi]``: ``counts[0] += count[i]``), active when within
     ``sqrt(active_r2_mm2)`` of the spray axis; else the ray ``origins_O[i] -> points_O[i]``
-    with ``active[i]``. A point that is not skipped counts in ``counts[1]``; ``ok`` is False
+    with ``active[i]``. A point that is not skipped counts in ``counts[1]`` (``count[i]``, the
+    measured points it stands for); ``ok`` is False
     for skipped points and for points within ``truncation_mm`` of their origin (no band).
     ``(dx, dy, dz)`` is the unit direction, ``r`` [mm] the range.
     """
@@ -46,7 +47,7 @@ def point_ray(register, i, pose, xz_S, origins_O, points_O, active, active_r2_mm
     if register:
         x, z = xz_S[i, 0], xz_S[i, 1]
         if not z > 0.0:  # behind the sensor
-            counts[0] += 1
+            counts[0] += count[i]
             return False, ox, oy, oz, 0.0, 0.0, 0.0, 0.0, False
         px = ox + r00 * x + r02 * z
         py = oy + r10 * x + r12 * z
@@ -54,7 +55,7 @@ def point_ray(register, i, pose, xz_S, origins_O, points_O, active, active_r2_mm
         if use_bounds and not (bounds_lo[0] <= px <= bounds_hi[0]
                                and bounds_lo[1] <= py <= bounds_hi[1]
                                and bounds_lo[2] <= pz <= bounds_hi[2]):
-            counts[0] += 1
+            counts[0] += count[i]
             return False, ox, oy, oz, 0.0, 0.0, 0.0, 0.0, False
         qx, qy, qz = px - sx, py - sy, pz - sz
         along = qx * ax + qy * ay + qz * az
@@ -63,7 +64,7 @@ def point_ray(register, i, pose, xz_S, origins_O, points_O, active, active_r2_mm
         ox, oy, oz = origins_O[i, 0], origins_O[i, 1], origins_O[i, 2]
         px, py, pz = points_O[i, 0], points_O[i, 1], points_O[i, 2]
         act = active[i]
-    counts[1] += 1
+    counts[1] += count[i]
     dx, dy, dz = px - ox, py - oy, pz - oz
     r = np.sqrt(dx * dx + dy * dy + dz * dz)
     if r <= truncation_mm:

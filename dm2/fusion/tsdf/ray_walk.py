@@ -64,17 +64,19 @@ def dda_step(vx, vy, vz, tmx, tmy, tmz, d, steps):
 
 @njit(cache=True, inline="always")
 def update_voxel(voxels, slot, vx, vy, vz, d, truncation_mm, inv_trunc, act, active_weight_cap,
-                 max_weight, behind_scale):
+                 max_weight, behind_scale, n):
     """One voxel's update along a ray (paper eqs 2-5): projective signed distance ``d`` [mm]
     clamped to +-truncation, weight 1 in front of the surface and falling linearly behind it
     (``w_A`` in the active region and ``w_I`` elsewhere alike), times ``behind_scale`` behind
     it (0 behind a point on an occluding edge: :func:`dm2.fusion.tsdf.point_rays.behind_scale`),
-    the stored weight capped in the active region."""
+    the stored weight capped in the active region; the ray stands for ``n`` measured points
+    (:mod:`dm2.fusion.profile_merge`), so its weight is ``n`` times that (below the weight caps,
+    the same as ``n`` rays with the mean's distance)."""
     if d > truncation_mm:
         d = truncation_mm
     elif d < -truncation_mm:
         d = -truncation_mm
-    w = 1.0 if d >= 0.0 else (1.0 + d * inv_trunc) * behind_scale
+    w = (1.0 if d >= 0.0 else (1.0 + d * inv_trunc) * behind_scale) * n
     if w > 0.0:
         li = (vx & 7) + 8 * ((vy & 7) + 8 * (vz & 7))
         w_prev = voxels[slot, li, 1]
