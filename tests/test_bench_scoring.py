@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from dm2.bench import scoring
-from dm2.bench.scoring import score_run, summarize
+from dm2.bench.scoring import score_run
+from dm2.bench.suite_score import summarize
 from dm2.bench.suites import apply_overrides, parse_override, resolve_suite
 from dm2.bench.sweep import summarize_sweep, sweep_cases
 from dm2.bench.truth_maps import TruthMap, load_truth_maps

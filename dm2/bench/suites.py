@@ -17,7 +17,7 @@ from dm2.core.config import Scenario, parse_scenario
 
 @dataclass(frozen=True)
 class Suite:
-    """A named set of scenarios and the suite-level targets (see dm2.bench.scoring.summarize).
+    """A named set of scenarios and the suite-level targets (see dm2.bench.suite_score.summarize).
 
     Attributes
     ----------

@@ -110,7 +110,7 @@ def compare(score_solved: dict, score_true: dict) -> dict:
 
 def chain_summary(runs_true: dict, comparisons: dict, targets) -> dict:
     """bench.json's ``calibration`` section: the true-calibration summary and the chain's."""
-    from dm2.bench.scoring import summarize
+    from dm2.bench.suite_score import summarize
 
     true_summary = summarize(runs_true, targets)
     keep = ("f1", "detected_faults", "missed_faults", "false_tracks", "realtime_false_alarms")

@@ -113,7 +113,7 @@ def bench(
 
     Example: `dm2 bench --suite regression`
     """
-    from dm2.bench.scoring import summarize
+    from dm2.bench.suite_score import summarize
     from dm2.bench.suites import load_suite_scenario, resolve_suite
     from scenarios import scenario_dir
 
