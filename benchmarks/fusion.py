@@ -24,7 +24,9 @@ truth on a static scene (a box with a sphere cap on the plate, rastered by the s
 the truth is the scene itself. Ours meshes that scene twice: with the package defaults, which
 assume the spray deposits under every profile (the weights around the spray axis capped,
 dm2.fusion.tsdf.deposit, and the active window), and as a scan with the spray off (no deposit cap,
-weights averaged up to 1e4 like Open3D's running mean).
+weights averaged up to 1e4 like Open3D's running mean). The end-to-end rate and the static scene
+are also printed with ``[monitor] ray_merge_voxels = 0.5`` (off by default: neighbouring profile
+points fused as one ray weighted by their number, dm2.fusion.profile_merge).
 
 Run: ``.venv/bin/python benchmarks/fusion.py [--frames 1200] [--repeats 3]``
 """
