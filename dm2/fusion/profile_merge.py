@@ -10,11 +10,12 @@ within ``span_mm`` of the run's first point, along the line (``x``) and in range
 their mean, with the number of points as its count. The kernels give that ray the weight of as
 many points (:func:`dm2.fusion.tsdf.ray_walk.update_voxel`): below the weight caps a voxel ends
 with the same weight as with the points one by one, and with the weighted mean of their signed
-distances to first order. With ``span_mm`` half a voxel (the package default,
-``[monitor] ray_merge_voxels``) a run never spans more than that: an edge, a step or a wall
-seen at a grazing angle changes the range between neighbours by more and ends the run, and the
-mean of a run lies on the surface its points saw. A point's own noise averages out within its
-run (the static accuracy of ``benchmarks/fusion.py`` improves, see the README).
+distances to first order. With ``span_mm`` half a voxel (``[monitor] ray_merge_voxels =
+0.5``; the package default is 0, every point its own ray, see the README for why) a run never
+spans more than that: an edge, a step or a wall seen at a grazing angle changes the range
+between neighbours by more and ends the run, and the mean of a run lies on the surface its
+points saw. A point's own noise averages out within its run (the static accuracy of
+``benchmarks/fusion.py`` improves, see the README).
 """
 
 from __future__ import annotations

@@ -183,7 +183,9 @@ def fuse_profiles(xz_S, offsets, T_O_S, spot_O, axis_O, count, voxel_mm, truncat
     as in :class:`~dm2.fusion.tsdf.bundles.FusionParams`, the field's arrays as in
     :func:`integrate_rays`; flat, built into the bundles here).
 
-    Profile ``k`` owns points ``xz_S[offsets[k]:offsets[k + 1]]``; its point ``(x, z)`` lies at
+    Profile ``k`` owns points ``xz_S[offsets[k]:offsets[k + 1]]``, each standing for
+    ``count[i]`` measured points (int64; the multiple of its weight, dm2.fusion.profile_merge;
+    ones for single points); its point ``(x, z)`` lies at
     ``p = t + x * R[:, 0] + z * R[:, 2]`` in ``O`` with ``R, t`` of ``T_O_S[k]`` and its ray
     starts at ``t`` (the laser's emission point). A point is active when its distance from the
     nozzle axis through ``spot_O[k]`` along ``axis_O[k]`` is at most ``sqrt(active_r2_mm2)``.

@@ -39,8 +39,8 @@ def point_ray(register, i, pose, xz_S, origins_O, points_O, active, count, activ
     ``[bounds_lo, bounds_hi]``: ``counts[0] += count[i]``), active when within
     ``sqrt(active_r2_mm2)`` of the spray axis; else the ray ``origins_O[i] -> points_O[i]``
     with ``active[i]``. A point that is not skipped counts in ``counts[1]`` (``count[i]``, the
-    measured points it stands for); ``ok`` is False
-    for skipped points and for points within ``truncation_mm`` of their origin (no band).
+    measured points it stands for); ``ok`` is False for skipped points and for points within
+    ``truncation_mm`` of their origin (no band).
     ``(dx, dy, dz)`` is the unit direction, ``r`` [mm] the range.
     """
     r00, r10, r20, r02, r12, r22, ox, oy, oz, sx, sy, sz, ax, ay, az = pose
