@@ -48,25 +48,23 @@ from dm2.core.messages import Calibration, LayerMark, RobotState, Toolpath
 from dm2.defects.footprint import PlannedOutline
 from dm2.defects.layer_analysis import LayerAnalysis, LayerResult
 from dm2.defects.realtime import RealtimeDeviation
-from dm2.defects.uncertainty_online import live_factors
 from dm2.fusion.fusion import DEFAULT_MAX_DELAY_S, LayerSurface, TsdfFusion
 from dm2.pipeline.events import LayerClosed, LayerStarted, Observed, SessionTiming
+from dm2.pipeline.fit_schedule import FitSchedule
 from dm2.pipeline.grown_columns import GrownColumns
 from dm2.pipeline.layer_worker import LayerWorker
 from dm2.pipeline.process_fit import ProcessFit, process_fit_on
-from dm2.pipeline.reobserved_top import ReobservedTop
+from dm2.pipeline.realtime_stage import RealtimeStage
 from dm2.pipeline.seen_reference import SeenReference
 from dm2.reference.feed import ReferenceFeed
 from dm2.reference.model import NearNetReference
 
 log = logging.getLogger(__name__)
-alarm_log = logging.getLogger("dm2.alarms")  # real-time alarms: the log file, not the console
 
 FRAME_SET = 3  # profiles per real-time comparison (the three cascaded profilers)
 STATE_BACKLOG = 2500  # states buffered at most while no profile is fused (10 s at 250 Hz)
 STATE_SLICE = 25  # robot states per reference update while catching up (0.1 s at 250 Hz)
 PREMESH_EVERY_S = 0.25  # [s] wall, pre-meshing of touched surface chunks at most this often
-FIT_APPLY_DELAY_S = 5.0  # [s] stream time after a layer's close its process fit applies at
 
 
 class MonitoringSession:
@@ -121,12 +119,11 @@ class MonitoringSession:
                                   0.5 * monitor_cfg.voxel_mm)
         self.grown = GrownColumns(self.reference.heights_mm.shape, self.reference.cell_mm,
                                   self.fusion.tsdf, monitor_cfg.deposit_weight_cap)
-        self._pending_fit: tuple | None = None  # (scale, rescale, plume, inflation)
-        self._reobserved: ReobservedTop | None = None  # the calibration layer seen again
-        self._fit_due_s: float | None = None  # stream time the pending fit is applied at
+        self.fit = FitSchedule(self.process_fit, self.reference, self.seen, self.grown,
+                               self.realtime)
+        self._realtime_stage = RealtimeStage(self.realtime)
         self._no_wait = self._fit_waits = False  # catch_up: the fit waits for the worker
         self._taken_layer = -1
-        self._rt_latency_s: list[float] = []
         self._finished = False
         self._last_premesh = 0.0
         # reference steps due at a stamp, in stream order (run when catching up if deferred)
@@ -134,6 +131,7 @@ class MonitoringSession:
         self._marked_layer = self.reference.layer
         self._defer_layers = bool(analysis_thread)
         self._worker = LayerWorker(self._analyse) if analysis_thread else None
+        self.fit.worker = self._worker
 
     @property
     def results(self) -> list[LayerResult]:
@@ -265,8 +263,7 @@ class MonitoringSession:
             step = self._ops.popleft()
             if isinstance(step, Observed):
                 self.seen.observe(step.points_O, step.stamp_s, self.reference.heights_mm)
-                if self._reobserved is not None:
-                    self._reobserved.observe(step.points_O, step.stamp_s, self.reference.heights_mm)
+                self.fit.observe(step.points_O, step.stamp_s, self.reference.heights_mm)
             elif isinstance(step, LayerStarted):
                 self.reference.end_layer(step.layer - 1)
                 self.reference.layer = step.layer
@@ -278,12 +275,13 @@ class MonitoringSession:
 
     def _flush_states(self, upto_s: float = np.inf, max_states: int | None = None) -> bool:
         t0 = time.perf_counter()
-        if self._fit_due_s is not None and upto_s >= self._fit_due_s:
+        due_s = self.fit.due_s
+        if due_s is not None and upto_s >= due_s:
             self._fit_waits = self._no_wait and self._worker is not None and self._worker.busy
-            if self._fit_waits or not self.states.flush(self._fit_due_s, max_states):
+            if self._fit_waits or not self.states.flush(due_s, max_states):
                 self.timing.reference_s += time.perf_counter() - t0
                 return False  # (catch_up comes back once the worker is done: no stall)
-            self._apply_fit()
+            self.fit.apply(self._taken_layer)
         done = self.states.flush(upto_s, max_states)
         self.timing.reference_s += time.perf_counter() - t0
         return done
@@ -302,17 +300,8 @@ class MonitoringSession:
         self._advance(upto_s=stamp)
         if self.states.last_T_B_F is None:
             return
-        t0 = time.perf_counter()
-        spot_O, _ = self.reference.spot_O(self.states.last_T_B_F)
-        frame = self.realtime.update_from_tsdf(self.fusion.tsdf, spot_O, stamp,
-                                               self.reference)
-        for alarm in frame.alarms:
-            alarm_log.info("real-time: %s of %.1f mm2 at (%.1f, %.1f) mm, %.2f s after its first "
-                        "flag", alarm.kind, alarm.area_mm2, *alarm.centroid_xy_O,
-                        alarm.stamp_s - alarm.first_flag_s)
-        dt = time.perf_counter() - t0
-        self.timing.realtime_s += dt
-        self._rt_latency_s.append(dt)
+        self.timing.realtime_s += self._realtime_stage.compare(
+            self.fusion.tsdf, self.reference, self.states.last_T_B_F, stamp)
 
     def process_summary(self) -> dict:
         """The fitted process scale per layer and the process findings, for the report."""
@@ -322,16 +311,7 @@ class MonitoringSession:
 
     def realtime_summary(self) -> dict:
         """Real-time deviation alarms and per-frame-set latency, for the report."""
-        lat = np.asarray(self._rt_latency_s)
-        return {
-            "frame_sets": int(lat.size),
-            "latency_ms_p50": float(np.percentile(lat, 50) * 1e3) if lat.size else None,
-            "latency_ms_p99": float(np.percentile(lat, 99) * 1e3) if lat.size else None,
-            "alarms": [{"stamp_s": a.stamp_s, "kind": a.kind, "area_mm2": a.area_mm2,
-                        "centroid_xy_O_mm": [float(c) for c in a.centroid_xy_O],
-                        "first_flag_s": a.first_flag_s,
-                        "delay_s": a.stamp_s - a.first_flag_s} for a in self.realtime.alarms],
-        }
+        return self._realtime_stage.summary()
 
     def _layer_done(self, done: LayerSurface) -> None:
         self._queue_observed()  # what the layer's own profiles saw comes first
@@ -345,44 +325,19 @@ class MonitoringSession:
     def _take_layer(self, done: LayerSurface) -> None:
         """The finished layer's reference (states flushed up to its last profile), then its
         analysis (here, or queued for the worker)."""
-        if self._fit_due_s is not None:  # a layer shorter than FIT_APPLY_DELAY_S
-            self._apply_fit()
+        if self.fit.due_s is not None:  # a layer shorter than the fit's delay
+            self.fit.apply(self._taken_layer)
         ref = self.reference.layers.get(done.layer)
         if ref is None:  # no layer marks in the stream: take the reference now
             ref = self.reference.end_layer(done.layer)
         stamp = None if not np.isfinite(done.stamp_s) else done.stamp_s
         since_seen = self.seen.since_seen(ref)  # (growth, where the surface is expected)
         self._taken_layer = done.layer
-        if self.process_fit is not None:
-            self._fit_due_s = done.stamp_s + FIT_APPLY_DELAY_S
-            if self.process_fit.calibrating:  # this layer may calibrate: watch its top
-                self._reobserved = ReobservedTop(ref, done.stamp_s, self._fit_due_s)
+        self.fit.layer_taken(ref, done.stamp_s)  # its fit applies a little later (fit_schedule)
         if self._worker is None:
             self._analyse(done, ref, stamp, since_seen)
         else:  # meshed (done.surface) and analysed on the worker
             self._worker.submit(done, ref, stamp, since_seen)
-
-    def _apply_fit(self) -> None:
-        """Apply the process fit of the layer analysed last at a fixed point of the stream
-        (robot states up to ``_fit_due_s`` integrated, or the next layer's close), whether the
-        analysis ran inline or on the worker: the reference deposits at the fitted scale from
-        here, and at the calibration (measured on the top seen again, if enough was) what it
-        holds, its layers not yet analysed and the seen reference are scaled and widened."""
-        self._fit_due_s = None
-        if self._worker is not None:
-            self._worker.join()  # the previous layer's analysis (it had FIT_APPLY_DELAY_S)
-        pending, self._pending_fit = self._pending_fit, None
-        top, self._reobserved = self._reobserved, None
-        if pending is None:
-            return
-        if top is not None:  # a calibration: from the top seen again, if enough was
-            again = self.process_fit.recalibrate(top)
-            pending = pending if again is None else (*again, pending[3])
-        scale, rescale, plume, inflation = pending
-        self.realtime.set_model_inflation(live_factors(inflation))
-        self.reference.set_process_scale(scale, rescale, analysed_to=self._taken_layer)
-        self.seen.calibrated(self.reference, rescale, plume)
-        self.grown.calibrated(self.reference.heights_mm, rescale, plume)
 
     def _analyse(self, done: LayerSurface, ref, stamp, since_seen=(None, None)) -> None:
         t0 = time.perf_counter()
@@ -391,10 +346,7 @@ class MonitoringSession:
             log.warning("layer %d: no surface was reconstructed; skipped", done.layer)
             return
         result = self.defects.analyse_layer(surface, ref, done.layer, stamp, *since_seen)
-        if self.process_fit is not None:  # applied at _fit_due_s (_apply_fit)
-            # with the bound's model-error factors the layer measured (for the live columns)
-            self._pending_fit = (*self.process_fit.update(result),
-                                 result.deviation.model_inflation)
+        self.fit.analysed(result)  # applied when it is due (FitSchedule.apply)
         self.timing.analysis_s += time.perf_counter() - t0
         if self.on_layer is not None:
             self.on_layer(result)
