@@ -17,6 +17,13 @@ Generators
                   the two reflex corners make the 45..150 degree set closable); size_mm 70 is
                   its largest extent, wall_mm 13 the wall width around the hollow centre
                   (a mitred inset of the outline), height_mm 24.
+``cylinder``      a round pad: diameter_mm 30, height_mm 2.4.
+``ring``          an annulus: outer_diameter_mm 36, inner_diameter_mm 16, height_mm 2.4.
+``tee``           a T: a bar span_mm 30 long and width_mm 10 wide (along x), with a stem of
+                  the same width standing stem_mm 10 out of its middle (along +y); height_mm
+                  2.4.
+``triangle``      an isosceles triangle: base_mm 36 (along x), depth_mm 28 from the base to the
+                  apex (along +y), height_mm 2.4.
 ``stl``           ``[part] stl = "file.stl"``: a watertight mesh, re-centred on the plate with
                   its lowest point on the plate.
 """
@@ -41,7 +48,12 @@ DEFAULTS: dict[str, dict[str, float]] = {
                       "twist_deg": 90.0, "waist_scale": 0.6, "waist_at": 0.55,
                       "top_scale": 1.1},
     "seven_sided": {"height_mm": 24.0, "size_mm": 70.0, "wall_mm": 13.0},
+    "cylinder": {"diameter_mm": 30.0, "height_mm": 2.4},
+    "ring": {"outer_diameter_mm": 36.0, "inner_diameter_mm": 16.0, "height_mm": 2.4},
+    "tee": {"span_mm": 30.0, "width_mm": 10.0, "stem_mm": 10.0, "height_mm": 2.4},
+    "triangle": {"base_mm": 36.0, "depth_mm": 28.0, "height_mm": 2.4},
 }
+CIRCLE_QUAD_SEGMENTS = 64  # segments per quarter circle of the round parts' outlines
 
 
 def _params(part: PartConfig) -> dict[str, float]:
@@ -72,7 +84,8 @@ def build_part(part: PartConfig, plate_size_mm) -> trimesh.Trimesh:
     else:
         p = _params(part)
         builder = {"box": _box, "pad": _box, "twisted_tower": _twisted_tower,
-                   "seven_sided": _seven_sided}[part.generator]
+                   "seven_sided": _seven_sided, "cylinder": _cylinder, "ring": _ring,
+                   "tee": _tee, "triangle": _triangle}[part.generator]
         mesh = builder(p)
     lo, hi = mesh.bounds
     mesh.apply_translation([lx / 2 - (lo[0] + hi[0]) / 2, ly / 2 - (lo[1] + hi[1]) / 2, -lo[2]])
@@ -183,3 +196,35 @@ def _seven_sided(p: dict[str, float]) -> trimesh.Trimesh:
                           f"{p['size_mm']} mm seven-sided part")
     shape = Polygon(outline.exterior.coords, [hole.exterior.coords])
     return trimesh.creation.extrude_polygon(shape, p["height_mm"])
+
+
+def _disc(diameter_mm: float):
+    return shapely.Point(0.0, 0.0).buffer(diameter_mm / 2, quad_segs=CIRCLE_QUAD_SEGMENTS)
+
+
+def _cylinder(p: dict[str, float]) -> trimesh.Trimesh:
+    return trimesh.creation.extrude_polygon(_disc(p["diameter_mm"]), p["height_mm"])
+
+
+def _ring(p: dict[str, float]) -> trimesh.Trimesh:
+    if p["inner_diameter_mm"] >= p["outer_diameter_mm"]:
+        raise ConfigError(f"part.params.inner_diameter_mm: {p['inner_diameter_mm']} mm must be "
+                          f"less than outer_diameter_mm {p['outer_diameter_mm']} mm")
+    shape = _disc(p["outer_diameter_mm"]).difference(_disc(p["inner_diameter_mm"]))
+    return trimesh.creation.extrude_polygon(shape, p["height_mm"])
+
+
+def _tee(p: dict[str, float]) -> trimesh.Trimesh:
+    a, w, st = p["span_mm"] / 2, p["width_mm"] / 2, p["stem_mm"]
+    if w >= a:
+        raise ConfigError(f"part.params.width_mm: {p['width_mm']} mm leaves no bar beside the "
+                          f"stem of a {p['span_mm']} mm span")
+    outline = Polygon([(-a, -w), (a, -w), (a, w), (w, w), (w, w + st), (-w, w + st), (-w, w),
+                       (-a, w)])
+    return trimesh.creation.extrude_polygon(outline, p["height_mm"])
+
+
+def _triangle(p: dict[str, float]) -> trimesh.Trimesh:
+    b, d = p["base_mm"] / 2, p["depth_mm"]
+    outline = Polygon([(-b, 0.0), (b, 0.0), (0.0, d)])  # re-centred on the plate after
+    return trimesh.creation.extrude_polygon(outline, p["height_mm"])

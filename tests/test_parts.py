@@ -13,7 +13,8 @@ from scenarios.parts import build_part, seven_sided_outline
 PLATE = (120.0, 120.0, 6.0)
 
 
-@pytest.mark.parametrize("gen", ["box", "pad", "twisted_tower", "seven_sided"])
+@pytest.mark.parametrize("gen", ["box", "pad", "twisted_tower", "seven_sided", "cylinder",
+                                 "ring", "tee", "triangle"])
 def test_parts_are_watertight_centred_on_the_plate(gen):
     m = build_part(PartConfig(generator=gen), PLATE)
     assert m.is_watertight and m.volume > 0
@@ -93,3 +94,34 @@ def test_bad_params_name_the_field():
         build_part(PartConfig(generator="box", params={"height_mm": -1.0}), PLATE)
     with pytest.raises(ConfigError, match="does not fit"):
         build_part(PartConfig(generator="box", params={"width_mm": 200.0}), PLATE)
+
+
+def test_round_parts_ring_tee_and_triangle_have_their_documented_shape():
+    cyl = build_part(PartConfig(generator="cylinder"), PLATE)
+    np.testing.assert_allclose(cyl.extents, [30, 30, 2.4], atol=1e-9)
+    assert cyl.volume == pytest.approx(np.pi * 15**2 * 2.4, rel=1e-3)  # a 256-gon
+    ring = build_part(PartConfig(generator="ring", params={"height_mm": 1.6}), PLATE)
+    region = slice_mesh(ring, 0.8).regions[0]
+    assert region.geom_type == "Polygon" and len(region.interiors) == 1
+    assert region.area == pytest.approx(np.pi * (18**2 - 8**2), rel=1e-3)
+    assert shapely.Polygon(region.interiors[0]).centroid.distance(shapely.Point(60, 60)) < 1e-6
+    tee = build_part(PartConfig(generator="tee"), PLATE)
+    np.testing.assert_allclose(tee.bounds, [[45, 50, 0], [75, 70, 2.4]], atol=1e-9)
+    assert tee.volume == pytest.approx((30 * 10 + 10 * 10) * 2.4)
+    tri = build_part(PartConfig(generator="triangle"), PLATE)
+    np.testing.assert_allclose(tri.bounds, [[42, 46, 0], [78, 74, 2.4]], atol=1e-9)
+    assert tri.volume == pytest.approx(0.5 * 36 * 28 * 2.4)
+    angles = corner_angles_deg(np.asarray(slice_mesh(tri, 0.8).regions[0].exterior.coords))
+    base = np.degrees(np.arctan2(28, 18))  # the base angles; the apex takes the rest
+    assert sorted(angles[np.abs(angles - 180.0) > 1e-6]) == \
+        pytest.approx(sorted([base, base, 180 - 2 * base]), abs=1e-3)
+
+
+@pytest.mark.parametrize("gen,params,name", [
+    ("ring", {"inner_diameter_mm": 40.0}, "inner_diameter_mm"),
+    ("tee", {"width_mm": 30.0}, "width_mm"),
+    ("cylinder", {"radius_mm": 3.0}, "radius_mm"),
+])
+def test_new_generators_name_the_bad_parameter(gen, params, name):
+    with pytest.raises(ConfigError, match=rf"part\.params\.{name}"):
+        build_part(PartConfig(generator=gen, params=params), PLATE)

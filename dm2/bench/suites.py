@@ -54,6 +54,13 @@ SUITES = {
         "model_error",
         targets={"f1_min": 0.95, "max_onset_delay_layers": 1, "max_false_tracks": 0,
                  "max_false_alarms_per_hour": 0}),
+    "shapes": Suite(
+        "shapes", "Part shapes the monitor was not developed on (a round pad, a ring, a T, a "
+        "triangle), default strategy: a fault-free control of each and a bump, a dent in a "
+        "flat, a dent at an edge and a feed step (CI).",
+        "shapes",
+        targets={"f1_min": 0.95, "max_onset_delay_layers": 1, "max_false_tracks": 0,
+                 "max_false_alarms_per_hour": 0}),
     "smoke": Suite(
         "smoke", "The small pads, one per fault kind plus a control, single strategy: fast.",
         "smoke",

@@ -79,8 +79,8 @@ def score_line(summary: dict) -> str:
 @app.command()
 def bench(
     suite: str = typer.Option("regression", "--suite", "-s",
-                              help="Suite name (regression, model_error, smoke, paper) or a "
-                              "folder of scenario files."),
+                              help="Suite name (regression, model_error, shapes, smoke, "
+                              "paper) or a folder of scenario files."),
     out: Path = typer.Option(None, "--out", "-o", help="Bench folder (default runs/bench-TIME)."),
     overrides: list[str] = typer.Option([], "--set", help="SECTION.KEY=VALUE applied to every "
                                         "scenario, e.g. --set toolpath.max_layers=12."),

@@ -34,7 +34,8 @@ class _Model(BaseModel):
 class PartConfig(_Model):
     """The part to build: a generator with parameters, or a watertight STL [mm]."""
 
-    generator: Literal["pad", "seven_sided", "twisted_tower", "box"] | None = None
+    generator: Literal["pad", "seven_sided", "twisted_tower", "box", "cylinder", "ring", "tee",
+                       "triangle"] | None = None
     stl: str | None = None
     params: dict[str, float] = Field(default_factory=dict)
 
