@@ -210,3 +210,34 @@ def test_on_a_plateau_the_offset_is_the_calibrated_scale_while_later_estimates_s
     assert fit.layers[1]["estimate"] == pytest.approx(1.18 * 1.04, abs=0.015)
     (finding,) = fit.finding_details()
     assert finding["kind"] == "offset" and finding["estimate"] == fit.layers[0]["next_scale"]
+
+
+@pytest.mark.parametrize("side_mm", [8.0, 10.0])
+def test_an_offset_read_on_a_plume_shaped_top_states_what_the_plume_may_move(side_mm):
+    # a bar too narrow for any place where the plume width does not matter: a plume 15 % off
+    # the model's moves the scale read there, and the finding says by about how much
+    from dm2.pipeline.process_top import PLUME_DOUBT
+    from dm2.reference.height_map import ReferenceMap
+
+    sigma, cell = 2.0, 0.25
+    ref = ReferenceMap(pad_deposit(sigma, side_mm=side_mm), cell, 0, 10.0, plume_sigma_mm=sigma)
+    xy = grid_xy(40.1 - side_mm / 2, 40.0 + side_mm / 2)
+    for plume, doubted in ((1.0, 0.0), (1.0 + PLUME_DOUBT, 1.0), (1.0 - PLUME_DOUBT, 1.0)):
+        fit = ProcessFit()
+        fit.update(pad_layer(0, pad_deposit(plume * sigma, scale=0.9, side_mm=side_mm), ref, xy))
+        assert fit.layers[0]["plateau"] is False
+        details = fit.finding_details()
+        if not details:  # a narrower plume raised the estimate within the finding threshold
+            assert plume < 1.0 and fit.layers[0]["estimate"] > 1.0 - fit.finding_threshold
+            continue
+        (d,) = details
+        # nominal plume: the true scale; 15 % off: the error the finding states, within 20 %
+        assert abs(d["estimate"] - 0.9) == pytest.approx(doubted * d["plume_doubt"], rel=0.2,
+                                                         abs=1e-6)
+        assert f"moves this by {d['plume_doubt'] * 100:.0f} %" in d["text"]
+        assert 0.04 < d["plume_doubt"] < 0.08
+    wide = ProcessFit()  # a top wide enough to read the scale off the plume: no doubt stated
+    big = ReferenceMap(pad_deposit(sigma), cell, 0, 10.0, plume_sigma_mm=sigma)
+    wide.update(pad_layer(0, pad_deposit(sigma, scale=0.9), big, grid_xy(32.1, 48.0)))
+    (d,) = wide.finding_details()
+    assert d["plume_doubt"] is None and "plume" not in d["text"]

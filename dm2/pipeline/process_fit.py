@@ -47,12 +47,14 @@ from dm2.pipeline.calibration_top import CalibrationTop
 from dm2.pipeline.process_top import (
     MIN_HEIGHT_MM,
     MIN_TOP_VERTICES,
+    PLUME_DOUBT,
     TOP_NZ,
     normals_z,
     not_stale,
     on_plateau,
     plume_factor,
     plume_insensitive,
+    plume_share,
     top_heights,
 )
 
@@ -155,6 +157,8 @@ class ProcessFit:
                                                            area[flat])
                         est = meas_flat / ref_flat * self.scale
                     entry["plateau"] = flat is not None
+                    if flat is None:  # the plume shapes this top: what it may move, reported
+                        entry["plume_share"] = plume_share(reference, xy_top, area, ref)
                     self._first = (meas, self._nominal_mm)
                     self._grown_mm = 0.0
                     new = float(np.clip(est, 1 - self.bound, 1 + self.bound))
@@ -236,6 +240,9 @@ class ProcessFit:
           near the edges (60-700 vertices, up to 3 % off on the same runs). Without a plateau
           (a 16 x 10 mm pad) the first layer's height depends on the plume as much as on the
           deposition, and the latest estimate, read with the calibrated plume, is the scale.
+          Such an offset also states (``plume_doubt``, in the text too) how far a plume
+          ``PLUME_DOUBT`` off the model's moves the scale read on that top
+          (:func:`~.process_top.plume_share`): the part cannot tell the two apart.
         """
         cal = next((e for e in self.layers if e.get("calibration")), None)
         if cal is None:
@@ -269,13 +276,20 @@ class ProcessFit:
             pct = abs(base - 1.0) * 100
             text = (f"deposition efficiency {pct:.0f} % {'below' if sign < 0 else 'above'} "
                     f"nominal since layer {cal['layer']}")
+            doubt = None
+            if cal.get("plume_share") is not None:  # read on a top the plume width shapes
+                doubt = PLUME_DOUBT * float(cal["plume_share"]) * float(base)
+                text += (f" (read on a top the plume width shapes too: a plume "
+                         f"{PLUME_DOUBT * 100:.0f} % wider or narrower than the model's moves "
+                         f"this by {doubt * 100:.0f} %)")
             if self.planned_height_mm:
                 short = (1.0 - base) * self.planned_height_mm
                 text += (f"; at this rate the part ends {abs(short):.1f} mm "
                          f"{'short' if short > 0 else 'too tall'}")
             out.insert(0, {"kind": "offset", "quantity": "deposition scale",
                            "estimate": float(base), "sign": sign,
-                           "since_layer": int(cal["layer"]), "text": text})
+                           "since_layer": int(cal["layer"]), "text": text,
+                           "plume_doubt": doubt})
         return out
 
     def findings(self) -> list[str]:

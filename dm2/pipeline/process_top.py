@@ -15,6 +15,7 @@ MIN_HEIGHT_MM = 0.2  # reference thinner than this on the top: no estimate
 PLATEAU_SLOPE = 0.1  # reference slope [mm/mm] of the plateau the scale is measured on
 PLATEAU_FRACTION = 0.7  # of the top's 95th-percentile reference height
 PLUME_MIN_SENSITIVITY_MM = 0.05  # vertices whose height barely depends on the plume width
+PLUME_DOUBT = 0.15  # a finding read on a plume-shaped top states what a plume this far off moves
 
 
 def plume_factor(result, scale: float, bound: float) -> float:
@@ -110,3 +111,18 @@ def not_stale(dev) -> np.ndarray | bool:
     an old one, not the process's."""
     stale = getattr(dev, "stale_mm", None)
     return True if stale is None else np.asarray(stale) == 0.0
+
+
+def plume_share(reference, xy_O: np.ndarray, area: np.ndarray, top_mm: float) -> float | None:
+    """How much of the top's height moves per relative change of the plume width: the
+    area-weighted median ``|sigma^2 laplacian|`` of ``reference`` (a ReferenceMap) at the top's
+    points ``xy_O (n, 2)`` [mm] over the top's height ``top_mm``; None without a plume width.
+
+    On a top with no place where the plume width does not matter (:func:`plume_insensitive`:
+    a thin wall, a 10 mm bar) the deposition scale is read where a plume wider than the model's
+    lowers the top as a lower efficiency would: a plume a fraction ``r`` off moves the scale read
+    there by about ``r`` times this share. The process finding says so (PLUME_DOUBT)."""
+    if reference is None or not reference.plume_sigma_mm > 0 or not top_mm > 0 or not len(xy_O):
+        return None
+    p = np.abs(reference.plume_sensitivity_at(xy_O))
+    return float(weighted_median(p, np.asarray(area, np.float64)) / top_mm)
