@@ -174,19 +174,19 @@ def test_feed_factor_and_residence_time_scale_the_deposit():
 
 
 def test_unrolled_splat_equals_general_path_bit_for_bit():
-    from twin.world import deposition_kernels as DK
+    from twin.world import splat_kernels as SK
 
     rng = np.random.default_rng(4)
     h0 = rng.uniform(0.0, 0.3, (32, 40))
     xy = rng.uniform([0.6, 0.6], [9.4, 7.4], (400, 2))  # every splat's 5 x 5 cells on the grid
     vols = rng.uniform(1e-4, 1e-2, 400)
-    w = np.empty(2 * (2 * DK.SPLAT_RADIUS_CELLS + 1))
+    w = np.empty(2 * (2 * SK.SPLAT_RADIUS_CELLS + 1))
     grown = []
     for unrolled in (True, False):
         hf = HeightField((10.0, 8.0), 0.25, 6.0)
         hf.heights_mm = h0
         for (x, y), vol in zip(xy, vols, strict=True):
-            DK._splat(hf._h, hf._bmax, hf._zmax, hf._dirty, hf.cell_mm, x, y, vol, w, unrolled)
+            SK.splat(hf._h, hf._bmax, hf._zmax, hf._dirty, hf.cell_mm, x, y, vol, w, unrolled)
         grown.append(hf)
     for name in ("_h", "_bmax", "_zmax", "_dirty"):
         np.testing.assert_array_equal(getattr(grown[0], name), getattr(grown[1], name),
