@@ -1,5 +1,4 @@
-"""``dm2 bench`` (a suite of scenarios scored against the twin's fault truth) and ``dm2 sweep``
-(Monte Carlo over seeds and fault sizes on Dask)."""
+"""``dm2 bench``: a suite of scenarios scored against the twin's fault truth."""
 
 from __future__ import annotations
 
@@ -13,13 +12,14 @@ import typer
 from rich.markup import escape
 from rich.table import Table
 
-from dm2.cli.common import app, bad_input_exits, console, err_console, fail
+from dm2.cli.common import app, bad_input_exits, console, err_console
 from dm2.report.outdir import claim_outputs, prepare_output_dir
 
 EXIT_FAILED = 1
 
 
-def _fmt(v, spec: str = "{:.2f}") -> str:
+def fmt_cell(v, spec: str = "{:.2f}") -> str:
+    """A table cell: ``-`` for none or not finite, yes/NO for a flag, else ``spec``."""
     if v is None or (isinstance(v, float) and not math.isfinite(v)):
         return "-"
     if isinstance(v, bool):
@@ -43,10 +43,10 @@ def bench_table(runs: dict[str, dict]) -> Table:
         counts = (f"{len(r['true_tracks'])}/{len(r['fragments'])}/{len(r['neutral_tracks'])}/"
                   + (f"[red]{n_false}[/]" if n_false else "0"))
         for i, f in enumerate(faults):
-            common = [counts, _fmt(r["false_area_mm2"], "{:.0f}"),
+            common = [counts, fmt_cell(r["false_area_mm2"], "{:.0f}"),
                       f"{r['realtime_false_alarms']}/{r['realtime_alarms']}",
-                      _fmt(r["reconstruction_rms_mm"], "{:.3f}"),
-                      _fmt(r["realtime_factor"], "{:.1f}"),
+                      fmt_cell(r["reconstruction_rms_mm"], "{:.3f}"),
+                      fmt_cell(r["realtime_factor"], "{:.1f}"),
                       "[green]met[/]" if r["expect_passed"] else "[red]missed[/]"]
             if i:
                 common = [""] * len(common)
@@ -54,9 +54,10 @@ def bench_table(runs: dict[str, dict]) -> Table:
                 table.add_row(name, "(control)", *[""] * 6, *common)
                 continue
             table.add_row(name if i == 0 else "", f["kind"] + ("" if f["qualifies"] else " *"),
-                          _fmt(f["peak_height_mm"]), _fmt(f["detected"]),
-                          _fmt(f["onset_layer"], "{}"), _fmt(f["onset_delay_layers"], "{:+d}"),
-                          _fmt(f["iou"]), _fmt(f["height_error_mm"], "{:+.2f}"), *common)
+                          fmt_cell(f["peak_height_mm"]), fmt_cell(f["detected"]),
+                          fmt_cell(f["onset_layer"], "{}"),
+                          fmt_cell(f["onset_delay_layers"], "{:+d}"), fmt_cell(f["iou"]),
+                          fmt_cell(f["height_error_mm"], "{:+.2f}"), *common)
     return table
 
 
@@ -72,7 +73,7 @@ def score_line(summary: dict) -> str:
             f"fragments {summary['fragments']}, neutral {summary['neutral_tracks']}; "
             f"false tracks per control {controls or '-'}; real-time false alarms "
             f"{summary['realtime_false_alarms']}/{summary['realtime_alarms']} "
-            f"({_fmt(per_h, '{:.0f}')} per process hour); worst onset delay "
+            f"({fmt_cell(per_h, '{:.0f}')} per process hour); worst onset delay "
             f"{summary['max_onset_delay_layers']} layer(s)")
 
 
@@ -250,84 +251,3 @@ def _json_default(obj):
     if isinstance(obj, Path):
         return str(obj)
     raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
-
-
-def _floats(text: str) -> list[float]:
-    try:
-        return [float(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise ValueError(f"--sizes '{text}': expected comma-separated numbers") from None
-
-
-@app.command()
-def sweep(
-    scenario: str = typer.Argument(..., help="Base scenario (name, file) with the fault to vary."),
-    param: str = typer.Option("height_mm", "--param", help="Fault field that sets the size."),
-    sizes: str = typer.Option("0.2,0.4,0.6,0.8,1.0", "--sizes", help="Comma-separated sizes."),
-    seeds: int = typer.Option(5, "--seeds", min=1, help="Seeds per size."),
-    seed0: int = typer.Option(1000, "--seed0", help="First seed (seeds are seed0, seed0+1, ...)."),
-    fault: int = typer.Option(0, "--fault", min=0, help="Index of the fault to vary."),
-    overrides: list[str] = typer.Option([], "--set", help="SECTION.KEY=VALUE on the base."),
-    workers: int = typer.Option(2, "--workers", min=1, help="Local worker processes."),
-    scheduler: str = typer.Option(None, "--scheduler", help="Dask scheduler ADDRESS (a real "
-                                  "cluster) instead of a local cluster."),
-    out: Path = typer.Option(None, "--out", "-o",
-                             help="Output folder (default runs/sweep-TIME)."),
-    force: bool = typer.Option(False, "--force", help="Write into a folder holding an earlier "
-                               "dm2 output and other files: replace only dm2's files."),
-) -> None:
-    """Monte Carlo over seeds and fault sizes on Dask: detection probability against size.
-
-    Writes sweep.json (every case and the probability per size, with the smallest size
-    detected in at least 90 % of the seeds from there up) and sweep.png.
-
-    Example: `dm2 sweep scenarios/suites/smoke/bump.toml --sizes 0.2,0.4,0.8 --seeds 4`
-    """
-    from dm2.bench.suites import apply_overrides
-    from dm2.bench.sweep import plot_sweep, run_sweep, summarize_sweep, sweep_cases
-    from dm2.core.config import load_scenario, parse_scenario
-    from scenarios import resolve_scenario
-
-    with bad_input_exits():
-        path = resolve_scenario(scenario)
-        base = load_scenario(path).to_toml_dict()
-        base = apply_overrides(base, list(overrides))
-        parse_scenario(base, str(path))
-        size_list = _floats(sizes)
-        cases = sweep_cases(base, size_list, list(range(seed0, seed0 + seeds)), param, fault)
-        parse_scenario(cases[0]["scenario"], f"{path} (faults[{fault}].{param})")
-        out_dir = (out or Path("runs") / f"sweep-{datetime.now():%Y%m%d-%H%M%S}").absolute()
-        kept = prepare_output_dir(out_dir, force=force)
-    from dm2.cli.bench_runner import sweep_case
-
-    where = scheduler or f"a local cluster of {workers} worker processes"
-    console.print(f"[bold]dm2 sweep[/] {len(cases)} cases ({len(size_list)} sizes x {seeds} "
-                  f"seeds) on {where}")
-    t0 = time.perf_counter()
-    results = run_sweep(cases, sweep_case, scheduler_address=scheduler, n_workers=workers,
-                        progress=lambda d, n: console.print(f"  {d}/{n} cases done"))
-    summary = summarize_sweep(results)
-    doc = {"schema": "dm2.sweep/1", "scenario": str(path), "fault": fault, "param": param,
-           "sizes": size_list, "seeds": list(range(seed0, seed0 + seeds)),
-           "overrides": list(overrides), "cases": results, "summary": summary}
-    (out_dir / "sweep.json").write_text(json.dumps(doc, indent=1, sort_keys=True),
-                                        encoding="utf-8")
-    plot_sweep(out_dir / "sweep.png", summary, param, f"{Path(path).stem}: detection vs {param}")
-    claim_outputs(out_dir, kept, "dm2 sweep")
-    table = Table(title=f"Detection probability against {param}")
-    for c in ("size", "n", "detected", "probability", "P global track", "mean peak mm",
-              "FP tracks"):
-        table.add_column(c, justify="right")
-    for r in summary["by_size"]:
-        table.add_row(f"{r['size']:g}", str(r["n"]), str(r["detected"]),
-                      f"{r['probability']:.2f}", f"{r['probability_global']:.2f}",
-                      _fmt(r["mean_peak_height_mm"]),
-                      str(r["false_positive_tracks"]))
-    console.print(table)
-    smallest = summary["smallest_reliable_size"]
-    console.print(f"smallest reliably detected {param} (>= "
-                  f"{summary['reliable_probability']:.0%}): "
-                  f"{'none' if smallest is None else f'{smallest:g}'}; "
-                  f"{out_dir / 'sweep.json'} ({time.perf_counter() - t0:.0f} s)")
-    if not results:
-        fail("sweep produced no results")

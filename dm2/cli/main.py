@@ -12,6 +12,7 @@ COMMAND_MODULES = [
     "cmd_run",
     "cmd_live",
     "cmd_bench",
+    "cmd_sweep",
     "cmd_view",
 ]
 
