@@ -77,10 +77,10 @@ def calibration_layer(measured_mm, reference_mm, n=400, defect=0):
 
 class SeenTop:
     def __init__(self, ratio):
-        self.ratio, self.excluded = ratio, None
+        self.ratio, self.excluded, self.fused = ratio, None, None
 
-    def estimate(self, defect_xy_O=None):
-        self.excluded = defect_xy_O
+    def estimate(self, defect_xy_O=None, fused=None):
+        self.excluded, self.fused = defect_xy_O, fused
         return self.ratio, 500
 
 
@@ -141,3 +141,32 @@ def test_the_scale_is_read_where_the_plume_width_does_not_matter():
     assert ratio == pytest.approx(1.18, abs=0.01)
     assert MIN_CELLS <= cells < seen[0.0][1]  # the plateau's flat middle only
     assert seen[0.0][0] < 1.16  # the whole plateau reads the scale low
+
+
+def test_cells_that_changed_since_the_close_are_left_out():
+    # a dent cut as the next layer starts lowers part of the finished top the profilers see
+    # again; the fused layer never had it, so those cells are not the layer's final surface
+    from dm2.pipeline.reobserved_top import CHANGED_MM, changed_since_close
+
+    rng = np.random.default_rng(7)
+    close = pad_map()
+    top = ReobservedTop(close, since_s=10.0, until_s=15.0)
+    plateau = grid_xy(41, 59, 41, 49)  # 72 x 32 cells
+    seen = np.full(len(plateau), 0.8 * 1.06) + rng.normal(0.0, 0.01, len(plateau))
+    dent = np.hypot(*(plateau - [45.0, 45.0]).T) < 2.0
+    seen[dent] -= 0.4
+    top.observe(np.column_stack([plateau, seen]), 11.0, close.heights_mm.copy())
+    # the fused layer: the same top 0.03 mm lower (its lag), one vertex per cell
+    fused = (plateau, np.full(len(plateau), 0.8 * 1.06 - 0.03))
+    ratio, cells = top.estimate(fused=fused)
+    assert cells == 72 * 32 - dent.sum() and dent.sum() > 150
+    assert ratio == pytest.approx(1.06, abs=0.01 / 0.8)
+    assert top.estimate()[1] == 72 * 32  # without the fused layer: every cell counts
+    # the rule alone: only cells off the median difference by more than CHANGED_MM (or four
+    # robust spreads) change; no fused vertex within reach keeps a cell
+    xy = np.column_stack([np.arange(23.0), np.zeros(23)])
+    seen_mm = 1.03 + rng.normal(0.0, 0.01, 23)
+    seen_mm[[5, 9]] += [-CHANGED_MM - 0.05, CHANGED_MM + 0.05]
+    seen_mm[22] = 5.0  # its cell has no fused vertex within reach
+    flags = changed_since_close(xy, seen_mm, xy[:22], np.full(22, 1.0))
+    assert np.flatnonzero(flags).tolist() == [5, 9]

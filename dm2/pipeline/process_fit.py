@@ -207,7 +207,8 @@ class ProcessFit:
             return None
         dev = cal["result"].deviation
         defects = dev.vertices_O[np.isin(dev.class_code, DEFECT_CLASSES), :2]
-        ratio, cells = top.estimate(defects)
+        fused = None if self._top is None else (self._top.xy_O, self._top.z_mm)
+        ratio, cells = top.estimate(defects, fused)
         entry = cal["entry"]
         entry["reobserved_cells"] = cells
         if ratio is None:
