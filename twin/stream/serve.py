@@ -27,6 +27,7 @@ from twin.schema import TwinScenario
 log = logging.getLogger(__name__)
 
 UNPACED_CLOCK_TOLERANCE_S = 30.0  # [s] clock band of a cell file for a twin served unpaced
+UNPACED_REORDER_WINDOW_S = 30.0  # [s] reorder window of a cell file for a twin served unpaced
 UNPACED_STAMP_RATE = 1e4  # stream s per host s across a pause of an unpaced twin
 
 
@@ -52,8 +53,10 @@ def write_cell_files(simulation, folder: str | Path, egm: str = "127.0.0.1:6510"
     at ``speed`` times real time, a millisecond of jitter on the host is ``speed`` ms of stream
     time, so above real time both are written ``speed`` times as wide (the default band, the
     scenario's window): the same wall-clock margins as on the real cell. Unpaced (speed 0 or
-    below) arrival times say nothing about the clocks: the band is then 30 s, so the twin's
-    stamps (one clock for poses and profiles) pass as they are. The stamp gate's
+    below) arrival times say nothing about the clocks, nor about the order in which the two
+    sockets' messages arrive (a millisecond's lag of one socket's reader is seconds of stream
+    time): the band and the reorder window are then 30 s, so the twin's stamps (one clock for
+    poses and profiles) pass as they are and no message is dropped as late. The stamp gate's
     ``monitor.gates.stamp_rate_max`` (stream seconds per host second a stream may advance
     across a pause) is scaled likewise. Entries of ``live`` are written as given."""
     from dm2.core.calibration_io import write_calibration_toml
@@ -72,6 +75,7 @@ def write_cell_files(simulation, folder: str | Path, egm: str = "127.0.0.1:6510"
         rate = sc.monitor.gates.stamp_rate_max * widen
     else:
         timing["clock_tolerance_s"] = UNPACED_CLOCK_TOLERANCE_S
+        monitor["reorder_window_s"] = UNPACED_REORDER_WINDOW_S
         rate = UNPACED_STAMP_RATE
     monitor["gates"] = {**monitor.get("gates", {}), "stamp_rate_max": rate}
     write_calibration_toml(simulation.calibration, folder / "calibration.toml")
