@@ -52,14 +52,15 @@ def test_systematic_offset_is_calibrated_on_the_first_layer_and_reported():
     assert layers[0]["calibration"] and layers[0]["estimate"] == pytest.approx(0.92)
 
 
-def test_without_a_plateau_the_offset_is_the_latest_estimate():
-    # no reference map: the first layer's top cannot be read where the plume width does not
-    # matter, so its height is no better a scale than the growth read since
+def test_without_a_plateau_the_offset_is_still_the_calibration():
+    # no reference map: no place to read the first layer apart from the plume width, and no
+    # plume width to read it with; the growth read since differs by less than a change, so the
+    # cell's scale is the calibration's
     fit, _ = build(lambda k: 0.90 if k == 0 else 0.93)
     assert fit.layers[0]["plateau"] is False
     (detail,) = fit.finding_details()
-    assert detail["kind"] == "offset" and detail["estimate"] == pytest.approx(0.93)
-    assert detail["text"].startswith("deposition efficiency 7 % below nominal since layer 0")
+    assert detail["kind"] == "offset" and detail["estimate"] == pytest.approx(0.90)
+    assert detail["text"].startswith("deposition efficiency 10 % below nominal since layer 0")
 
 
 def test_calibration_is_bounded():
@@ -213,29 +214,36 @@ def test_on_a_plateau_the_offset_is_the_calibrated_scale_while_later_estimates_s
 
 
 @pytest.mark.parametrize("side_mm", [8.0, 10.0])
-def test_an_offset_read_on_a_plume_shaped_top_states_what_the_plume_may_move(side_mm):
-    # a bar too narrow for any place where the plume width does not matter: a plume 15 % off
-    # the model's moves the scale read there, and the finding says by about how much
+def test_on_a_plume_shaped_top_scale_and_plume_are_read_together(side_mm):
+    # a bar too narrow for any place where the plume width does not matter: the plume is
+    # fitted with a scale on the top and edges, and the top's scale read under that plume.
+    # A plume 15 % wider is recovered, scale within 0.5 %; a narrower one within what the
+    # finding states (the plume's effect is modelled to first order, and a plume 15 %
+    # narrower on a 10 mm bar is past that: read 3.3 % low)
     from dm2.pipeline.process_top import PLUME_DOUBT
     from dm2.reference.height_map import ReferenceMap
 
     sigma, cell = 2.0, 0.25
     ref = ReferenceMap(pad_deposit(sigma, side_mm=side_mm), cell, 0, 10.0, plume_sigma_mm=sigma)
     xy = grid_xy(40.1 - side_mm / 2, 40.0 + side_mm / 2)
-    for plume, doubted in ((1.0, 0.0), (1.0 + PLUME_DOUBT, 1.0), (1.0 - PLUME_DOUBT, 1.0)):
+    for plume in (1.0, 1.0 + PLUME_DOUBT, 1.0 - PLUME_DOUBT):
         fit = ProcessFit()
         fit.update(pad_layer(0, pad_deposit(plume * sigma, scale=0.9, side_mm=side_mm), ref, xy))
-        assert fit.layers[0]["plateau"] is False
-        details = fit.finding_details()
-        if not details:  # a narrower plume raised the estimate within the finding threshold
-            assert plume < 1.0 and fit.layers[0]["estimate"] > 1.0 - fit.finding_threshold
-            continue
-        (d,) = details
-        # nominal plume: the true scale; 15 % off: the error the finding states, within 20 %
-        assert abs(d["estimate"] - 0.9) == pytest.approx(doubted * d["plume_doubt"], rel=0.2,
-                                                         abs=1e-6)
+        cal = fit.layers[0]
+        assert cal["plateau"] is False and cal["plume_lift"] < -0.3  # a wider plume lowers it
+        # the top alone, read at the model's plume, is off by about the stated doubt
+        assert abs(cal["estimate"] - 0.9) > (0.5 * cal["plume_share"] * PLUME_DOUBT
+                                             if plume != 1.0 else -1.0)
+        (d,) = fit.finding_details()
+        assert d["kind"] == "offset" and d["sign"] == -1
         assert f"moves this by {d['plume_doubt'] * 100:.0f} %" in d["text"]
         assert 0.04 < d["plume_doubt"] < 0.08
+        if plume >= 1.0:
+            assert d["estimate"] == pytest.approx(0.9, abs=0.005)
+            assert cal["plume_factor"] == pytest.approx(plume, abs=0.015)
+        else:
+            assert abs(d["estimate"] - 0.9) <= d["plume_doubt"]
+            assert cal["plume_factor"] < 0.9
     wide = ProcessFit()  # a top wide enough to read the scale off the plume: no doubt stated
     big = ReferenceMap(pad_deposit(sigma), cell, 0, 10.0, plume_sigma_mm=sigma)
     wide.update(pad_layer(0, pad_deposit(sigma, scale=0.9), big, grid_xy(32.1, 48.0)))

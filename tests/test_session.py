@@ -38,17 +38,21 @@ def test_doubled_feed_raises_an_overbuild_alarm_within_seconds(feed_step_session
     assert session.realtime_summary()["frame_sets"] > 250
 
 
-def test_doubled_feed_alarm_comes_within_3_s(feed_step_session):
+# The twin's fault-caused excess on this pad (the twin run to each time with and without the
+# fault, its height fields compared): at most 0.28 mm at 21.5 s, at delta_G (0.4 mm) in one
+# 0.25 mm cell at 22.0 s and over 476 cells at 22.5 s, past 0.5 mm at 23.0 s
+TRUTH_PAST_DELTA_S = 22.0
+TRUTH_PAST_HALF_MM_S = 23.0
+
+
+def test_doubled_feed_alarm_comes_once_the_true_excess_is_there_and_within_2_s(feed_step_session):
     session, _ = feed_step_session
     over = [a for a in session.realtime_summary()["alarms"]
             if a["kind"] == "overbuild" and a["stamp_s"] > FAULT_START_S]
     # the excess must first build up past delta_G (about two raster lines); then it is flagged
-    assert over[0]["stamp_s"] - FAULT_START_S < 3.0
+    assert TRUTH_PAST_DELTA_S <= over[0]["stamp_s"] <= TRUTH_PAST_HALF_MM_S + 2.0
 
 
-@pytest.mark.xfail(strict=True, reason="missed target: the first flagged column of the alarm's "
-                   "patch within 1 s of the alarm (measured 2.0 s: a column flagged just after "
-                   "the feed doubled waited for its neighbours)")
 def test_doubled_feed_alarm_follows_its_first_flag_within_1_s(feed_step_session):
     session, _ = feed_step_session
     over = [a for a in session.realtime_summary()["alarms"]
@@ -108,10 +112,6 @@ def test_bump_at_layer_3_is_found_at_layer_3(bump_session):
     assert track.last_layer == 4 and [h["layer"] for h in track.history] == [3, 4]
 
 
-@pytest.mark.xfail(strict=True, reason="missed target: the bump's height within 0.2 mm of the "
-                   "truth; the first-layer calibration of the deposition scale reads the thin "
-                   "first layer's measured top about 0.1 mm low (8-10 % on this pad), so the "
-                   "reference stands low and the bump measures 1.36 against 1.00 mm")
 def test_bump_at_layer_3_has_its_size(bump_session):
     session, fault = bump_session
     (track,) = [t for t in session.tracks if t.kind == "overbuild" and np.hypot(

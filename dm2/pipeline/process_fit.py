@@ -16,10 +16,17 @@ observed top (vertices inside the planned outline, ``|n_z| >= TOP_NZ``, not unob
   first layer with enough top is the cell's deposition scale ``s_0`` (efficiency x feed against
   nominal), within ``1 +- bound``, read where the plume width does not move the reference when
   enough of the top is such (:func:`~.process_top.plume_insensitive`); the plume width is the
-  least-squares factor that explains the layer's edges (:func:`~.process_top.plume_factor`), within
-  ``1 +- PLUME_BOUND``. The reference deposited so far is scaled and blurred by them and deposits
-  with them from then on. A fault spanning the whole build from its first layer at one rate cannot
-  be told from such an offset; it is reported as a process finding, not hidden.
+  least-squares factor that explains the layer's edges at that scale
+  (:func:`~.process_top.plume_factor`), within ``1 +- PLUME_BOUND``. A top with no such place (a
+  thin wall) is lowered by a wider plume as by a lower efficiency: there the plume width is fitted
+  together with a scale on the edges and the top (:func:`~.process_top.joint_plume_factor`), and
+  the top's scale is read under that plume (:func:`~.process_top.joint_scale_plume`). The
+  calibration is read again on the top the profilers see once the next layer has begun
+  (:meth:`ProcessFit.recalibrate`): the plume width is fitted again at that scale, or, on a top
+  the plume shapes, stays the one fitted together with the layer's own scale. The reference
+  deposited so far is scaled and blurred by them and deposits with them from then on. A fault
+  spanning the whole build from its first layer at one rate cannot be told from such an
+  offset; it is reported as a process finding, not hidden.
 * **Later layers: a slow follower.** The estimate ``s_hat`` is the measured growth since the
   calibration layer over the growth the reference would have had at the nominal process, read on the
   layer's own top vertices against the calibration layer at the same places
@@ -49,12 +56,15 @@ from dm2.pipeline.process_top import (
     MIN_TOP_VERTICES,
     PLUME_DOUBT,
     TOP_NZ,
+    joint_scale_plume,
     normals_z,
     not_stale,
     on_plateau,
     plume_factor,
     plume_insensitive,
+    plume_lift,
     plume_share,
+    scale_under_plume,
     top_heights,
 )
 
@@ -157,17 +167,19 @@ class ProcessFit:
                                                            area[flat])
                         est = meas_flat / ref_flat * self.scale
                     entry["plateau"] = flat is not None
+                    lift = 0.0
                     if flat is None:  # the plume shapes this top: what it may move, reported
                         entry["plume_share"] = plume_share(reference, xy_top, area, ref)
+                        lift = entry["plume_lift"] = plume_lift(reference, xy_top, area, ref)
                     self._first = (meas, self._nominal_mm)
                     self._grown_mm = 0.0
-                    new = float(np.clip(est, 1 - self.bound, 1 + self.bound))
+                    new, plume = joint_scale_plume(result, est, lift, self.bound,
+                                                   self.plume_bound)
                     rescale = new / self.scale
                     self._calibration = {"result": result, "ref": ref, "entry": entry,
                                          "scale": self.scale}
                     self._last_ref_mm = ref * rescale
                     entry["calibration"] = True
-                    plume = plume_factor(result, new, self.plume_bound)
                     entry["plume_factor"] = plume
                     if reference is not None:
                         self._top = CalibrationTop(reference, self.scale, xy_top, z_top,
@@ -214,10 +226,15 @@ class ProcessFit:
         if ratio is None:
             return None
         est = ratio * cal["scale"]  # the reference was deposited at cal["scale"] so far
-        new = float(np.clip(est, 1 - self.bound, 1 + self.bound))
+        lift = entry.get("plume_lift", 0.0)
+        if lift == 0.0:  # the scale read apart from the plume: the plume fitted at it
+            new = scale_under_plume(est, 1.0, 0.0, self.bound)
+            plume = plume_factor(cal["result"], new, self.plume_bound)
+        else:  # the plume fitted with the layer's own scale; the scale read under it
+            plume = entry["plume_factor"]
+            new = scale_under_plume(est, plume, lift, self.bound)
         rescale = new / cal["scale"]
         self._last_ref_mm = cal["ref"] * rescale
-        plume = plume_factor(cal["result"], new, self.plume_bound)
         if self._top is not None:
             self._top.calibrate(new, plume)
         entry.update({"fused_estimate": entry["estimate"], "estimate": est,
@@ -239,11 +256,10 @@ class ProcessFit:
           the first layer's whole top (1,000-4,000 vertices on the regression parts, within
           1.2 % of the twin's scale), where later layers read their growth on a shrinking top
           near the edges (60-700 vertices, up to 3 % off on the same runs). Without a plateau
-          (a 16 x 10 mm pad) the first layer's height depends on the plume as much as on the
-          deposition, and the latest estimate, read with the calibrated plume, is the scale.
-          Such an offset also states (``plume_doubt``, in the text too) how far a plume
-          ``PLUME_DOUBT`` off the model's moves the scale read on that top
-          (:func:`~.process_top.plume_share`): the part cannot tell the two apart.
+          (a thin wall, a 10 mm bar) the scale is read together with the plume width, which
+          moves the top as much as the deposition does; such an offset also states
+          (``plume_doubt``, in the text too) how far a plume ``PLUME_DOUBT`` off the fitted
+          one moves the scale read on that top (:func:`~.process_top.plume_share`).
         """
         cal = next((e for e in self.layers if e.get("calibration")), None)
         if cal is None:
@@ -252,7 +268,7 @@ class ProcessFit:
         later = [e for e in self.layers if e["estimate"] is not None and e is not cal]
         out = []
         # the cell's scale, while nothing changed (see the docstring)
-        base = s0 if cal.get("plateau") or not later else float(later[-1]["estimate"])
+        base = s0
         change = CHANGE_FACTOR * self.finding_threshold
         if later and abs(later[-1]["estimate"] / s0 - 1.0) >= change:
             s_hat = float(later[-1]["estimate"])
@@ -280,8 +296,8 @@ class ProcessFit:
             doubt = None
             if cal.get("plume_share") is not None:  # read on a top the plume width shapes
                 doubt = PLUME_DOUBT * float(cal["plume_share"]) * float(base)
-                text += (f" (read on a top the plume width shapes too: a plume "
-                         f"{PLUME_DOUBT * 100:.0f} % wider or narrower than the model's moves "
+                text += (f" (read with the plume width on a top it shapes: a plume "
+                         f"{PLUME_DOUBT * 100:.0f} % wider or narrower than fitted moves "
                          f"this by {doubt * 100:.0f} %)")
             if self.planned_height_mm:
                 short = (1.0 - base) * self.planned_height_mm

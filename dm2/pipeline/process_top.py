@@ -24,11 +24,40 @@ def plume_factor(result, scale: float, bound: float) -> float:
     A plume a fraction ``r`` wider moves the reference by ``r * P`` with ``P = sigma^2
     laplacian(h)`` (ReferenceMap.plume_sensitivity_at): the least-squares ``r`` of
     ``measured - scale * seen = scale * r * P`` over the observed, defect-free vertices within
-    two plume widths of the outline where ``|P|`` matters, one pass trimmed at 3 MAD."""
+    two plume widths of the outline where ``|P|`` matters (:func:`edge_samples`), one pass
+    trimmed at 3 MAD."""
+    samples = edge_samples(result)
+    if samples is None:
+        return 1.0
+    seen, z, P, w = samples
+    r = trimmed_lstsq((scale * P)[:, None], z - scale * seen, w)[0]
+    return float(np.clip(1.0 + r, 1.0 - bound, 1.0 + bound))
+
+
+def joint_plume_factor(result, bound: float) -> float:
+    """The plume width against nominal that the first layer's edges show, fitted together
+    with the scale: the least-squares ``(a, b)`` of ``measured = a * seen + b * P`` over the
+    same vertices as :func:`plume_factor` (trimmed the same way), the plume ``1 + b / a``.
+    For a top with no place to read the scale apart from the plume width."""
+    samples = edge_samples(result)
+    if samples is None:
+        return 1.0
+    seen, z, P, w = samples
+    a, b = trimmed_lstsq(np.column_stack([seen, P]), z, w)
+    if not a > 0:
+        return 1.0
+    return float(np.clip(1.0 + b / a, 1.0 - bound, 1.0 + bound))
+
+
+def edge_samples(result) -> tuple[np.ndarray, ...] | None:
+    """``(seen, measured, P, weight)`` at the layer's observed, defect-free, fresh vertices
+    within two plume widths of the outline where ``|P| >= PLUME_MIN_SENSITIVITY_MM``: the
+    reference as seen and the measured height [mm], ``P = sigma^2 laplacian(h)`` [mm] and the
+    vertex area; None without a plume width or with fewer than ``MIN_TOP_VERTICES``."""
     ref = getattr(result, "reference", None)
     dev = result.deviation
     if ref is None or not ref.plume_sigma_mm > 0:
-        return 1.0
+        return None
     ok = (dev.class_code != UNOBSERVED) & ~np.isin(dev.class_code, DEFECT_CLASSES)
     ok &= not_stale(dev)
     if dev.outside_mm is not None:
@@ -36,21 +65,28 @@ def plume_factor(result, scale: float, bound: float) -> float:
     P = ref.plume_sensitivity_at(dev.foot_O[:, :2])
     ok &= np.abs(P) >= PLUME_MIN_SENSITIVITY_MM
     if ok.sum() < MIN_TOP_VERTICES:
-        return 1.0
+        return None
     seen = dev.foot_O[ok, 2]
     if getattr(dev, "unseen_mm", None) is not None:
         seen = seen - dev.unseen_mm[ok]
     area = getattr(dev, "vertex_area_mm2", None)
     w = np.ones(seen.size) if area is None else np.asarray(area)[ok]
-    y = dev.vertices_O[ok, 2] - scale * seen
-    x = scale * P[ok]
-    r = float(np.sum(w * x * y) / np.sum(w * x * x))
-    res = y - r * x
+    return seen, dev.vertices_O[ok, 2], P[ok], w
+
+
+def trimmed_lstsq(X: np.ndarray, y: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Weighted least squares of ``X (n, k) c = y``, then once more without the residuals
+    beyond 3 MAD when ``MIN_TOP_VERTICES`` remain."""
+    def solve(m):
+        sw = np.sqrt(w[m])
+        return np.linalg.lstsq(X[m] * sw[:, None], y[m] * sw, rcond=None)[0]
+
+    every = np.ones(y.size, bool)
+    c = solve(every)
+    res = y - X @ c
     mad = float(np.median(np.abs(res - np.median(res)))) * 1.4826
     keep = np.abs(res) <= 3.0 * max(mad, 1e-6)
-    if keep.sum() >= MIN_TOP_VERTICES:
-        r = float(np.sum((w * x * y)[keep]) / np.sum((w * x * x)[keep]))
-    return float(np.clip(1.0 + r, 1.0 - bound, 1.0 + bound))
+    return solve(keep) if keep.sum() >= MIN_TOP_VERTICES else c
 
 
 def on_plateau(reference, foot_O, top) -> np.ndarray:
@@ -126,3 +162,38 @@ def plume_share(reference, xy_O: np.ndarray, area: np.ndarray, top_mm: float) ->
         return None
     p = np.abs(reference.plume_sensitivity_at(xy_O))
     return float(weighted_median(p, np.asarray(area, np.float64)) / top_mm)
+
+
+def plume_lift(reference, xy_O: np.ndarray, area: np.ndarray, top_mm: float) -> float:
+    """How a plume wider than the model's moves the top: the area-weighted median ``sigma^2
+    laplacian`` of ``reference`` at the top's points ``xy_O (n, 2)`` [mm] over the top's height
+    ``top_mm``, signed (negative on a ridge, which a wider plume lowers); 0 without a plume
+    width."""
+    if reference is None or not reference.plume_sigma_mm > 0 or not top_mm > 0 or not len(xy_O):
+        return 0.0
+    p = reference.plume_sensitivity_at(xy_O)
+    return float(weighted_median(p, np.asarray(area, np.float64)) / top_mm)
+
+
+def joint_scale_plume(result, est: float, lift: float, scale_bound: float,
+                      plume_bound: float) -> tuple[float, float]:
+    """``(scale, plume)`` of the calibration layer, ``est`` the scale read on its top as if the
+    plume were the model's.
+
+    On a top with a place where the plume width does not matter (``lift`` 0) ``est`` is the
+    scale, and the plume is fitted on the edges at it (:func:`plume_factor`). On a top the
+    plume shapes, the plume is fitted together with a scale on the edges
+    (:func:`joint_plume_factor`), and a plume a factor ``p`` wide moves the top by ``(p - 1) *
+    lift`` of its height (:func:`plume_lift`): the scale is ``est / (1 + (p - 1) * lift)``."""
+    if lift == 0.0:
+        scale = float(np.clip(est, 1.0 - scale_bound, 1.0 + scale_bound))
+        return scale, plume_factor(result, scale, plume_bound)
+    plume = joint_plume_factor(result, plume_bound)
+    return scale_under_plume(est, plume, lift, scale_bound), plume
+
+
+def scale_under_plume(est: float, plume: float, lift: float, bound: float) -> float:
+    """The scale ``est`` read on a top as if the plume were the model's, for a plume ``plume``
+    times as wide that moves the top by ``(plume - 1) * lift`` of its height, within ``1 +-
+    bound``."""
+    return float(np.clip(est / max(1.0 + (plume - 1.0) * lift, 0.5), 1.0 - bound, 1.0 + bound))
