@@ -13,6 +13,7 @@ apt_install() {  # apt_install PACKAGE WHY
         echo "installing Debian package $1 ($2)" >&2
         export DEBIAN_FRONTEND=noninteractive
         apt-get update -qq >/dev/null && apt-get install -y -qq "$1" >/dev/null
+        apt-get clean  # the downloaded packages are not needed once installed
     else
         echo "error: $2: the Debian package $1 is missing." >&2
         echo "       install it first:  sudo apt-get install $1" >&2
@@ -34,8 +35,13 @@ if [ ! -x .venv/bin/python ]; then
 fi
 stamp=.venv/.dm2-installed
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
-    .venv/bin/python -m pip install -q --upgrade pip
-    .venv/bin/python -m pip install -q -e ".[dev]"
+    # no download cache: the wheels (Open3D alone is several hundred MB) would be kept twice;
+    # and pip unpacks them beside the environment, not in a /tmp that may be a small tmpfs
+    pip_tmp=.venv/.pip-tmp
+    mkdir -p "$pip_tmp"
+    TMPDIR="$PWD/$pip_tmp" .venv/bin/python -m pip install -q --no-cache-dir --upgrade pip
+    TMPDIR="$PWD/$pip_tmp" .venv/bin/python -m pip install -q --no-cache-dir -e ".[dev]"
+    rm -rf "$pip_tmp"
     touch "$stamp"
 fi
 
