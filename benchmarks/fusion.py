@@ -26,7 +26,9 @@ assume the spray deposits under every profile (the weights around the spray axis
 dm2.fusion.tsdf.deposit, and the active window), and as a scan with the spray off (no deposit cap,
 weights averaged up to 1e4 like Open3D's running mean). The end-to-end rate and the static scene
 are also printed with ``[monitor] ray_merge_voxels = 0.5`` (off by default: neighbouring profile
-points fused as one ray weighted by their number, dm2.fusion.profile_merge).
+points fused as one ray weighted by their number, dm2.fusion.profile_merge). Like for like with
+Open3D, the scan (spray off) is also timed on the stream, interleaved with Open3D, without and
+with merged rays: its accuracy is the static scene's scan figures.
 
 Run: ``.venv/bin/python benchmarks/fusion.py [--frames 1200] [--repeats 3]``
 """
@@ -58,6 +60,10 @@ from dm2.fusion.tsdf.field import MIN_SPLIT_POINTS, SparseTSDF  # noqa: E402
 OPENMP_IDLE_S = 1.0  # after Open3D's last call, before ours is timed alone
 EXTRACTION_REPEATS = 7  # at least this many timings of each extraction from scratch
 MERGED = MonitorConfig(ray_merge_voxels=0.5)  # neighbouring points as one ray (profile_merge)
+# Open3D's semantics: a scan with the spray off (no deposit cap, weights averaged up to 1e4 like
+# its running mean), without and with neighbouring points merged
+SCAN = MonitorConfig(deposit_weight_cap=None, weight_cap=1e4)
+SCAN_MERGED = MonitorConfig(deposit_weight_cap=None, weight_cap=1e4, ray_merge_voxels=0.5)
 
 
 def make_stream(frames: int):
@@ -136,6 +142,7 @@ def peer(cal, msgs, repeats: int) -> None:
     cfg = MonitorConfig()
     profiles = open3d_peer.synced_profiles(cal, msgs, cfg.max_pose_gap_s, cfg.reorder_window_s)
     rates, ours, merged, o3d_field = [], [], [], None
+    scans: dict[str, list[float]] = {"scan": [], "scan_merged": []}
     for _ in range(repeats):  # interleaved with ours, so both see the same machine load
         o3d_field, dt = open3d_peer.open3d_run(profiles, cfg.voxel_mm, cfg.truncation_voxels)
         rates.append(o3d_field.points / dt)
@@ -143,6 +150,9 @@ def peer(cal, msgs, repeats: int) -> None:
         ours.append(mon.points_fused / elapsed)
         mon, elapsed, _ = run_once(cal, msgs, False, cfg=MERGED)
         merged.append(mon.points_fused / elapsed)
+        for key, scan_cfg in (("scan", SCAN), ("scan_merged", SCAN_MERGED)):
+            mon, elapsed, _ = run_once(cal, msgs, False, cfg=scan_cfg)
+            scans[key].append(mon.points_fused / elapsed)
     o3d_rate, ours_pts_s = statistics.median(rates), statistics.median(ours)
     print(f"Open3D VoxelBlockGrid on the same stream ({os.environ['OMP_NUM_THREADS']} threads, "
           f"{cfg.voxel_mm} mm voxels, +-{cfg.truncation_voxels:g} voxels, 8^3 blocks, one depth "
@@ -153,6 +163,12 @@ def peer(cal, msgs, repeats: int) -> None:
           f"{MERGED.ray_merge_voxels} (neighbouring points as one ray): "
           f"{statistics.median(merged) / 1e6:.2f} M points/s: ratio "
           f"{statistics.median(merged) / o3d_rate:.2f}x")
+    scan, scan_merged = (statistics.median(scans[k]) for k in ("scan", "scan_merged"))
+    print(f"like for like with Open3D (a scan, spray off: no deposit cap, weights averaged up "
+          f"to 1e4; accuracy on the static scene below), interleaved with it: "
+          f"{scan / 1e6:.2f} M points/s: ratio {scan / o3d_rate:.2f}x; with ray_merge_voxels "
+          f"{SCAN_MERGED.ray_merge_voxels}: {scan_merged / 1e6:.2f} M points/s: ratio "
+          f"{scan_merged / o3d_rate:.2f}x")
     mon = run_once(cal, msgs, False)[0]
     ours_t, o3d_t = [], []
     # not interleaved: Open3D's OpenMP threads spin-wait after each call and took a core from
@@ -179,8 +195,10 @@ def peer(cal, msgs, repeats: int) -> None:
     ours_merged = open3d_peer.surface_error(SurfaceExtractor(
         run_once(cal, smsgs, False, cfg=MERGED)[0].tsdf, cfg.min_weight).update().vertices_O,
         scene.sdf)
-    still = MonitorConfig(deposit_weight_cap=None, weight_cap=1e4)  # no deposit, no window
-    mon_still = run_once(cal, smsgs, False, cfg=still)[0]
+    mon_still = run_once(cal, smsgs, False, cfg=SCAN)[0]
+    scan_merged_err = open3d_peer.surface_error(SurfaceExtractor(
+        run_once(cal, smsgs, False, cfg=SCAN_MERGED)[0].tsdf, cfg.min_weight).update().vertices_O,
+        scene.sdf)
     sprof = open3d_peer.synced_profiles(cal, smsgs, cfg.max_pose_gap_s, cfg.reorder_window_s)
     o3d_static = open3d_peer.open3d_run(sprof, cfg.voxel_mm, cfg.truncation_voxels)[0]
     ours_t, o3d_t = [], []
@@ -201,9 +219,11 @@ def peer(cal, msgs, repeats: int) -> None:
           f"(|sdf| at the vertices): ours RMS {ours[0]:.3f} mm, p95 {ours[1]:.3f} mm "
           f"({ours[2]} vertices; with the spray assumed off, no deposit cap and weights "
           f"averaged up to 1e4 like Open3D's: RMS {ours_still[0]:.3f} mm, p95 "
-          f"{ours_still[1]:.3f} mm, {ours_still[2]} vertices; with ray_merge_voxels "
-          f"{MERGED.ray_merge_voxels}: RMS {ours_merged[0]:.3f} mm, p95 {ours_merged[1]:.3f} mm, "
-          f"{ours_merged[2]} vertices); Open3D (grid shifted a quarter "
+          f"{ours_still[1]:.3f} mm, {ours_still[2]} vertices, and with ray_merge_voxels "
+          f"{SCAN_MERGED.ray_merge_voxels} too: RMS {scan_merged_err[0]:.3f} mm, p95 "
+          f"{scan_merged_err[1]:.3f} mm, {scan_merged_err[2]} vertices; defaults with "
+          f"ray_merge_voxels {MERGED.ray_merge_voxels}: RMS {ours_merged[0]:.3f} mm, p95 "
+          f"{ours_merged[1]:.3f} mm, {ours_merged[2]} vertices); Open3D (grid shifted a quarter "
           f"voxel, open3d_peer) RMS {theirs[0]:.3f} mm, p95 {theirs[1]:.3f} mm "
           f"({theirs[2]} vertices); extraction from scratch, median of {ext_repeats}: ours "
           f"{statistics.median(ours_t):.3f} s, Open3D {statistics.median(o3d_t):.3f} s")
