@@ -11,6 +11,7 @@ from dm2.bench.reconstruction import (
     grid_of_mesh,
     mesh_distance,
     reconstruction_errors,
+    track_truth,
 )
 from dm2.defects.classify import CLASS_NAMES
 from twin.world.heightfield import HeightField
@@ -110,3 +111,34 @@ def test_reconstruction_errors_per_layer(tmp_path):
     assert out[4]["n_vertices"] == len(top)
     assert out[4]["rms_mm"] == pytest.approx(0.2, abs=1e-6)
     assert out[4]["p95_mm"] == pytest.approx(0.2, abs=1e-6)
+
+
+def test_track_truth_tells_the_part_from_the_measurement(tmp_path):
+    """Two tracks on the block's top, both 0.8 mm under the reference: one whose vertices lie
+    on the true surface (the part itself stands off the reference: part_deviates) and one whose
+    vertices lie 0.6 mm under it (the measurement is off); a region with no track and a layer
+    without truth are not counted."""
+    hf = _tower_field(rough_mm=0.0)
+    write_layer_surface(hf, tmp_path / "layer_002.ply")
+    rng = np.random.default_rng(5)
+    on_part = np.column_stack([rng.uniform(20, 28, 40), rng.uniform(25, 35, 40), np.full(40, 12.0)])
+    off_part = np.column_stack([rng.uniform(32, 40, 30), rng.uniform(25, 35, 30),
+                                np.full(30, 11.4)])
+    untracked = np.array([[30.0, 22.0, 12.0]])
+    vertices = np.concatenate([on_part, off_part, untracked])
+    signed = np.full(len(vertices), -0.8)
+    regions = [SimpleNamespace(vertex_ids=np.arange(40)),
+               SimpleNamespace(vertex_ids=np.arange(40, 70)),
+               SimpleNamespace(vertex_ids=np.array([70]))]
+    dev = SimpleNamespace(vertices_O=vertices, signed_distance_mm=signed)
+    result = SimpleNamespace(layer=2, deviation=dev, regions=regions, track_ids=[7, 9, None])
+    no_truth = SimpleNamespace(layer=3, deviation=dev, regions=regions, track_ids=[7, 9, None])
+    out = track_truth([result, no_truth], tmp_path)
+    assert set(out) == {7, 9}
+    assert out[7]["n_vertices"] == 40 and out[9]["n_vertices"] == 30
+    assert out[7]["deviation_median_mm"] == pytest.approx(-0.8)
+    assert out[7]["truth_distance_median_mm"] == pytest.approx(0.0, abs=1e-9)
+    assert out[7]["part_deviates"] is True
+    assert out[9]["truth_distance_median_mm"] == pytest.approx(0.6, abs=1e-9)
+    assert out[9]["truth_distance_p90_mm"] == pytest.approx(0.6, abs=1e-9)
+    assert out[9]["part_deviates"] is False

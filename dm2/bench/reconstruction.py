@@ -8,6 +8,9 @@ the exact search the deviation from the reference uses (:func:`grid_mesh_distanc
 :func:`dm2.defects.deviation.closest_on_grid`, unbounded). Any other mesh goes through
 Open3D's ``RaycastingScene.compute_distance`` (a BVH; it holds the GIL and builds a tree per
 layer, ``benchmarks/reconstruction_check.py`` measures both).
+
+:func:`track_truth` asks the same of each track's flagged vertices, beside their deviation from
+the reference: whether the part itself stands off the reference there, or the measurement does.
 """
 
 from __future__ import annotations
@@ -22,6 +25,9 @@ from dm2.io.ply import read_mesh_ply
 
 CROP_MM = 1.0  # vertices this close to the truth's xy extent are not compared (it is cropped)
 GRID_TOL_MM = 1e-6  # a grid's vertex coordinates agree with its spacing within this
+# a track's flagged vertices lie closer than this share of their |deviation| to the true
+# surface: the part itself stands off the reference there (track_truth)
+PART_DEVIATES_SHARE = 0.5
 
 
 def grid_of_mesh(vertices: np.ndarray, faces: np.ndarray):
@@ -78,6 +84,57 @@ def mesh_distance(points_O: np.ndarray, vertices_O: np.ndarray, faces: np.ndarra
         np.float64)
 
 
+def _truth_layers(results, truth_dir: Path):
+    """``(result, truth_O (m, 3) [mm], faces, lo (2,), hi (2,))`` for each layer result with
+    a true surface in ``truth_dir``; ``lo, hi``: the truth's xy extent less ``CROP_MM``."""
+    for r in results:
+        path = Path(truth_dir) / f"layer_{r.layer:03d}.ply"
+        if not path.exists():
+            continue
+        fields, faces = read_mesh_ply(path)
+        truth_O = np.column_stack([fields[k] for k in "xyz"]).astype(np.float64)
+        yield (r, truth_O, faces, truth_O[:, :2].min(axis=0) + CROP_MM,
+               truth_O[:, :2].max(axis=0) - CROP_MM)
+
+
+def track_truth(results, truth_dir: Path) -> dict[int, dict]:
+    """Per track, over all its layers, the vertices its regions flagged (inside the truth's
+    cropped extent): how far they stand from the reference and from the twin's true surface.
+
+    ``{track id: {"n_vertices", "deviation_median_mm" (signed, from the reference),
+    "truth_distance_median_mm", "truth_distance_p90_mm" (unsigned, from the true surface),
+    "part_deviates" (the median distance from the truth is under half the median |deviation|:
+    the true part itself stands off the reference there, as measured)}}``. A track that no
+    fault explains but whose part deviates reports the twin's part as it is (the monitor's
+    model differs from the twin's physics there), not a measurement error.
+    """
+    dev_by: dict[int, list] = {}
+    dist_by: dict[int, list] = {}
+    for r, truth_O, faces, lo, hi in _truth_layers(results, truth_dir):
+        if not r.regions:
+            continue
+        dev = r.deviation
+        for reg, tid in zip(r.regions, r.track_ids, strict=True):
+            if tid is None:
+                continue
+            ids = np.asarray(reg.vertex_ids, dtype=np.int64)
+            v = dev.vertices_O[ids]
+            keep = np.all((v[:, :2] >= lo) & (v[:, :2] <= hi), axis=1)
+            if not keep.any():
+                continue
+            dev_by.setdefault(int(tid), []).append(dev.signed_distance_mm[ids[keep]])
+            dist_by.setdefault(int(tid), []).append(mesh_distance(v[keep], truth_O, faces))
+    out = {}
+    for tid, devs in dev_by.items():
+        d, e = np.concatenate(devs), np.concatenate(dist_by[tid])
+        med_dev, med_dist = float(np.median(d)), float(np.median(e))
+        out[tid] = {"n_vertices": int(d.size), "deviation_median_mm": med_dev,
+                    "truth_distance_median_mm": med_dist,
+                    "truth_distance_p90_mm": float(np.percentile(e, 90)),
+                    "part_deviates": med_dist < PART_DEVIATES_SHARE * abs(med_dev)}
+    return out
+
+
 def reconstruction_errors(results, truth_dir: Path) -> dict[int, dict]:
     """Per layer: distance [mm] of the observed reconstructed vertices to the true surface.
 
@@ -89,16 +146,9 @@ def reconstruction_errors(results, truth_dir: Path) -> dict[int, dict]:
     """
     unobserved = CLASS_NAMES.index("unobserved")
     out: dict[int, dict] = {}
-    for r in results:
-        path = Path(truth_dir) / f"layer_{r.layer:03d}.ply"
-        if not path.exists():
-            continue
-        fields, faces = read_mesh_ply(path)
-        truth_O = np.column_stack([fields[k] for k in "xyz"]).astype(np.float64)
+    for r, truth_O, faces, lo, hi in _truth_layers(results, truth_dir):
         dev = r.deviation
         v = dev.vertices_O[dev.class_code != unobserved]
-        lo = truth_O[:, :2].min(axis=0) + CROP_MM
-        hi = truth_O[:, :2].max(axis=0) - CROP_MM
         v = v[np.all((v[:, :2] >= lo) & (v[:, :2] <= hi), axis=1)]
         if v.shape[0] == 0:
             continue

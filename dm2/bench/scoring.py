@@ -31,7 +31,11 @@ neutral track
     true fault-caused deviation of 0.2-0.5 mm. Neither true nor false.
 false track
     every other track. The **false area** is the sum over false tracks of their largest area in
-    one layer [mm^2].
+    one layer [mm^2]. Where the run measured each track's flagged vertices against the twin's
+    true surface (``track_truth``), a false track whose vertices lie closer to the truth than
+    half their deviation from the reference is listed in ``false_tracks_part_deviates``: the
+    fault-free part itself stands off the reference there (the monitor's model differs from
+    the twin's physics), as measured. It still counts as false.
 precision, recall, F1
     precision over tracks: true / (true + false) tracks; recall over qualifying faults:
     detected / qualifying; F1 their harmonic mean (1 for an empty population).
@@ -141,7 +145,8 @@ def score_run(report: dict, fault_truth: dict | None, *, truth_maps: dict,
               footprints: Footprints | None = None, reconstruction: dict | None = None,
               process_s: float | None = None, monitor_s: float | None = None,
               wall_s: float | None = None,
-              expected_process_scale: float | None = None) -> dict:
+              expected_process_scale: float | None = None,
+              track_truth: dict | None = None) -> dict:
     """Score one run strictly (see the module's definitions).
 
     Parameters
@@ -155,6 +160,10 @@ def score_run(report: dict, fault_truth: dict | None, *, truth_maps: dict,
     expected_process_scale : the deposition scale against nominal that the twin's
         ``[twin_process]`` deposits at (its factors and its efficiency curve's loss on a flat
         coupon, dm2.cli.bench_runner), or None
+    track_truth : track id -> its flagged vertices against the reference and the true surface
+        (:func:`dm2.bench.reconstruction.track_truth`), kept in each track's entry as
+        ``truth``; ``false_tracks_part_deviates`` lists the false tracks where the part itself
+        stands off the reference (the monitor's model, not its measurement, is off there)
     """
     faults = list((fault_truth or {}).get("faults", []))
     foot = footprints_from_regions(report) if footprints is None else footprints
@@ -192,7 +201,7 @@ def score_run(report: dict, fault_truth: dict | None, *, truth_maps: dict,
         area = max((float(np.sum(w)) for _, w in layers.values()), default=0.0)
         verdict[tid] = {"id": tid, "kind": t["kind"], "area_mm2": area,
                         "best_share": best, "neutral_share": neutral_share, "verdict": None,
-                        "faults": []}
+                        "faults": [], "truth": (track_truth or {}).get(tid)}
 
     scores = []
     for i, (f, pop) in enumerate(zip(faults, pops, strict=True)):
@@ -220,6 +229,8 @@ def score_run(report: dict, fault_truth: dict | None, *, truth_maps: dict,
     return {"faults": scores, "tracks": list(verdict.values()),
             "true_tracks": by["true"], "fragments": by["fragment"],
             "neutral_tracks": by["neutral"], "false_tracks": by["false"],
+            "false_tracks_part_deviates": [t for t in by["false"]
+                                           if (verdict[t]["truth"] or {}).get("part_deviates")],
             "false_area_mm2": float(sum(verdict[t]["area_mm2"] for t in by["false"])),
             "findings": findings,
             "false_findings": sum(1 for f in findings if f["verdict"] == "false"),

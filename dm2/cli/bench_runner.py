@@ -45,6 +45,8 @@ class ScenarioRun:
         from the observed reconstructed vertices to the twin's true surface of that layer
     footprints : track id -> {layer: (xy_O (k, 2) [mm], area (k,) [mm^2])}, the vertices of
         each track's regions (what the strict scoring tests against the truth maps)
+    track_truth : track id -> its flagged vertices against the reference and the twin's true
+        surface (:func:`dm2.bench.reconstruction.track_truth`)
     process_s : float [s], simulated process time
     wall_s : float [s], wall time of the whole run (twin included)
     monitor_s : float [s], wall time spent in the pipeline (fusion, reference, analysis)
@@ -56,6 +58,7 @@ class ScenarioRun:
     fault_truth: dict
     reconstruction: dict[int, dict] = field(default_factory=dict)
     footprints: dict = field(default_factory=dict)
+    track_truth: dict = field(default_factory=dict)
     process_s: float = 0.0
     wall_s: float = 0.0
     monitor_s: float = 0.0
@@ -126,7 +129,7 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
     twin.cell.kinematics.ReachError : the toolpath leaves the robot's reach (nothing written)
     ValueError : ``run_dir`` cannot be written (nothing written)
     """
-    from dm2.bench.reconstruction import reconstruction_errors
+    from dm2.bench.reconstruction import reconstruction_errors, track_truth
     from dm2.core.toml_write import dump_toml
     from dm2.pipeline.pipeline import Pipeline
     from dm2.report import check_output_dir
@@ -149,6 +152,7 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
         truth = _read_json(scratch / "truth" / "faults.json") or {"faults": []}
         recon = reconstruction_errors(pipeline.results, scratch / "truth")
         footprints = track_footprints(pipeline.results)
+        tracks_vs_truth = track_truth(pipeline.results, scratch / "truth")
         timing = pipeline.timing()
         monitor_s = timing["fusion_s"] + timing["reference_s"] + timing["analysis_s"]
         timing.update(simulated_process_s=sim.end_s, monitor_s=monitor_s,
@@ -167,7 +171,7 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
         shutil.rmtree(scratch, ignore_errors=True)
     return ScenarioRun(scenario=sc, run_dir=run_dir, report=report, fault_truth=truth,
                        reconstruction=recon, footprints=footprints,
-                       process_s=float(sim.end_s),
+                       track_truth=tracks_vs_truth, process_s=float(sim.end_s),
                        wall_s=time.perf_counter() - t_start, monitor_s=float(monitor_s))
 
 
@@ -206,7 +210,8 @@ def score_scenario_run(run: ScenarioRun) -> dict:
     return score_run(run.report, run.fault_truth,
                      truth_maps=load_truth_maps(run.run_dir / "truth"),
                      footprints=run.footprints, reconstruction=run.reconstruction,
-                     process_s=run.process_s, monitor_s=run.monitor_s, wall_s=run.wall_s,
+                     track_truth=run.track_truth, process_s=run.process_s,
+                     monitor_s=run.monitor_s, wall_s=run.wall_s,
                      expected_process_scale=coupon_scale(run.scenario))
 
 
