@@ -108,6 +108,35 @@ def test_track_before_onset_or_mostly_outside_explains_nothing():
     assert not s["faults"][0]["detected"] and s["false_tracks"] == [1, 2]
 
 
+def test_false_tracks_where_the_part_itself_deviates_are_listed_and_still_false():
+    """On a control, two tracks: one whose flagged vertices lie on the twin's true surface (the
+    part stands off the reference: listed) and one the measurement put off the truth (not
+    listed); both count as false, and the suite total counts the first."""
+    spot = (np.abs(GX - 25.0) <= 1.5) & (np.abs(GY - 14.0) <= 1.5)
+    other = (np.abs(GX - 12.0) <= 1.5) & (np.abs(GY - 25.0) <= 1.5)
+    tracks = {1: ("overbuild", {2: spot}), 2: ("underbuild", {3: other})}
+    zero = {k: np.zeros((N, N)) for k in LAYERS}
+    vs_truth = {1: {"n_vertices": 36, "deviation_median_mm": 0.9,
+                    "truth_distance_median_mm": 0.05, "truth_distance_p90_mm": 0.1,
+                    "part_deviates": True},
+                2: {"n_vertices": 36, "deviation_median_mm": -0.6,
+                    "truth_distance_median_mm": 0.55, "truth_distance_p90_mm": 0.7,
+                    "part_deviates": False}}
+    s = score_run(report(tracks), None, truth_maps=maps(zero), footprints=footprints(tracks),
+                  track_truth=vs_truth)
+    assert s["control"] and sorted(s["false_tracks"]) == [1, 2]
+    assert s["false_tracks_part_deviates"] == [1]
+    assert [t["truth"] for t in sorted(s["tracks"], key=lambda t: t["id"])] == \
+        [vs_truth[1], vs_truth[2]]
+    summ = summarize({"control": s})
+    assert summ["false_tracks"] == 2 and summ["false_tracks_part_deviates"] == 1
+    assert not summ["gate_passed"]
+    without = score_run(report(tracks), None, truth_maps=maps(zero),
+                        footprints=footprints(tracks))
+    assert without["false_tracks_part_deviates"] == [] and \
+        all(t["truth"] is None for t in without["tracks"])
+
+
 def test_a_fault_below_half_a_millimetre_is_no_defect_and_tracks_on_it_are_neutral():
     dev = {k: blob(25.0, 14.0, 0.4) for k in LAYERS}
     tracks = {1: ("local_overbuild", {2: blob(25.0, 14.0, 0.4) >= 0.25})}
