@@ -29,11 +29,11 @@ times, tracks and the reconstruction are the last run's, kept with ``--out``):
   earlier ("then", when they were already written as they are): a stale vertex far from the
   truth now but near it then lies where the true surface moved while no profile looked there
   (on the twin, overspray that later layers' tilted contour jets put on the walls below);
-- the track count of the report, and per track, at its first, middle and last layer, the
-  vertices its regions flagged: their median deviation from the reference and their median
-  and p90 distance from the twin's true surface (a distance far below the deviation: the
-  twin's true part stands off the reference there as measured, so the track reports the part,
-  not a measurement error).
+- the track count of the report, and per track, over all its layers, the vertices its regions
+  flagged (report.json ``track_truth``): their median deviation from the reference and their
+  median and p90 distance from the twin's true surface (a distance far below the deviation:
+  the twin's true part stands off the reference there as measured, so the track reports the
+  part, not a measurement error).
 
     .venv/bin/python benchmarks/tower_end_to_end.py [--duration S] [--runs 3] [--band 8] [--out DIR]
     .venv/bin/python benchmarks/tower_end_to_end.py --analyse DIR   (a folder kept with --out)
@@ -151,51 +151,24 @@ def layer_errors(run_dir: Path, layer: int, cover_mm: float, stale_layers: int):
     return d, covered, stale, d_then
 
 
-def track_truth_lines(run_dir: Path, rep: dict) -> list[str]:
-    """Per track, at its first, middle and last layer: the vertices its regions flagged (inside
-    each region's box, of the region's class) and there the median deviation from the reference
-    and the median (p90) distance from the twin's true surface. A distance far below the
+def track_truth_lines(rep: dict) -> list[str]:
+    """Per track, from report.json's ``track_truth`` (dm2.bench.reconstruction.truth_checks,
+    over all the track's layers): its flagged vertices' median deviation from the reference and
+    their median (p90) distance from the twin's true surface. A distance far below the
     deviation says the twin's true part stands off the reference there as measured: the track
-    reports the part, not a measurement error. (What ``dm2 bench`` keeps per track over all its
-    layers, dm2.bench.reconstruction.track_truth, read here from a run folder's meshes; three
-    layers a track keep the tower's 124 meshes from being read again and again.)"""
-    from dm2.bench.reconstruction import mesh_distance
-    from dm2.defects.classify import CLASS_NAMES
-    from dm2.report.meshes import read_ply_vertex_fields
-
-    by_track: dict[int, list] = {}
-    for lay in rep.get("layers", []):
-        for reg in lay.get("regions", []):
-            if reg.get("track_id") is not None:
-                by_track.setdefault(int(reg["track_id"]), []).append((int(lay["layer"]), reg))
+    reports the part, not a measurement error."""
+    vs_truth = rep.get("track_truth", {})
     lines = []
-    for tid, regs in sorted(by_track.items()):
-        layers = sorted({k for k, _ in regs})
-        picked = sorted({layers[0], layers[len(layers) // 2], layers[-1]})
-        dev, dist = [], []
-        for k in picked:
-            mesh_path = run_dir / "meshes" / f"layer_{k:03d}.ply"
-            truth = true_surface(run_dir, k)
-            if truth is None or not mesh_path.exists():
-                continue
-            f = read_ply_vertex_fields(mesh_path)
-            v = np.column_stack([f["x"], f["y"], f["z"]]).astype(np.float64)
-            sel = np.zeros(len(v), bool)
-            for _, reg in (r for r in regs if r[0] == k):
-                lo, hi = np.asarray(reg["bbox_min_O_mm"]), np.asarray(reg["bbox_max_O_mm"])
-                sel |= (np.all((v >= lo) & (v <= hi), axis=1)
-                        & (f["scalar_class"] == CLASS_NAMES.index(reg["kind"])))
-            if sel.any():
-                dev.append(f["scalar_signed_distance"][sel])
-                dist.append(mesh_distance(v[sel], *truth))
-        if not dev:
+    for t in rep.get("tracks", []):
+        c = vs_truth.get(str(t["id"]))
+        if c is None:
             continue
-        d, e = np.concatenate(dev), np.concatenate(dist)
-        lines.append(f"  track {tid} ({regs[0][1]['kind']}, layers {layers[0]}-{layers[-1]}): "
-                     f"{d.size} flagged vertices at layers {', '.join(map(str, picked))}: "
-                     f"deviation from the reference median {np.median(d):+.2f} mm; distance "
-                     f"from the twin's true surface median {np.median(e):.2f} mm, p90 "
-                     f"{np.percentile(e, 90):.2f} mm")
+        lines.append(f"  track {t['id']} ({t['kind']}, layers {t['first_layer']}-"
+                     f"{t['last_layer']}): {c['n_vertices']} flagged vertices: deviation from "
+                     f"the reference median {c['deviation_median_mm']:+.2f} mm; distance from "
+                     f"the twin's true surface median {c['truth_distance_median_mm']:.2f} mm, "
+                     f"p90 {c['truth_distance_p90_mm']:.2f} mm"
+                     + ("; the part itself deviates" if c["part_deviates"] else ""))
     return lines
 
 
@@ -286,7 +259,7 @@ def report(run_dir: Path, wall: float, rss_mib: float, args) -> None:
                         or "none"))
     print("each track against the twin's truth (its flagged vertices: deviation from the "
           "reference, and how far they lie from the true surface):")
-    for line in track_truth_lines(run_dir, rep):
+    for line in track_truth_lines(rep):
         print(line)
     layers = sorted(int(k) for k in rep.get("reconstruction", {}))
     print(f"reconstruction per {args.band}-layer band (all written vertices vs the twin's true "

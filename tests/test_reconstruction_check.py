@@ -10,8 +10,7 @@ from dm2.bench.reconstruction import (
     grid_mesh_distance,
     grid_of_mesh,
     mesh_distance,
-    reconstruction_errors,
-    track_truth,
+    truth_checks,
 )
 from dm2.defects.classify import CLASS_NAMES
 from twin.world.heightfield import HeightField
@@ -101,12 +100,15 @@ def test_reconstruction_errors_per_layer(tmp_path):
     vertices = np.concatenate([top, stray])
     codes = np.concatenate([np.full(len(top), seen), [unseen]])
     result = SimpleNamespace(layer=4, deviation=SimpleNamespace(vertices_O=vertices,
-                                                                class_code=codes))
+                                                                class_code=codes),
+                             regions=[], track_ids=[])
     border = SimpleNamespace(layer=4, deviation=SimpleNamespace(  # inside the crop margin
-        vertices_O=np.array([[5.5, 30.0, 0.2]]), class_code=np.array([seen])))
-    assert reconstruction_errors([border], tmp_path) == {}
-    missing = SimpleNamespace(layer=5, deviation=result.deviation)  # no truth written
-    out = reconstruction_errors([result, missing], tmp_path)
+        vertices_O=np.array([[5.5, 30.0, 0.2]]), class_code=np.array([seen])),
+        regions=[], track_ids=[])
+    assert truth_checks([border], tmp_path) == ({}, {})
+    missing = SimpleNamespace(layer=5, deviation=result.deviation, regions=[],
+                              track_ids=[])  # no truth written
+    out, _ = truth_checks([result, missing], tmp_path)
     assert set(out) == {4}
     assert out[4]["n_vertices"] == len(top)
     assert out[4]["rms_mm"] == pytest.approx(0.2, abs=1e-6)
@@ -130,10 +132,11 @@ def test_track_truth_tells_the_part_from_the_measurement(tmp_path):
     regions = [SimpleNamespace(vertex_ids=np.arange(40)),
                SimpleNamespace(vertex_ids=np.arange(40, 70)),
                SimpleNamespace(vertex_ids=np.array([70]))]
-    dev = SimpleNamespace(vertices_O=vertices, signed_distance_mm=signed)
+    codes = np.full(len(vertices), CLASS_NAMES.index("underbuild"))
+    dev = SimpleNamespace(vertices_O=vertices, signed_distance_mm=signed, class_code=codes)
     result = SimpleNamespace(layer=2, deviation=dev, regions=regions, track_ids=[7, 9, None])
     no_truth = SimpleNamespace(layer=3, deviation=dev, regions=regions, track_ids=[7, 9, None])
-    out = track_truth([result, no_truth], tmp_path)
+    _, out = truth_checks([result, no_truth], tmp_path)
     assert set(out) == {7, 9}
     assert out[7]["n_vertices"] == 40 and out[9]["n_vertices"] == 30
     assert out[7]["deviation_median_mm"] == pytest.approx(-0.8)

@@ -9,7 +9,7 @@ the exact search the deviation from the reference uses (:func:`grid_mesh_distanc
 Open3D's ``RaycastingScene.compute_distance`` (a BVH; it holds the GIL and builds a tree per
 layer, ``benchmarks/reconstruction_check.py`` measures both).
 
-:func:`track_truth` asks the same of each track's flagged vertices, beside their deviation from
+:func:`truth_checks` also asks it of each track's flagged vertices, beside their deviation from
 the reference: whether the part itself stands off the reference there, or the measurement does.
 """
 
@@ -26,7 +26,7 @@ from dm2.io.ply import read_mesh_ply
 CROP_MM = 1.0  # vertices this close to the truth's xy extent are not compared (it is cropped)
 GRID_TOL_MM = 1e-6  # a grid's vertex coordinates agree with its spacing within this
 # a track's flagged vertices lie closer than this share of their |deviation| to the true
-# surface: the part itself stands off the reference there (track_truth)
+# surface: the part itself stands off the reference there (truth_checks)
 PART_DEVIATES_SHARE = 0.5
 
 
@@ -97,63 +97,60 @@ def _truth_layers(results, truth_dir: Path):
                truth_O[:, :2].max(axis=0) - CROP_MM)
 
 
-def track_truth(results, truth_dir: Path) -> dict[int, dict]:
-    """Per track, over all its layers, the vertices its regions flagged (inside the truth's
-    cropped extent): how far they stand from the reference and from the twin's true surface.
+def truth_checks(results, truth_dir: Path) -> tuple[dict[int, dict], dict[int, dict]]:
+    """The reconstruction per layer and each track's flagged vertices, against the true surface.
 
-    ``{track id: {"n_vertices", "deviation_median_mm" (signed, from the reference),
-    "truth_distance_median_mm", "truth_distance_p90_mm" (unsigned, from the true surface),
-    "part_deviates" (the median distance from the truth is under half the median |deviation|:
-    the true part itself stands off the reference there, as measured)}}``. A track that no
-    fault explains but whose part deviates reports the twin's part as it is (the monitor's
-    model differs from the twin's physics there), not a measurement error.
+    The truth is the twin's ``layer_NNN.ply`` (the true top surface when the layer closed);
+    only observed vertices inside its xy extent (less ``CROP_MM``) are compared, as the truth
+    mesh is cropped to the built region. Each layer's truth is read once and searched once;
+    a track's flagged vertices are among the compared ones. The truth is read as plain arrays
+    (a loaded ``trimesh.Trimesh`` sits in reference cycles until the garbage collector runs:
+    over the 124 layers of the twisted tower that held 690 MiB of truth meshes at the run's
+    memory peak).
+
+    Returns
+    -------
+    layers : ``{layer: {"rms_mm", "p95_mm", "n_vertices"}}``, the unsigned distance [mm] of the
+        observed reconstructed vertices from the true surface
+    tracks : ``{track id: {"n_vertices", "deviation_median_mm" (signed, from the reference),
+        "truth_distance_median_mm", "truth_distance_p90_mm" (unsigned, from the true surface),
+        "part_deviates"}}`` over all the track's layers; ``part_deviates``: the median distance
+        from the truth is under ``PART_DEVIATES_SHARE`` of the median |deviation|, so the true
+        part itself stands off the reference there, as measured. A track that no fault explains
+        but whose part deviates reports the twin's part as it is (the monitor's model differs
+        from the twin's physics there), not a measurement error.
     """
+    unobserved = CLASS_NAMES.index("unobserved")
+    layers: dict[int, dict] = {}
     dev_by: dict[int, list] = {}
     dist_by: dict[int, list] = {}
     for r, truth_O, faces, lo, hi in _truth_layers(results, truth_dir):
-        if not r.regions:
-            continue
         dev = r.deviation
+        xy = dev.vertices_O[:, :2]
+        ids = np.flatnonzero((dev.class_code != unobserved)
+                             & np.all((xy >= lo) & (xy <= hi), axis=1))
+        if ids.size == 0:
+            continue
+        d = mesh_distance(dev.vertices_O[ids], truth_O, faces)
+        layers[int(r.layer)] = {"rms_mm": float(np.sqrt(np.mean(d ** 2))),
+                                "p95_mm": float(np.percentile(d, 95)),
+                                "n_vertices": int(ids.size)}
+        dist_at = np.full(dev.vertices_O.shape[0], np.nan)
+        dist_at[ids] = d
         for reg, tid in zip(r.regions, r.track_ids, strict=True):
             if tid is None:
                 continue
-            ids = np.asarray(reg.vertex_ids, dtype=np.int64)
-            v = dev.vertices_O[ids]
-            keep = np.all((v[:, :2] >= lo) & (v[:, :2] <= hi), axis=1)
-            if not keep.any():
-                continue
-            dev_by.setdefault(int(tid), []).append(dev.signed_distance_mm[ids[keep]])
-            dist_by.setdefault(int(tid), []).append(mesh_distance(v[keep], truth_O, faces))
-    out = {}
+            rid = np.asarray(reg.vertex_ids, dtype=np.int64)
+            rid = rid[np.isfinite(dist_at[rid])]
+            if rid.size:
+                dev_by.setdefault(int(tid), []).append(dev.signed_distance_mm[rid])
+                dist_by.setdefault(int(tid), []).append(dist_at[rid])
+    tracks = {}
     for tid, devs in dev_by.items():
-        d, e = np.concatenate(devs), np.concatenate(dist_by[tid])
-        med_dev, med_dist = float(np.median(d)), float(np.median(e))
-        out[tid] = {"n_vertices": int(d.size), "deviation_median_mm": med_dev,
-                    "truth_distance_median_mm": med_dist,
-                    "truth_distance_p90_mm": float(np.percentile(e, 90)),
-                    "part_deviates": med_dist < PART_DEVIATES_SHARE * abs(med_dev)}
-    return out
-
-
-def reconstruction_errors(results, truth_dir: Path) -> dict[int, dict]:
-    """Per layer: distance [mm] of the observed reconstructed vertices to the true surface.
-
-    The truth is the twin's ``layer_NNN.ply`` (the true top surface when the layer closed);
-    only vertices inside its xy extent (less ``CROP_MM``) are compared, as the truth mesh is
-    cropped to the built region. The truth is read as plain arrays (a loaded
-    ``trimesh.Trimesh`` sits in reference cycles until the garbage collector runs: over the 124
-    layers of the twisted tower that held 690 MiB of truth meshes at the run's memory peak).
-    """
-    unobserved = CLASS_NAMES.index("unobserved")
-    out: dict[int, dict] = {}
-    for r, truth_O, faces, lo, hi in _truth_layers(results, truth_dir):
-        dev = r.deviation
-        v = dev.vertices_O[dev.class_code != unobserved]
-        v = v[np.all((v[:, :2] >= lo) & (v[:, :2] <= hi), axis=1)]
-        if v.shape[0] == 0:
-            continue
-        d = mesh_distance(v, truth_O, faces)
-        out[int(r.layer)] = {"rms_mm": float(np.sqrt(np.mean(d ** 2))),
-                             "p95_mm": float(np.percentile(d, 95)),
-                             "n_vertices": int(v.shape[0])}
-    return out
+        dv, e = np.concatenate(devs), np.concatenate(dist_by[tid])
+        med_dev, med_dist = float(np.median(dv)), float(np.median(e))
+        tracks[tid] = {"n_vertices": int(dv.size), "deviation_median_mm": med_dev,
+                       "truth_distance_median_mm": med_dist,
+                       "truth_distance_p90_mm": float(np.percentile(e, 90)),
+                       "part_deviates": med_dist < PART_DEVIATES_SHARE * abs(med_dev)}
+    return layers, tracks

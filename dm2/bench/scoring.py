@@ -161,7 +161,7 @@ def score_run(report: dict, fault_truth: dict | None, *, truth_maps: dict,
         ``[twin_process]`` deposits at (its factors and its efficiency curve's loss on a flat
         coupon, dm2.cli.bench_runner), or None
     track_truth : track id -> its flagged vertices against the reference and the true surface
-        (:func:`dm2.bench.reconstruction.track_truth`), kept in each track's entry as
+        (:func:`dm2.bench.reconstruction.truth_checks`), kept in each track's entry as
         ``truth``; ``false_tracks_part_deviates`` lists the false tracks where the part itself
         stands off the reference (the monitor's model, not its measurement, is off there)
     """

@@ -29,7 +29,7 @@ def summarize(runs: dict[str, dict], targets: dict | None = None) -> dict:
            "missed_faults": len(qual) - detected, "true_tracks": true_t, "false_tracks": false_t,
            "false_findings": sum(r.get("false_findings", 0) for r in runs.values()),
            # false tracks where the twin's true part stands off the reference as measured
-           "false_tracks_part_deviates": sum(len(r.get("false_tracks_part_deviates", []))
+           "false_tracks_part_deviates": sum(len(r["false_tracks_part_deviates"])
                                              for r in runs.values()),
            "fragments": sum(len(r["fragments"]) for r in runs.values()),
            "neutral_tracks": sum(len(r["neutral_tracks"]) for r in runs.values()),

@@ -46,7 +46,7 @@ class ScenarioRun:
     footprints : track id -> {layer: (xy_O (k, 2) [mm], area (k,) [mm^2])}, the vertices of
         each track's regions (what the strict scoring tests against the truth maps)
     track_truth : track id -> its flagged vertices against the reference and the twin's true
-        surface (:func:`dm2.bench.reconstruction.track_truth`)
+        surface (:func:`dm2.bench.reconstruction.truth_checks`; report.json ``track_truth``)
     process_s : float [s], simulated process time
     wall_s : float [s], wall time of the whole run (twin included)
     monitor_s : float [s], wall time spent in the pipeline (fusion, reference, analysis)
@@ -129,7 +129,7 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
     twin.cell.kinematics.ReachError : the toolpath leaves the robot's reach (nothing written)
     ValueError : ``run_dir`` cannot be written (nothing written)
     """
-    from dm2.bench.reconstruction import reconstruction_errors, track_truth
+    from dm2.bench.reconstruction import truth_checks
     from dm2.core.toml_write import dump_toml
     from dm2.pipeline.pipeline import Pipeline
     from dm2.report import check_output_dir
@@ -150,9 +150,8 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
         if on_stream_end is not None:
             on_stream_end()
         truth = _read_json(scratch / "truth" / "faults.json") or {"faults": []}
-        recon = reconstruction_errors(pipeline.results, scratch / "truth")
+        recon, tracks_vs_truth = truth_checks(pipeline.results, scratch / "truth")
         footprints = track_footprints(pipeline.results)
-        tracks_vs_truth = track_truth(pipeline.results, scratch / "truth")
         timing = pipeline.timing()
         monitor_s = timing["fusion_s"] + timing["reference_s"] + timing["analysis_s"]
         timing.update(simulated_process_s=sim.end_s, monitor_s=monitor_s,
@@ -164,7 +163,9 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
         report = pipeline.write_outputs(
             run_dir, full=full_report, config_toml=dump_toml(sc.to_toml_dict()),
             timing=timing, fault_truth=truth, expect=sc.expect, meta=meta,
-            sections=pipeline.sections(reconstruction={str(k): v for k, v in recon.items()}),
+            sections=pipeline.sections(
+                reconstruction={str(k): v for k, v in recon.items()},
+                track_truth={str(k): v for k, v in tracks_vs_truth.items()}),
             force=force, include=include, command="dm2 run" if full_report else "dm2 bench",
             inputs=[scenario_file], stage=report_stage)
     finally:

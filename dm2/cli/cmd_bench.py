@@ -71,7 +71,7 @@ def score_line(summary: dict) -> str:
             f"{summary['recall']:.3f} over {summary['qualifying_faults']} faults); "
             f"false tracks {summary['false_tracks']} ({summary['false_area_mm2']:.0f} mm²; "
             f"where the twin's part itself stands off the reference as measured: "
-            f"{summary.get('false_tracks_part_deviates', 0)}), fragments "
+            f"{summary['false_tracks_part_deviates']}), fragments "
             f"{summary['fragments']}, neutral {summary['neutral_tracks']}; "
             f"false tracks per control {controls or '-'}; real-time false alarms "
             f"{summary['realtime_false_alarms']}/{summary['realtime_alarms']} "
