@@ -36,7 +36,11 @@ def test_monitor_reports_the_bump_track(tmp_path, recording):
     over = [t for t in report["tracks"] if t["kind"] == "overbuild"]
     hits = [t for t in over if np.hypot(t["history"][0]["centroid_O_mm"][0] - BUMP_XY[0],
                                         t["history"][0]["centroid_O_mm"][1] - BUMP_XY[1]) < 2.0]
-    assert len(hits) == 1 and hits[0]["first_layer"] == 2
+    assert report["tracks"] == hits and hits[0]["first_layer"] == 2  # nothing else reported
+    alarms = report["realtime"]["alarms"]  # the real-time alarms: only at the bump
+    assert alarms and all(a["kind"] == "overbuild" and np.hypot(
+        a["centroid_xy_O_mm"][0] - BUMP_XY[0], a["centroid_xy_O_mm"][1] - BUMP_XY[1]) < 3.0
+        for a in alarms)
     assert report["realtime"]["frame_sets"] > 0
     assert (tmp_path / "out" / "report" / "index.html").exists()
     assert sorted(p.name for p in (tmp_path / "out").glob("layer_*.ply"))[0] == "layer_0000.ply"
