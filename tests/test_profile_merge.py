@@ -35,30 +35,41 @@ def test_runs_within_the_span_merge_and_a_step_or_gap_ends_them():
     assert off0.tolist() == offsets.tolist() and ones.tolist() == [1] * len(xz)
 
 
-def test_a_ray_of_count_n_weighs_as_n_points_on_it():
-    """Below the weight caps, one ray that stands for n points leaves the field that n
-    coincident points leave (the same weights, the same distances to rounding)."""
+@pytest.mark.parametrize("active_radius_mm", [0.1, 50.0])
+def test_a_ray_of_count_n_weighs_as_n_points_on_it_at_the_caps_too(active_radius_mm):
+    """One ray that stands for n points leaves the field that n coincident points leave (the
+    same weights, the same distances to rounding), below the weight caps and at them: a
+    vertical ray sees the surface at z 9.6 mm twice (weight 2, the cap), then 3 points at z
+    9.9 mm. At the cap each point moves a voxel's distance a third of the way (``1 / (cap +
+    1)``), so the 3 points leave ``(2/3)**3`` of the old distance's share; one update weighted 3
+    would have left ``2/5``. With the active radius of 50 mm the points are active (the stored
+    weight capped at 2 before each update), with 0.1 mm they are not (capped after it)."""
     T = np.eye(4)
-    T[:3, 3] = (10.0, 10.0, 60.0)
+    T[:3, 3] = (10.1, 10.1, 60.0)
     T[:3, 2] = (0.0, 0.0, -1.0)  # looking down
     T[:3, 0] = (1.0, 0.0, 0.0)
     T[:3, 1] = (0.0, -1.0, 0.0)
-    spot, axis = np.array([[10.0, 10.0, 0.0]]), np.array([[0.0, 0.0, -1.0]])
-    xz = np.array([[0.3, 50.1], [0.3, 50.1], [0.3, 50.1]])
+    spot, axis = np.array([[10.1, 10.1, 0.0]]), np.array([[0.0, 0.0, -1.0]])
+    old = np.array([[0.0, 50.4], [0.0, 50.4]])
+    xz = np.array([[0.0, 50.1], [0.0, 50.1], [0.0, 50.1]])
     fields = []
     for pts, count in ((xz, None), (xz[:1], np.array([3]))):
-        tsdf = SparseTSDF(0.5, 1.5, weight_cap=100.0)
+        tsdf = SparseTSDF(0.5, 1.5, weight_cap=2.0, inactive_weight_cap=2.0)
+        tsdf.integrate_profiles(old, np.array([0, 2]), T[None], spot, axis, active_radius_mm)
         fused, out = tsdf.integrate_profiles(pts, np.array([0, len(pts)]), T[None], spot, axis,
-                                             0.1, count=count)
+                                             active_radius_mm, count=count)
         assert (fused, out) == (3, 0)  # measured points, however many rays
         fields.append(tsdf)
     a, b = fields
-    assert a.n_blocks == b.n_blocks and a.n_blocks > 0
-    rows_a = a.voxels[:a.n_blocks][np.argsort(a.block_keys[:a.n_blocks])]
-    rows_b = b.voxels[:b.n_blocks][np.argsort(b.block_keys[:b.n_blocks])]
-    np.testing.assert_array_equal(rows_a[..., 1], rows_b[..., 1])  # weights 3 where seen
-    assert rows_a[..., 1].max() == 3.0
-    np.testing.assert_allclose(rows_a[..., 0], rows_b[..., 0], atol=1e-6)
+    assert a.n_blocks == b.n_blocks == 1
+    np.testing.assert_array_equal(a.voxels[0, :, 1], b.voxels[0, :, 1])
+    np.testing.assert_allclose(a.voxels[0, :, 0], b.voxels[0, :, 0], atol=1e-6)
+    # the voxels in front of both surfaces (centres at z 10.25, 10.75, 11.25 mm)
+    z_c = np.array([10.25, 10.75, 11.25])
+    d, w = a.sample(np.column_stack([np.full(3, 10.25), np.full(3, 10.25), z_c]))
+    old_d, new_d = np.clip(z_c - 9.6, -1.5, 1.5), np.clip(z_c - 9.9, -1.5, 1.5)
+    np.testing.assert_array_equal(w, 2.0)
+    np.testing.assert_allclose(d, new_d + (2.0 / 3.0) ** 3 * (old_d - new_d), atol=1e-5)
 
 
 def _error(mon, scene):

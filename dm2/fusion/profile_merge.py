@@ -7,10 +7,11 @@ of its time writing the same voxels over again.
 
 :func:`merge_profile_points` replaces each run of consecutive points of a profile that lie
 within ``span_mm`` of the run's first point, along the line (``x``) and in range (``z``), by
-their mean, with the number of points as its count. The kernels give that ray the weight of as
-many points (:func:`dm2.fusion.tsdf.ray_walk.update_voxel`): below the weight caps a voxel ends
-with the same weight as with the points one by one, and with the weighted mean of their signed
-distances to first order. With ``span_mm`` half a voxel (``[monitor] ray_merge_voxels =
+their mean, with the number of points as its count. The kernels update each voxel on that ray
+as many times as it has points (:func:`dm2.fusion.tsdf.ray_walk.update_voxel`, with the weight
+caps applied at each update as for a point), so a voxel ends with the same weight as with the
+points one by one, and with their signed distances' running mean to first order, at the caps
+too. With ``span_mm`` half a voxel (``[monitor] ray_merge_voxels =
 0.5``; the package default is 0, every point its own ray, see the README for why) a run never
 spans more than that: an edge, a step or a wall seen at a grazing angle changes the range
 between neighbours by more and ends the run, and the mean of a run lies on the surface its

@@ -69,19 +69,32 @@ def update_voxel(voxels, slot, vx, vy, vz, d, truncation_mm, inv_trunc, act, act
     clamped to +-truncation, weight 1 in front of the surface and falling linearly behind it
     (``w_A`` in the active region and ``w_I`` elsewhere alike), times ``behind_scale`` behind
     it (0 behind a point on an occluding edge: :func:`dm2.fusion.tsdf.point_rays.behind_scale`),
-    the stored weight capped in the active region; the ray stands for ``n`` measured points
-    (:mod:`dm2.fusion.profile_merge`), so its weight is ``n`` times that (below the weight caps,
-    the same as ``n`` rays with the mean's distance)."""
+    the stored weight capped in the active region. The ray stands for ``n`` measured points
+    (:mod:`dm2.fusion.profile_merge`): the voxel is updated ``n`` times with that distance and
+    weight, each update capped as a point's is, so at the weight caps too it ends as after ``n``
+    rays with the mean's distance (the capped running mean weighs each new point by ``1 /
+    (cap + 1)``; one update of ``n`` times the weight would weigh the run by ``n / (cap + n)``)."""
     if d > truncation_mm:
         d = truncation_mm
     elif d < -truncation_mm:
         d = -truncation_mm
-    w = (1.0 if d >= 0.0 else (1.0 + d * inv_trunc) * behind_scale) * n
+    w = 1.0 if d >= 0.0 else (1.0 + d * inv_trunc) * behind_scale
     if w > 0.0:
         li = (vx & 7) + 8 * ((vy & 7) + 8 * (vz & 7))
         w_prev = voxels[slot, li, 1]
-        if act and w_prev > active_weight_cap:
-            w_prev = active_weight_cap
-        w_new = w_prev + w
-        voxels[slot, li, 0] = (w_prev * voxels[slot, li, 0] + w * d) / w_new
-        voxels[slot, li, 1] = min(w_new, max_weight)
+        if n == 1:
+            if act and w_prev > active_weight_cap:
+                w_prev = active_weight_cap
+            w_new = w_prev + w
+            voxels[slot, li, 0] = (w_prev * voxels[slot, li, 0] + w * d) / w_new
+            voxels[slot, li, 1] = min(w_new, max_weight)
+            return
+        tsdf = voxels[slot, li, 0]
+        for _ in range(n):
+            if act and w_prev > active_weight_cap:
+                w_prev = active_weight_cap
+            w_new = w_prev + w
+            tsdf = (w_prev * tsdf + w * d) / w_new
+            w_prev = min(w_new, max_weight)
+        voxels[slot, li, 0] = tsdf
+        voxels[slot, li, 1] = w_prev
