@@ -6,6 +6,6 @@ from dm2.core.kernel_cache import key_kernel_caches as _key_kernel_caches
 
 __version__ = "0.1.0"
 
-# before any kernel is defined: a cached kernel is reused only while every source file of the
-# package is unchanged, not only its own (dm2.core.kernel_cache)
+# before any kernel is defined: a cached kernel is reused only while every file its compiled code
+# draws on is unchanged, not only its own (dm2.core.kernel_cache)
 _key_kernel_caches((_Path(__file__).parent,), (_Path(__file__).parent,))

@@ -13,8 +13,8 @@ stale and is compiled again (and saved over, in the same place numba would use).
 those that define compiled functions and every module of the packages they import from, to the
 end of the chain (with the package ``__init__`` files on the way): a kernel's globals are its
 own module's names, so compiled code draws on nothing else. Editing any other file (the CLI,
-the report) compiles nothing again. The key is a SHA-256 of those files' paths and contents (a
-few milliseconds for this package), computed once per process.
+the report) compiles nothing again. The key is a SHA-256 of those files' paths and contents
+(about 20 ms for this package), computed once per process.
 """
 
 from __future__ import annotations
@@ -117,7 +117,7 @@ def _keyed(base: type, folders: tuple[str, ...], key: str) -> type:
 
         @classmethod
         def from_function(cls, py_func, py_file):
-            if not os.path.abspath(py_file).startswith(folders):
+            if not os.path.realpath(py_file).startswith(folders):
                 return None
             return super().from_function(py_func, py_file)
 
