@@ -75,15 +75,34 @@ def load_avg() -> str:
     return " ".join(f"{x:.2f}" for x in os.getloadavg())
 
 
+SIDECAR_HEADER = "# written by benchmarks/tower_end_to_end.py\n"
+
+
+def sidecar(run_dir: Path, suffix: str) -> Path:
+    """The file ``<run_dir><suffix>`` beside the run folder (the child's log, the wall time) that
+    this script may write: new, or written by it before (its first line is
+    ``SIDECAR_HEADER``); a file of any other origin there stops the benchmark, untouched."""
+    path = run_dir.parent / f"{run_dir.name}{suffix}"
+    if path.exists():
+        with open(path, errors="replace") as f:
+            if f.readline() != SIDECAR_HEADER:
+                raise SystemExit(f"{path}: exists and was not written by this benchmark; move it "
+                                 "or choose another --out")
+    return path
+
+
 def run_child(args, run_dir: Path) -> tuple[float, float, int]:
-    """``(wall_s, peak_rss_mib, returncode)`` of ``dm2 run`` into ``run_dir``."""
+    """``(wall_s, peak_rss_mib, returncode)`` of ``dm2 run`` into ``run_dir``; its output goes
+    to the sidecar ``<run_dir>.log``."""
     cmd = [sys.executable, "-m", "dm2.cli.main", "run", args.scenario, "--no-record",
            "--out", str(run_dir)]
     if args.duration is not None:
         cmd += ["--duration", str(args.duration)]
     env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
     t0 = time.perf_counter()
-    with open(run_dir.parent / f"{run_dir.name}.log", "w") as log:
+    with open(sidecar(run_dir, ".log"), "w") as log:
+        log.write(SIDECAR_HEADER)
+        log.flush()
         proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT)
         _, status, usage = os.wait4(proc.pid, 0)
     proc.returncode = os.waitstatus_to_exitcode(status)
@@ -182,13 +201,15 @@ def main() -> None:
                     help="a vertex unchanged for this many layers counts as stale")
     ap.add_argument("--runs", type=int, default=3,
                     help="runs of dm2 run: median wall time, maximum peak RSS")
-    ap.add_argument("--out", type=Path, default=None, help="keep the last run's folder here")
+    ap.add_argument("--out", type=Path, default=None, help="keep the last run's folder here (its log and wall time beside it: "
+                    "<out>.log, <out>.wall)")
     ap.add_argument("--analyse", type=Path, default=None, metavar="RUN_DIR",
                     help="only print the figures of a run folder this script kept with --out")
     args = ap.parse_args()
     if args.analyse is not None:
-        log = args.analyse.parent / f"{args.analyse.name}.wall"
-        wall, rss = (float(x) for x in log.read_text().split()) if log.exists() else (0.0, 0.0)
+        log = sidecar(args.analyse, ".wall")
+        wall, rss = (float(x) for x in log.read_text().splitlines()[1].split()) \
+            if log.exists() else (0.0, 0.0)
         report(args.analyse, wall, rss, args)
         return
     print(f"CPU: {cpu_model()}, {os.cpu_count()} cores; load average before: {load_avg()}")
@@ -199,6 +220,8 @@ def main() -> None:
     else:
         run_dir = args.out.absolute()
         run_dir.parent.mkdir(parents=True, exist_ok=True)
+        for suffix in (".log", ".wall"):  # before any run: refuse a user's file there
+            sidecar(run_dir, suffix)
     try:
         walls, rss_all = [], []
         for k in range(max(args.runs, 1)):
@@ -216,7 +239,7 @@ def main() -> None:
             if scratch is not None:
                 shutil.rmtree(scratch, ignore_errors=True)
         wall, rss_mib = statistics.median(walls), max(rss_all)
-        (run_dir.parent / f"{run_dir.name}.wall").write_text(f"{wall} {rss_mib}\n")
+        sidecar(run_dir, ".wall").write_text(f"{SIDECAR_HEADER}{wall} {rss_mib}\n")
         report(run_dir, wall, rss_mib, args)
     finally:
         if tmp is not None:
