@@ -201,7 +201,8 @@ def main() -> None:
                     help="a vertex unchanged for this many layers counts as stale")
     ap.add_argument("--runs", type=int, default=3,
                     help="runs of dm2 run: median wall time, maximum peak RSS")
-    ap.add_argument("--out", type=Path, default=None, help="keep the last run's folder here (its log and wall time beside it: "
+    ap.add_argument("--out", type=Path, default=None,
+                    help="keep the last run's folder here (its log and wall time beside it: "
                     "<out>.log, <out>.wall)")
     ap.add_argument("--analyse", type=Path, default=None, metavar="RUN_DIR",
                     help="only print the figures of a run folder this script kept with --out")
