@@ -82,13 +82,6 @@ def update_voxel(voxels, slot, vx, vy, vz, d, truncation_mm, inv_trunc, act, act
     if w > 0.0:
         li = (vx & 7) + 8 * ((vy & 7) + 8 * (vz & 7))
         w_prev = voxels[slot, li, 1]
-        if n == 1:
-            if act and w_prev > active_weight_cap:
-                w_prev = active_weight_cap
-            w_new = w_prev + w
-            voxels[slot, li, 0] = (w_prev * voxels[slot, li, 0] + w * d) / w_new
-            voxels[slot, li, 1] = min(w_new, max_weight)
-            return
         tsdf = voxels[slot, li, 0]
         for _ in range(n):
             if act and w_prev > active_weight_cap:
