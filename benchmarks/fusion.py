@@ -141,6 +141,14 @@ def numpy_baseline(origins, points, voxel, trunc):
     return acc, wsum
 
 
+def static_error(cal, msgs, cfg: MonitorConfig, sdf) -> tuple[float, float, int]:
+    """RMS and p95 [mm] of ``|sdf|`` at the vertices of the surface ours fuses from ``msgs``
+    with ``cfg``, and their number (:func:`open3d_peer.surface_error`)."""
+    mon = run_once(cal, msgs, False, cfg=cfg)[0]
+    return open3d_peer.surface_error(
+        SurfaceExtractor(mon.tsdf, cfg.min_weight).update().vertices_O, sdf)
+
+
 def peer(cal, msgs, repeats: int) -> None:
     """Open3D's VoxelBlockGrid on the same stream: speed, extraction and accuracy beside ours."""
     cfg = MonitorConfig()
@@ -196,13 +204,8 @@ def peer(cal, msgs, repeats: int) -> None:
     smsgs, _ = raster_run(scene, cal, raster_lines((35, 85), np.arange(35, 86, 2.0), 10.0),
                           step_mm=1.0, noise_mm=0.05, seed=3)
     mon = run_once(cal, smsgs, False)[0]
-    ours_merged = open3d_peer.surface_error(SurfaceExtractor(
-        run_once(cal, smsgs, False, cfg=MERGED)[0].tsdf, cfg.min_weight).update().vertices_O,
-        scene.sdf)
-    mon_still = run_once(cal, smsgs, False, cfg=SCAN)[0]
-    scan_merged_err = open3d_peer.surface_error(SurfaceExtractor(
-        run_once(cal, smsgs, False, cfg=SCAN_MERGED)[0].tsdf, cfg.min_weight).update().vertices_O,
-        scene.sdf)
+    ours_merged, ours_still, scan_merged_err = (static_error(cal, smsgs, c, scene.sdf)
+                                                for c in (MERGED, SCAN, SCAN_MERGED))
     sprof = open3d_peer.synced_profiles(cal, smsgs, cfg.max_pose_gap_s, cfg.reorder_window_s)
     o3d_static = open3d_peer.open3d_run(sprof, cfg.voxel_mm, cfg.truncation_voxels)[0]
     ours_t, o3d_t = [], []
@@ -216,8 +219,6 @@ def peer(cal, msgs, repeats: int) -> None:
         o3d_v, _ = o3d_static.extract(cfg.min_weight)
         o3d_t.append(time.perf_counter() - t)
     ours = open3d_peer.surface_error(ours_v, scene.sdf)
-    ours_still = open3d_peer.surface_error(
-        SurfaceExtractor(mon_still.tsdf, cfg.min_weight).update().vertices_O, scene.sdf)
     theirs = open3d_peer.surface_error(o3d_v, scene.sdf)
     print(f"static box + sphere cap (noise 0.05 mm), accuracy against the analytic truth "
           f"(|sdf| at the vertices): ours RMS {ours[0]:.3f} mm, p95 {ours[1]:.3f} mm "
@@ -263,12 +264,9 @@ def main() -> None:
           f"({mon.points_fused} points, {mon.tsdf.n_blocks} blocks, voxel {mon.cfg.voxel_mm} mm)")
 
     peer(cal, msgs, args.repeats)
-    cfg = MonitorConfig()
     growing_part.compare(cal, args.repeats, run_once,
                          {"ours, defaults": None, "ours, merged rays": MERGED,
-                          "ours, scan (spray off)": SCAN, "ours, scan, merged rays": SCAN_MERGED},
-                         cfg.min_weight, cfg.max_pose_gap_s, cfg.reorder_window_s, cfg.voxel_mm,
-                         cfg.truncation_voxels)
+                          "ours, scan (spray off)": SCAN, "ours, scan, merged rays": SCAN_MERGED})
 
     c = time.process_time()
     run_once(cal, msgs, False, threads=1)

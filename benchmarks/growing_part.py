@@ -59,28 +59,31 @@ def accuracy(vertices_O: np.ndarray, final: Scene) -> tuple[float, float, int, f
     return rms, p95, n, signed
 
 
-def compare(cal, repeats: int, run_once, configs: dict, min_weight: float, max_pose_gap_s: float,
-            reorder_window_s: float, voxel_mm: float, truncation_voxels: float) -> None:
+def compare(cal, repeats: int, run_once, configs: dict) -> None:
     """Print, for Open3D and each of ``configs`` (name: MonitorConfig or None for the
     defaults), the points per second on the growing part (median of ``repeats``, interleaved)
-    and the accuracy of the last run's surface against the final block. ``run_once``: the fusion
-    benchmark's replay ``(cal, msgs, measure_latency, cfg=...) -> (TsdfFusion, seconds, _)``."""
+    and the accuracy of the last run's surface against the final block; Open3D and the surfaces
+    with the package defaults' voxel, truncation, synchronisation and ``min_weight``.
+    ``run_once``: the fusion benchmark's replay ``(cal, msgs, measure_latency, cfg=...) ->
+    (TsdfFusion, seconds, _)``."""
+    from dm2.core.config import MonitorConfig
     from dm2.fusion.surface import SurfaceExtractor
 
+    cfg = MonitorConfig()
     msgs, final = growing_stream(cal)
-    profiles = open3d_peer.synced_profiles(cal, msgs, max_pose_gap_s, reorder_window_s)
+    profiles = open3d_peer.synced_profiles(cal, msgs, cfg.max_pose_gap_s, cfg.reorder_window_s)
     rates: dict[str, list[float]] = {name: [] for name in ("Open3D", *configs)}
-    errors = {}
+    last_run = {}
     for _ in range(repeats):
-        o3d_field, dt = open3d_peer.open3d_run(profiles, voxel_mm, truncation_voxels)
+        o3d_field, dt = open3d_peer.open3d_run(profiles, cfg.voxel_mm, cfg.truncation_voxels)
         rates["Open3D"].append(o3d_field.points / dt)
-        for name, cfg in configs.items():
-            mon, elapsed, _ = run_once(cal, msgs, False, cfg=cfg)
+        for name, run_cfg in configs.items():
+            mon, elapsed, _ = run_once(cal, msgs, False, cfg=run_cfg)
             rates[name].append(mon.points_fused / elapsed)
-            errors[name] = mon
-    errors = {name: accuracy(SurfaceExtractor(mon.tsdf, min_weight).update().vertices_O, final)
-              for name, mon in errors.items()}
-    errors["Open3D"] = accuracy(o3d_field.extract(min_weight)[0], final)
+            last_run[name] = mon
+    errors = {name: accuracy(SurfaceExtractor(mon.tsdf, cfg.min_weight).update().vertices_O,
+                             final) for name, mon in last_run.items()}
+    errors["Open3D"] = accuracy(o3d_field.extract(cfg.min_weight)[0], final)
     o3d_rate = statistics.median(rates["Open3D"])
     print(f"growing part ({PASSES} passes over a 40 x 40 mm top rising {RISE_MM} mm a pass, "
           f"{o3d_field.points} points; accuracy against the final block, |sdf| at all "
