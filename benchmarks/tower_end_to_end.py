@@ -231,7 +231,7 @@ def main() -> None:
             target = run_dir if last else scratch / "run"
             wall, rss_mib, rc = run_child(args, target)
             if rc != 0:
-                log = (target.parent / f"{target.name}.log").read_text()[-3000:]
+                log = sidecar(target, ".log").read_text()[-3000:]
                 raise SystemExit(f"dm2 run failed (exit {rc}):\n{log}")
             print(f"run {k + 1}/{max(args.runs, 1)}: wall {wall:.1f} s, peak RSS {rss_mib:.0f} "
                   f"MiB; load average after: {load_avg()}")

@@ -25,8 +25,6 @@ import re
 from pathlib import Path
 
 _REGISTERED: dict[tuple[str, ...], str] = {}  # package folders -> source key
-
-
 # a decorator that compiles the function below it
 _COMPILED = re.compile(rb"^\s*@(?:numba\.)?(?:njit|jit|vectorize|guvectorize|cfunc|stencil)\b",
                        re.M)
@@ -92,7 +90,7 @@ def key_kernel_caches(packages: tuple[Path, ...], sources: tuple[Path, ...]) -> 
         return _REGISTERED[folders]
     from numba.core import caching
 
-    key = source_key(tuple(p.resolve() for p in sources))
+    key = source_key(sources)
     keyed = [_keyed(base, folders, key) for base in (
         caching.UserProvidedCacheLocator, caching.InTreeCacheLocator,
         caching.UserWideCacheLocator)]
