@@ -39,8 +39,15 @@ if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
     # and pip unpacks them beside the environment, not in a /tmp that may be a small tmpfs
     pip_tmp=.venv/.pip-tmp
     mkdir -p "$pip_tmp"
-    TMPDIR="$PWD/$pip_tmp" .venv/bin/python -m pip install -q --no-cache-dir --upgrade pip
-    TMPDIR="$PWD/$pip_tmp" .venv/bin/python -m pip install -q --no-cache-dir -e ".[dev]"
+    # pip's and setuptools' own chatter (build warnings) goes to a log, shown only on failure
+    pip_log="$pip_tmp/install.log"
+    if ! { TMPDIR="$PWD/$pip_tmp" .venv/bin/python -m pip install -q --no-cache-dir --upgrade pip \
+            && TMPDIR="$PWD/$pip_tmp" .venv/bin/python -m pip install -q --no-cache-dir -e ".[dev]"
+         } >"$pip_log" 2>&1; then
+        cat "$pip_log" >&2
+        echo "error: installing the package failed (pip's output above)" >&2
+        exit 1
+    fi
     rm -rf "$pip_tmp"
     touch "$stamp"
 fi
