@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2.view.scene import Scene
+from dm2.view.scene import Scene, region_label
 
 SURFACES = ("measured", "reference", "true")
 
@@ -99,7 +99,7 @@ class RunFolderView:
         regions = self.layers.get(layer, {}).get("regions", [])
         self.scene.tracks([(r.get("track_id"), r["kind"], r["bbox_min_O_mm"], r["bbox_max_O_mm"])
                            for r in regions])
-        found = ", ".join(f"#{r.get('track_id')} {r['kind'].replace('_', ' ')} "
+        found = ", ".join(f"{region_label(r.get('track_id'), r['kind'])} "
                           f"{r['area_mm2']:.0f} mm²" for r in regions[:8]) or "no regions"
         self.info.content = (f"**Layer {layer}** of {len(self.meshes)} · {what} surface · "
                              f"colour: signed deviation ±{self.scene.limit_mm:g} mm (blue "

@@ -132,24 +132,29 @@ class Scene:
 
     def tracks(self, boxes) -> None:
         """``boxes`` = ``[(track_id, kind, bbox_min_O_mm, bbox_max_O_mm), ...]``: wireframe
-        boxes with their track number above them, or only their kind for a region no track
-        holds (track_id None); earlier boxes are removed."""
+        boxes; a track's carries its number and kind above it, always shown. A region no track
+        holds (track_id None: an early warning, or not yet persistent) is named by what it is
+        ("untracked local overbuild") only while its box is clicked, so a dozen small regions
+        at a top do not bury the tracks' labels. Earlier boxes are removed."""
         for h in self._boxes:
             h.remove()
         self._boxes = []
         for k, (tid, kind, lo, hi) in enumerate(list(boxes)[:MAX_BOXES]):
             lo, hi = np.asarray(lo, float), np.asarray(hi, float)
-            name, label = (f"/tracks/{tid}", f"#{tid} ") if tid is not None else \
-                (f"/regions/{k}", "")
+            name = f"/tracks/{tid}" if tid is not None else f"/regions/{k}"
+            text = region_label(tid, kind)
             dims = np.maximum(hi - lo, 0.2) * MM
             centre = (lo + hi) / 2 * MM
             rgb = BOX_RGB.get(kind, (0, 0, 0))
-            self._boxes.append(self.server.scene.add_box(
-                name, color=rgb, dimensions=tuple(dims), position=tuple(centre),
-                wireframe=True))
-            self._boxes.append(self.server.scene.add_label(
-                f"{name}_label", f"{label}{kind.replace('_', ' ')}",
-                position=(centre[0], centre[1], hi[2] * MM + 0.002)))
+            box = self.server.scene.add_box(name, color=rgb, dimensions=tuple(dims),
+                                            position=tuple(centre), wireframe=True)
+            label = self.server.scene.add_label(
+                f"{name}_label", text, position=(centre[0], centre[1], hi[2] * MM + 0.002),
+                visible=tid is not None)
+            if tid is None:
+                box.on_click(lambda _event, label=label: setattr(label, "visible",
+                                                                 not label.visible))
+            self._boxes += [box, label]
 
     def frame(self, name: str, T_O_X: np.ndarray, label: str | None = None,
               length_mm: float = 12.0):
@@ -161,3 +166,10 @@ class Scene:
         if label:
             self.server.scene.add_label(f"{name}/label", label, position=(0.0, 0.0, 0.004))
         return handle
+
+
+def region_label(track_id: int | None, kind: str) -> str:
+    """What a region's box is called: ``"#3 overbuild"`` for a track's, ``"untracked local
+    overbuild"`` for a region no track holds."""
+    what = kind.replace("_", " ")
+    return f"#{track_id} {what}" if track_id is not None else f"untracked {what}"
