@@ -1,17 +1,17 @@
 """Numba kernels of the sparse TSDF: block hash and ray integration (dense gathering:
 :mod:`dm2.fusion.tsdf.dense`).
 
-Storage layout (see :mod:`dm2.fusion.tsdf.field`): voxels live in blocks of ``BLOCK**3`` voxels. A
-block's
-integer coordinates ``(bx, by, bz)`` are packed into one non-negative int64 key and found through
-an open-addressing hash table (linear probing, ``EMPTY`` marks a free entry) that maps the key to
-a row ("slot") of the preallocated ``voxels`` array of shape ``(capacity, 512, 2)`` float32 that
-keeps each voxel's signed distance [mm] and weight side by side (one cache line per update).
+Storage layout (see :mod:`dm2.fusion.tsdf.field`): voxels live in blocks of ``BLOCK**3`` voxels,
+found through the block hash (:mod:`dm2.fusion.tsdf.block_hash`, re-exported here) that maps a
+block's key to a row ("slot") of the preallocated ``voxels`` array of shape ``(capacity, 512, 2)``
+float32 that keeps each voxel's signed distance [mm] and weight side by side (one cache line per
+update).
 
 The integrator walks each sensor ray through the voxel grid with a 3-D DDA (Amanatides & Woo)
 from ``truncation`` in front of the measured point to ``truncation`` behind it and updates every
 voxel it crosses with the projective signed distance (eqs 2-3 of the paper; the walk and the
-update: :mod:`dm2.fusion.tsdf.ray_walk`). ``fuse_profiles`` also registers the profiles (eq 1)
+update: :mod:`dm2.fusion.tsdf.ray_walk`; one ray's band and carve, shared with the two-thread
+kernel: :mod:`dm2.fusion.tsdf.ray_fuse`). ``fuse_profiles`` also registers the profiles (eq 1)
 and decides each point's active region in the same pass.
 """
 
@@ -20,13 +20,23 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from dm2.fusion.tsdf.bundles import BlockHash, FusionParams, profile_batch, ray_batch
-from dm2.fusion.tsdf.carve import (
-    CARVE_RUN_VOXELS,
-    CARVE_TRUNCATIONS,
-    COL_SHIFT,
-    carve_visit,
+from dm2.fusion.tsdf.block_hash import (  # noqa: F401  the block hash, re-exported
+    BLOCK,
+    BLOCK_SHIFT,
+    BLOCK_VOXELS,
+    EMPTY,
+    MAX_NEW_BLOCKS_PER_RAY,
+    hash_find,
+    hash_get_or_insert,
+    hash_insert,
+    pack_key,
+    rebuild_hash,
+    recent_slot,
+    unpack_keys,
+    voxel_at,
 )
+from dm2.fusion.tsdf.bundles import BlockHash, FusionParams, Staging, profile_batch, ray_batch
+from dm2.fusion.tsdf.carve import CARVE_RUN_VOXELS, CARVE_TRUNCATIONS, COL_SHIFT
 from dm2.fusion.tsdf.point_rays import (
     NO_POSE,
     behind_scale,
@@ -34,120 +44,7 @@ from dm2.fusion.tsdf.point_rays import (
     profile_pose,
     ray_behind_scale,
 )
-from dm2.fusion.tsdf.ray_walk import dda_start, dda_step, update_voxel
-
-BLOCK = 8  # voxels per block edge
-BLOCK_SHIFT = 3
-BLOCK_VOXELS = BLOCK**3
-EMPTY = -1
-_OFFSET = 1 << 20  # block coordinates in [-2**20, 2**20) pack into 21 bits each
-_MASK21 = (1 << 21) - 1
-# Worst case of new blocks one ray can need: rays span at most 2 * truncation, a few blocks.
-MAX_NEW_BLOCKS_PER_RAY = 16
-
-
-@njit(cache=True, inline="always")
-def pack_key(bx, by, bz):
-    return ((bx + _OFFSET) << 42) | ((by + _OFFSET) << 21) | (bz + _OFFSET)
-
-
-@njit(cache=True)
-def unpack_keys(keys):
-    """Block coordinates ``(n, 3)`` int64 of packed keys ``(n,)``."""
-    out = np.empty((keys.shape[0], 3), dtype=np.int64)
-    for i in range(keys.shape[0]):
-        k = keys[i]
-        out[i, 0] = ((k >> 42) & _MASK21) - _OFFSET
-        out[i, 1] = ((k >> 21) & _MASK21) - _OFFSET
-        out[i, 2] = (k & _MASK21) - _OFFSET
-    return out
-
-
-@njit(cache=True, inline="always")
-def _hash(key, mask):
-    h = np.uint64(key) * np.uint64(0x9E3779B97F4A7C15)
-    return np.int64(h >> np.uint64(40)) & mask
-
-
-@njit(cache=True, inline="always")
-def hash_find(table_keys, table_slots, key):
-    """Slot of ``key`` or -1."""
-    mask = table_keys.shape[0] - 1
-    h = _hash(key, mask)
-    while True:
-        k = table_keys[h]
-        if k == key:
-            return table_slots[h]
-        if k == EMPTY:
-            return -1
-        h = (h + 1) & mask
-
-
-@njit(cache=True, inline="always")
-def voxel_at(table_keys, table_slots, ix, iy, iz):
-    """``(slot, index within the block)`` of voxel ``(ix, iy, iz)``; slot -1: not stored."""
-    slot = hash_find(table_keys, table_slots,
-                     pack_key(ix >> BLOCK_SHIFT, iy >> BLOCK_SHIFT, iz >> BLOCK_SHIFT))
-    li = (ix & (BLOCK - 1)) + BLOCK * ((iy & (BLOCK - 1)) + BLOCK * (iz & (BLOCK - 1)))
-    return slot, li
-
-
-@njit(cache=True)
-def hash_insert(table_keys, table_slots, key, slot):
-    mask = table_keys.shape[0] - 1
-    h = _hash(key, mask)
-    while table_keys[h] != EMPTY:
-        h = (h + 1) & mask
-    table_keys[h] = key
-    table_slots[h] = slot
-
-
-@njit(cache=True, nogil=True)
-def rebuild_hash(block_keys, n_blocks, table_size):
-    """A fresh hash table of ``table_size`` (power of two) entries for the first blocks."""
-    table_keys = np.full(table_size, EMPTY, dtype=np.int64)
-    table_slots = np.full(table_size, -1, dtype=np.int32)
-    for s in range(n_blocks):
-        hash_insert(table_keys, table_slots, block_keys[s], s)
-    return table_keys, table_slots
-
-
-@njit(cache=True, inline="always")
-def hash_get_or_insert(key, table_keys, table_slots, block_keys, state):
-    """Slot of ``key``; a new block (slot ``state[0]``, counted up) when it has none yet."""
-    mask = table_keys.shape[0] - 1
-    h = _hash(key, mask)
-    while True:
-        k = table_keys[h]
-        if k == key:
-            return table_slots[h]
-        if k == EMPTY:
-            s = state[0]
-            state[0] += 1
-            table_keys[h] = key
-            table_slots[h] = s
-            block_keys[s] = key
-            return s
-        h = (h + 1) & mask
-
-
-@njit(cache=True, inline="always")
-def _get_or_alloc(bx, by, bz, table_keys, table_slots, block_keys, touched, state):
-    s = hash_get_or_insert(pack_key(bx, by, bz), table_keys, table_slots, block_keys, state)
-    touched[s] = True
-    return s
-
-
-@njit(cache=True, inline="always")
-def recent_slot(bx, by, bz, a, b):
-    """Slot of block ``(bx, by, bz)`` when it is one of the two blocks looked up last (``a``,
-    ``b``: ``(bx, by, bz, slot)``), else -1. Consecutive rays mostly cross the same two blocks,
-    so most hash lookups are saved."""
-    if bx == a[0] and by == a[1] and bz == a[2]:
-        return a[3]
-    if bx == b[0] and by == b[1] and bz == b[2]:
-        return b[3]
-    return -1
+from dm2.fusion.tsdf.ray_fuse import fuse_ray
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
@@ -233,8 +130,12 @@ def _fuse(register, use_bounds, batch, params, start, table, block_keys, voxels,
     inv_vox = 1.0 / voxel_mm
     inv_trunc = 1.0 / truncation_mm
     carve_vox = CARVE_TRUNCATIONS * truncation_mm * inv_vox
+    consts = (truncation_mm, voxel_mm, inv_vox, inv_trunc, carve_vox, active_weight_cap,
+              max_weight)
     cs = BLOCK_SHIFT + COL_SHIFT
     run = np.empty((CARVE_RUN_VOXELS, 2), dtype=np.int64)
+    no_staging = Staging(np.full(1, -1, dtype=np.int64), np.full(2, -1, dtype=np.int64),
+                         np.full(2, -1, dtype=np.int32), np.zeros(1, dtype=np.int64))
     pose = NO_POSE
     ra = rb = (1 << 40, 0, 0, -1)  # the two blocks looked up last (bx, by, bz, slot)
     for k in range(offsets.shape[0] - 1):
@@ -254,39 +155,7 @@ def _fuse(register, use_bounds, batch, params, start, table, block_keys, voxels,
             n_i = count[i]
             behind = (behind_scale(xz_S, i, offsets[k], offsets[k + 1]) if register else
                       ray_behind_scale(origins_O, points_O, i, points_O.shape[0], r))
-            vx, vy, vz, span, tmx, tmy, tmz, d, steps = \
-                dda_start(ox, oy, oz, dx, dy, dz, r, truncation_mm, voxel_mm, inv_vox)
-            last_bx, last_by, last_bz, slot = 1 << 40, 0, 0, -1
-            t = 0.0
-            while t <= span:
-                bx, by, bz = vx >> BLOCK_SHIFT, vy >> BLOCK_SHIFT, vz >> BLOCK_SHIFT
-                if bx != last_bx or by != last_by or bz != last_bz:
-                    slot = recent_slot(bx, by, bz, ra, rb)
-                    if slot < 0:
-                        slot = _get_or_alloc(bx, by, bz, table_keys, table_slots, block_keys,
-                                             touched, state)
-                        ra, rb = (bx, by, bz, slot), ra
-                    last_bx, last_by, last_bz = bx, by, bz
-                update_voxel(voxels, slot, vx, vy, vz, d, truncation_mm, inv_trunc, act,
-                             active_weight_cap, max_weight, behind, n_i)
-                t, vx, vy, vz, tmx, tmy, tmz, d = dda_step(vx, vy, vz, tmx, tmy, tmz, d, steps)
-            if not act:
-                continue
-            # beyond the band: allocated blocks only; a free run ends at a column edge
-            end = span + carve_vox
-            n_run, run_cx, run_cy = 0, 1 << 40, 0
-            while t <= end:
-                if (vx >> cs) != run_cx or (vy >> cs) != run_cy:
-                    n_run, run_cx, run_cy = 0, vx >> cs, vy >> cs
-                bx, by, bz = vx >> BLOCK_SHIFT, vy >> BLOCK_SHIFT, vz >> BLOCK_SHIFT
-                if bx != last_bx or by != last_by or bz != last_bz:
-                    slot = recent_slot(bx, by, bz, ra, rb)
-                    if slot < 0:
-                        slot = hash_find(table_keys, table_slots, pack_key(bx, by, bz))
-                        if slot >= 0:
-                            ra, rb = (bx, by, bz, slot), ra
-                    last_bx, last_by, last_bz = bx, by, bz
-                n_run = carve_visit(voxels, slot, vx, vy, vz, truncation_mm, run, n_run,
-                                    touched, capacity)
-                t, vx, vy, vz, tmx, tmy, tmz, d = dda_step(vx, vy, vz, tmx, tmy, tmz, d, steps)
+            ra, rb = fuse_ray(False, 0, True, cs, ox, oy, oz, dx, dy, dz, r, act, behind,
+                              n_i, consts, table_keys, table_slots, block_keys, voxels, touched,
+                              state, capacity, 0, no_staging, run, ra, rb)
     return offsets[offsets.shape[0] - 1]

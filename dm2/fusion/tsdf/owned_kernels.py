@@ -22,16 +22,14 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from dm2.fusion.tsdf.carve import CARVE_RUN_VOXELS, CARVE_TRUNCATIONS, carve_visit, walk_columns
-from dm2.fusion.tsdf.deposit import cap_block, cap_box
-from dm2.fusion.tsdf.kernels import (
+from dm2.fusion.tsdf.block_hash import (
     BLOCK_SHIFT,
     MAX_NEW_BLOCKS_PER_RAY,
-    hash_find,
     hash_get_or_insert,
     pack_key,
-    recent_slot,
 )
+from dm2.fusion.tsdf.carve import CARVE_RUN_VOXELS, CARVE_TRUNCATIONS, walk_columns
+from dm2.fusion.tsdf.deposit import cap_block, cap_box
 from dm2.fusion.tsdf.point_rays import (
     NO_POSE,
     behind_scale,
@@ -39,36 +37,7 @@ from dm2.fusion.tsdf.point_rays import (
     profile_pose,
     ray_behind_scale,
 )
-from dm2.fusion.tsdf.ray_walk import dda_start, dda_step, update_voxel
-
-
-@njit(cache=True, nogil=True)
-def _staged_slot(key, base, staging):
-    """Field row of a block the field lacks: its row in the thread's reserved rows (staged
-    now when new; ``staging``: the thread's :class:`~dm2.fusion.tsdf.bundles.Staging`). Not
-    inlined: the fusion loop stays small, and this path is rare."""
-    return base + hash_get_or_insert(key, staging.table_keys, staging.table_slots, staging.keys,
-                                     staging.state)
-
-
-@njit(cache=True, nogil=True)
-def _found_slot(key, table, base, staging):
-    """Field row of an allocated (``table``: the field's
-    :class:`~dm2.fusion.tsdf.bundles.BlockHash`) or staged block, -1 for neither (the carve
-    beyond a ray's band allocates nothing)."""
-    s = hash_find(table.keys, table.slots, key)
-    if s >= 0:
-        return s
-    s = hash_find(staging.table_keys, staging.table_slots, key)
-    return base + s if s >= 0 else -1
-
-
-@njit(cache=True, inline="always")
-def _owner(x, y, shift):
-    """The thread (0 or 1) that owns the column holding index ``(x, y)``: columns are
-    ``2**shift`` indices wide, dealt as a checkerboard (voxel indices with ``BLOCK_SHIFT +
-    col_shift``, block indices with ``col_shift``, column indices with 0)."""
-    return ((x >> shift) + (y >> shift)) & 1
+from dm2.fusion.tsdf.ray_fuse import found_slot, fuse_ray, owner
 
 
 @njit(cache=True, inline="always")
@@ -80,10 +49,10 @@ def _cap_owned(tid, col_shift, spot_O, axis_O, voxel_mm, deposit, table, voxels,
     lo, hi = cap_box(voxel_mm, spot_O, axis_O, radius_mm, half_length_mm)
     for bx in range(lo[0] >> BLOCK_SHIFT, (hi[0] >> BLOCK_SHIFT) + 1):
         for by in range(lo[1] >> BLOCK_SHIFT, (hi[1] >> BLOCK_SHIFT) + 1):
-            if _owner(bx, by, col_shift) != tid:
+            if owner(bx, by, col_shift) != tid:
                 continue
             for bz in range(lo[2] >> BLOCK_SHIFT, (hi[2] >> BLOCK_SHIFT) + 1):
-                slot = _found_slot(pack_key(bx, by, bz), table, base, staging)
+                slot = found_slot(pack_key(bx, by, bz), table.keys, table.slots, base, staging)
                 if slot >= 0:
                     cap_block(voxels, slot, bx, by, bz, lo, hi, voxel_mm, spot_O, axis_O,
                               radius_mm, half_length_mm, weight_cap)
@@ -133,6 +102,8 @@ def _owned(tid, col_shift, start, register, use_bounds, batch, params, deposit, 
     inv_trunc = 1.0 / truncation_mm
     carve_mm = CARVE_TRUNCATIONS * truncation_mm
     carve_vox = carve_mm * inv_vox
+    consts = (truncation_mm, voxel_mm, inv_vox, inv_trunc, carve_vox, active_weight_cap,
+              max_weight)
     cs = BLOCK_SHIFT + col_shift
     run = np.empty((CARVE_RUN_VOXELS, 2), dtype=np.int64)
     st_capacity = staging.keys.shape[0]
@@ -160,51 +131,13 @@ def _owned(tid, col_shift, start, register, use_bounds, batch, params, deposit, 
             cx0, cx1, cy0, cy1 = walk_columns(ox, oy, dx, dy, r, truncation_mm,
                                               carve_mm if act else 0.0, inv_vox, cs)
             mine = cx0 == cx1 and cy0 == cy1
-            if mine and _owner(cx0, cy0, 0) != tid:
+            if mine and owner(cx0, cy0, 0) != tid:
                 continue  # the other thread's column
             behind = (behind_scale(xz_S, i, offsets[k], offsets[k + 1]) if register else
                       ray_behind_scale(origins_O, points_O, i, points_O.shape[0], r))
-            vx, vy, vz, span, tmx, tmy, tmz, d, steps = \
-                dda_start(ox, oy, oz, dx, dy, dz, r, truncation_mm, voxel_mm, inv_vox)
-            last_bx, last_by, last_bz, slot = 1 << 40, 0, 0, -1
-            t = 0.0
-            while t <= span:
-                if mine or _owner(vx, vy, cs) == tid:
-                    bx, by, bz = vx >> BLOCK_SHIFT, vy >> BLOCK_SHIFT, vz >> BLOCK_SHIFT
-                    if bx != last_bx or by != last_by or bz != last_bz:
-                        slot = recent_slot(bx, by, bz, ra, rb)
-                        if slot < 0:
-                            key = pack_key(bx, by, bz)
-                            slot = hash_find(table_keys, table_slots, key)
-                            if slot >= 0:
-                                touched[slot] = True
-                            else:
-                                slot = _staged_slot(key, base, staging)
-                            ra, rb = (bx, by, bz, slot), ra
-                        last_bx, last_by, last_bz = bx, by, bz
-                    update_voxel(voxels, slot, vx, vy, vz, d, truncation_mm, inv_trunc, act,
-                                 active_weight_cap, max_weight, behind, n_i)
-                t, vx, vy, vz, tmx, tmy, tmz, d = dda_step(vx, vy, vz, tmx, tmy, tmz, d, steps)
-            if not act:
-                continue
-            # beyond the band: runs end at column edges, as in the serial walk
-            end = span + carve_vox
-            n_run, run_cx, run_cy = 0, 1 << 40, 0
-            while t <= end:
-                if mine or _owner(vx, vy, cs) == tid:
-                    if (vx >> cs) != run_cx or (vy >> cs) != run_cy:
-                        n_run, run_cx, run_cy = 0, vx >> cs, vy >> cs
-                    bx, by, bz = vx >> BLOCK_SHIFT, vy >> BLOCK_SHIFT, vz >> BLOCK_SHIFT
-                    if bx != last_bx or by != last_by or bz != last_bz:
-                        slot = recent_slot(bx, by, bz, ra, rb)
-                        if slot < 0:
-                            slot = _found_slot(pack_key(bx, by, bz), table, base, staging)
-                            if slot >= 0:
-                                ra, rb = (bx, by, bz, slot), ra
-                        last_bx, last_by, last_bz = bx, by, bz
-                    n_run = carve_visit(voxels, slot, vx, vy, vz, truncation_mm, run, n_run,
-                                        touched, base)
-                t, vx, vy, vz, tmx, tmy, tmz, d = dda_step(vx, vy, vz, tmx, tmy, tmz, d, steps)
+            ra, rb = fuse_ray(True, tid, mine, cs, ox, oy, oz, dx, dy, dz, r, act, behind, n_i,
+                              consts, table_keys, table_slots, table_keys, voxels, touched,
+                              st_state, base, base, staging, run, ra, rb)
     return offsets[offsets.shape[0] - 1]
 
 
