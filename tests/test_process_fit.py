@@ -7,7 +7,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from dm2.pipeline.process_fit import ProcessFit
+from dm2.process.process_fit import ProcessFit
 
 LAYER_MM = 0.8
 
@@ -220,7 +220,7 @@ def test_on_a_plume_shaped_top_scale_and_plume_are_read_together(side_mm):
     # A plume 15 % wider is recovered, scale within 0.5 %; a narrower one within what the
     # finding states (the plume's effect is modelled to first order, and a plume 15 %
     # narrower on a 10 mm bar is past that: read 3.3 % low)
-    from dm2.pipeline.process_top import PLUME_DOUBT
+    from dm2.process.process_top import PLUME_DOUBT
     from dm2.reference.height_map import ReferenceMap
 
     sigma, cell = 2.0, 0.25

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from dm2.defects.classify import CLASS_NAMES
-from dm2.pipeline.process_fit import ProcessFit
-from dm2.pipeline.reobserved_top import MIN_CELLS, ReobservedTop
+from dm2.process.process_fit import ProcessFit
+from dm2.process.reobserved_top import MIN_CELLS, ReobservedTop
 from dm2.reference.height_map import ReferenceMap
 
 CELL_MM = 0.25
@@ -146,7 +146,7 @@ def test_the_scale_is_read_where_the_plume_width_does_not_matter():
 def test_cells_that_changed_since_the_close_are_left_out():
     # a dent cut as the next layer starts lowers part of the finished top the profilers see
     # again; the fused layer never had it, so those cells are not the layer's final surface
-    from dm2.pipeline.reobserved_top import CHANGED_MM, changed_since_close
+    from dm2.process.reobserved_top import CHANGED_MM, changed_since_close
 
     rng = np.random.default_rng(7)
     close = pad_map()

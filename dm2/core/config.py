@@ -172,7 +172,7 @@ class MonitorConfig(_Model):
     # the newest layers whose whole deviation stays in memory; older ones wait on disk for the
     # report (dm2.defects.spill), so a tall build's memory does not grow with its layers
     layers_in_memory: int | None = Field(2, ge=1)
-    # the reference follows the process (dm2.pipeline.process_fit: the first layer calibrates
+    # the reference follows the process (dm2.process.process_fit: the first layer calibrates
     # within 1 +- bound, then rate-limited); None: on with the executed clock only (on the
     # programmed one it would fit the slowdowns' overbuild)
     process_fit: bool | None = None

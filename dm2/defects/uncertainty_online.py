@@ -26,7 +26,7 @@ where that term dominates the predicted variance:
 
 Only the model-shape terms (``MODEL_TERMS``) follow the layer. The floor and range terms are the
 measurement's, and a uniform offset of the whole top is the process fit's business
-(:mod:`dm2.pipeline.process_fit`): raising them would hide a global over- or underbuild.
+(:mod:`dm2.process.process_fit`): raising them would hide a global over- or underbuild.
 The plume term has two bins, concave and convex reference (where the plume's tail lands and
 where it leaves), because a plume of another width or shape errs there by different amounts
 and in opposite directions. The factors of each layer are in report.json

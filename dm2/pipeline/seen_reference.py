@@ -23,13 +23,11 @@ an old top the new one grew over unseen (:mod:`dm2.defects.stale`).
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from numba import njit
 
 from dm2.defects.stale import SeenSurface
-from dm2.reference.height_map import ReferenceMap
+from dm2.reference.height_map import ReferenceMap, cell_of
 
 
 class SeenReference:
@@ -81,16 +79,6 @@ class SeenReference:
         expected = SeenSurface(np.where(seen, self.surface_mm + grown, -np.inf), self.cell_mm)
         return (ReferenceMap(grown, reference.cell_mm, reference.layer, reference.stamp_s),
                 expected)
-
-
-@njit(cache=True, inline="always")
-def cell_of(x_mm, y_mm, cell_mm, ny, nx):
-    """(row, column) of the grid cell holding ``(x_mm, y_mm)``, or (-1, -1) off the grid (NaN
-    included)."""
-    x, y = x_mm / cell_mm, y_mm / cell_mm
-    if not (x >= 0.0 and y >= 0.0 and x < nx and y < ny):
-        return -1, -1
-    return int(math.floor(y)), int(math.floor(x))
 
 
 @njit(cache=True, nogil=True)

@@ -50,12 +50,12 @@ from dm2.defects.layer_analysis import LayerAnalysis, LayerResult
 from dm2.defects.realtime import RealtimeDeviation
 from dm2.fusion.fusion import DEFAULT_MAX_DELAY_S, LayerSurface, TsdfFusion
 from dm2.pipeline.events import LayerClosed, LayerStarted, Observed, SessionTiming
-from dm2.pipeline.fit_schedule import FitSchedule
 from dm2.pipeline.grown_columns import GrownColumns
 from dm2.pipeline.layer_worker import LayerWorker
-from dm2.pipeline.process_fit import ProcessFit, process_fit_on
 from dm2.pipeline.realtime_stage import RealtimeStage
 from dm2.pipeline.seen_reference import SeenReference
+from dm2.process.fit_schedule import FitSchedule
+from dm2.process.process_fit import ProcessFit, process_fit_on
 from dm2.reference.feed import ReferenceFeed
 from dm2.reference.model import NearNetReference
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -192,3 +193,13 @@ def _bilinear_points(heights_mm, cell_mm, xy):
     for k in range(xy.shape[0]):
         out[k] = bilinear_at(heights_mm, cell_mm, xy[k, 0], xy[k, 1])
     return out
+
+
+@njit(cache=True, inline="always")
+def cell_of(x_mm, y_mm, cell_mm, ny, nx):
+    """(row, column) of the grid cell holding ``(x_mm, y_mm)``, or (-1, -1) off the grid (NaN
+    included)."""
+    x, y = x_mm / cell_mm, y_mm / cell_mm
+    if not (x >= 0.0 and y >= 0.0 and x < nx and y < ny):
+        return -1, -1
+    return int(math.floor(y)), int(math.floor(x))

@@ -148,7 +148,7 @@ class NearNetReference:
     def set_process_scale(self, scale: float, rescale_deposited: float = 1.0,
                           analysed_to: int | None = None) -> None:
         """Deposit at ``scale`` times the nominal volume rate from now on (efficiency x feed
-        against nominal; dm2.pipeline.process_fit), and scale what was deposited so far by
+        against nominal; dm2.process.process_fit), and scale what was deposited so far by
         ``rescale_deposited`` (the first layer's calibration), with the finished layers' maps
         in ``layers`` after ``analysed_to`` (not analysed yet); the others keep the heights
         they were analysed against."""

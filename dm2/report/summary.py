@@ -142,7 +142,7 @@ def model_findings(report: dict) -> list[str]:
 def verdict(report: dict) -> dict:
     """``{"headline", "sentences", "more", "defects", "uncertain", "layers", "findings"}``: the
     verdict of a report dict, from its tracks, layers, process findings (what the
-    reference's process fit absorbed, dm2.pipeline.process_fit) and model findings
+    reference's process fit absorbed, dm2.process.process_fit) and model findings
     (:func:`model_findings`) only."""
     findings = [f"Process finding: {f}." for f in
                 (report.get("process") or {}).get("findings", [])]

@@ -30,7 +30,7 @@ observed top (vertices inside the planned outline, ``|n_z| >= TOP_NZ``, not unob
 * **Later layers: a slow follower.** The estimate ``s_hat`` is the measured growth since the
   calibration layer over the growth the reference would have had at the nominal process, read on the
   layer's own top vertices against the calibration layer at the same places
-  (:class:`dm2.pipeline.calibration_top.CalibrationTop`), on those where the plume width does not
+  (:class:`dm2.process.calibration_top.CalibrationTop`), on those where the plume width does not
   matter when enough are (:func:`~.process_top.plume_insensitive`). Where too few of them lie on the
   calibration layer's top it is read as the two layers' top heights. The scale moves towards it by
   at most ``rate_per_layer`` per layer (from then on only; what was deposited stays as it was) and
@@ -50,8 +50,8 @@ from __future__ import annotations
 import numpy as np
 
 from dm2.defects.classify import DEFECT_CLASSES, UNOBSERVED
-from dm2.pipeline.calibration_top import CalibrationTop
-from dm2.pipeline.process_top import (
+from dm2.process.calibration_top import CalibrationTop
+from dm2.process.process_top import (
     MIN_HEIGHT_MM,
     MIN_TOP_VERTICES,
     PLUME_DOUBT,
@@ -210,7 +210,7 @@ class ProcessFit:
 
     def recalibrate(self, top) -> tuple[float, float, float] | None:
         """The calibration again from the calibration layer's top as the profilers saw it
-        once the next layer had begun (:class:`dm2.pipeline.reobserved_top.ReobservedTop`),
+        once the next layer had begun (:class:`dm2.process.reobserved_top.ReobservedTop`),
         when enough of it was seen: the ``(scale, rescale, plume)`` to apply instead of the
         layer's own, or None to keep those. Later estimates still measure the growth since
         the fused calibration layer, whose lag then cancels."""

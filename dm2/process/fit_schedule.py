@@ -1,6 +1,6 @@
 """When a layer's process fit reaches the reference: at a fixed point of the stream.
 
-The analysis of each closed layer proposes a process fit (:class:`~dm2.pipeline.process_fit.
+The analysis of each closed layer proposes a process fit (:class:`~dm2.process.process_fit.
 ProcessFit`: the deposition scale from here, the rescale of what the reference already holds, the
 plume width, and the model-error factors the layer measured). Were it applied the moment the
 analysis ends, the reference would change at a point of the stream that depends on whether the
@@ -8,14 +8,14 @@ analysis ran inline or on the worker thread. :class:`FitSchedule` holds the prop
 robot states up to ``FIT_APPLY_DELAY_S`` of stream time past the layer's close are integrated,
 or the next layer closes, whichever comes first, and applies it there: the same results either
 way. While a layer may calibrate the process, its top seen again until then
-(:class:`~dm2.pipeline.reobserved_top.ReobservedTop`) gives the calibration when enough of it
+(:class:`~dm2.process.reobserved_top.ReobservedTop`) gives the calibration when enough of it
 was seen.
 """
 
 from __future__ import annotations
 
 from dm2.defects.uncertainty_online import live_factors
-from dm2.pipeline.reobserved_top import ReobservedTop
+from dm2.process.reobserved_top import ReobservedTop
 
 FIT_APPLY_DELAY_S = 5.0  # [s] stream time after a layer's close its process fit applies at
 
@@ -25,7 +25,7 @@ class FitSchedule:
 
     Parameters
     ----------
-    process_fit : the session's :class:`~dm2.pipeline.process_fit.ProcessFit`, or None (then
+    process_fit : the session's :class:`~dm2.process.process_fit.ProcessFit`, or None (then
         nothing is ever pending)
     reference, seen, grown, realtime : the session's near-net reference, seen reference, grown
         columns and real-time deviation, which a fit rescales

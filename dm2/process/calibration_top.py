@@ -1,7 +1,7 @@
 """The calibration layer's top, kept so that each later layer's growth is read where it is
 measured.
 
-The process fit (:mod:`dm2.pipeline.process_fit`) follows the deposition scale by the growth of
+The process fit (:mod:`dm2.process.process_fit`) follows the deposition scale by the growth of
 the part's top since the calibration layer against the growth of the reference. Each layer's
 top (its plateau's well observed vertices) is another set of points: a narrow part's first-layer
 plateau is a 7 mm ring, the third layer's its few highest patches. Medians over different sets
@@ -18,7 +18,7 @@ place, both the calibration layer's reference and, carried from the nearest cali
 within ``MATCH_MM``, how far the measurement stood from it. :meth:`growth_ratio` is the
 area-weighted median growth of the measurement over that of the reference, read as the
 reference's growth plus the median difference of the two, the way the calibration reads a
-height (:func:`dm2.pipeline.process_top.top_heights`).
+height (:func:`dm2.process.process_top.top_heights`).
 """
 
 from __future__ import annotations

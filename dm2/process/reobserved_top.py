@@ -1,6 +1,6 @@
 """The calibration layer's top as the profilers see it again once the next layer has begun.
 
-The first-layer calibration (:mod:`dm2.pipeline.process_fit`) measures the deposition scale as
+The first-layer calibration (:mod:`dm2.process.process_fit`) measures the deposition scale as
 the ratio of the measured to the reference top. The fused surface of a layer at its close lags
 the part's true top: the plume's flank keeps depositing on a column after its last observations,
 and the fused average still holds the observations made while the column grew. On a thin first
@@ -18,7 +18,7 @@ measured-minus-reference difference over the cells seen, against the reference's
 the scale the calibration then uses, when at least ``MIN_CELLS`` cells were seen (else the
 calibration keeps the fused layer's estimate). Like the fused layer's estimate, it is read only
 on the cells where the plume width does not move the reference, when at least ``MIN_CELLS``
-of those were seen (:func:`dm2.pipeline.process_top.plume_insensitive`). Cells near a flagged
+of those were seen (:func:`dm2.process.process_top.plume_insensitive`). Cells near a flagged
 defect of the calibration layer are left out, as the fused layer's estimate leaves out defect
 vertices. So are cells seen again far from where the fused layer had them (``CHANGED_MM``, or
 four robust spreads, off the cells' median difference): the lag only adds a few hundredths of
@@ -36,14 +36,13 @@ import numpy as np
 from numba import njit
 from scipy.spatial import cKDTree
 
-from dm2.pipeline.process_top import (
+from dm2.process.process_top import (
     MIN_HEIGHT_MM,
     PLATEAU_FRACTION,
     PLATEAU_SLOPE,
     plume_insensitive,
 )
-from dm2.pipeline.seen_reference import cell_of
-from dm2.reference.height_map import ReferenceMap
+from dm2.reference.height_map import ReferenceMap, cell_of
 
 FRESH_GROWTH = 0.01  # a column counts as finished while the reference grew less than this share
 MIN_CELLS = 200  # reference cells seen again on the plateau for an estimate (12.5 mm2 at 0.25)

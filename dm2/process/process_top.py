@@ -1,4 +1,4 @@
-"""Where the process fit (:mod:`dm2.pipeline.process_fit`) reads the part: the top's vertices,
+"""Where the process fit (:mod:`dm2.process.process_fit`) reads the part: the top's vertices,
 the plateau where the deposition scale shows, the places where the plume width does not move
 the reference, and the plume width that the first layer's edges show."""
 
@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from dm2.defects.classify import DEFECT_CLASSES, UNOBSERVED
-from dm2.pipeline.calibration_top import weighted_median
+from dm2.process.calibration_top import weighted_median
 
 TOP_NZ = 0.95  # |n_z| of a vertex counted as the part's top
 MIN_TOP_VERTICES = 50  # fewer top vertices: no estimate this layer
