@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from dm2.cli.common import app, bad_input_exits, console, fail
+from dm2.cli.common import app, bad_input_exits, console, fail, require_extra
 
 
 @app.command()
@@ -44,6 +44,7 @@ def simulate(
         check_output_file(out, force=force, inputs=[path])
         kept = None if truth is None else prepare_output_dir(truth, force=force)
     if gui:
+        require_extra("pybullet", "twin", "--gui")
         _require_display()
     from twin.cell.kinematics import ReachError
     from twin.stream.simulate import Simulation

@@ -12,7 +12,7 @@ import typer
 from rich.table import Table
 
 from dm2.cli.cmd_bench import fmt_cell
-from dm2.cli.common import app, bad_input_exits, console, fail
+from dm2.cli.common import app, bad_input_exits, console, fail, require_extra
 from dm2.report.outdir import claim_outputs, prepare_output_dir
 
 
@@ -47,6 +47,7 @@ def sweep(
 
     Example: `dm2 sweep scenarios/suites/smoke/bump.toml --sizes 0.2,0.4,0.8 --seeds 4`
     """
+    require_extra("distributed", "cluster", "dm2 sweep")
     from dm2.bench.suites import apply_overrides
     from dm2.bench.sweep import plot_sweep, run_sweep, summarize_sweep, sweep_cases
     from dm2.core.config import load_scenario, parse_scenario

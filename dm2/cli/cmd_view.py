@@ -6,13 +6,14 @@ from pathlib import Path
 
 import typer
 
-from dm2.cli.common import app, bad_input_exits, console
+from dm2.cli.common import app, bad_input_exits, console, require_extra
 
 VIEW_PORT = 8080
 
 
 def start_live_view(calibration, pose_source, port: int, limit_mm: float = 1.0):
     """A dm2.view.live.LiveView on 127.0.0.1:port, its URL printed."""
+    require_extra("viser", "view", "--view")
     from dm2.view.live import LiveView
 
     view = LiveView(calibration, pose_source, limit_mm=limit_mm, port=port)
@@ -34,6 +35,7 @@ def view(
 
     Example: `dm2 view runs/latest` then open the printed URL
     """
+    require_extra("viser", "view", "dm2 view")
     from dm2.view.live import serve_forever
     from dm2.view.run_folder import RunFolderView, report_dir
     from dm2.view.scene import start_server, url_of

@@ -105,6 +105,18 @@ def fail(message: str, code: int = EXIT_BAD_INPUT) -> None:
     raise typer.Exit(code)
 
 
+def require_extra(module: str, extra: str, what: str) -> None:
+    """Exit 2 with the line that installs it when ``module``, which only the package's optional
+    ``extra`` installs, is missing (``what``: the command or option that needs it)."""
+    import importlib
+
+    try:
+        importlib.import_module(module)
+    except ImportError:
+        fail(f"{what} needs the optional package {module}, which this installation lacks: "
+             f"pip install 'dm2[{extra}]'")
+
+
 @contextmanager
 def bad_input_exits():
     """Turn the project's input errors into a clear message and exit code 2."""
