@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import math
 import time
 from datetime import datetime
 from pathlib import Path
@@ -12,19 +11,10 @@ import typer
 from rich.markup import escape
 from rich.table import Table
 
-from dm2.cli.common import app, bad_input_exits, console, err_console
+from dm2.cli.common import app, bad_input_exits, console, err_console, fmt_cell
 from dm2.report.outdir import claim_outputs, prepare_output_dir
 
 EXIT_FAILED = 1
-
-
-def fmt_cell(v, spec: str = "{:.2f}") -> str:
-    """A table cell: ``-`` for none or not finite, yes/NO for a flag, else ``spec``."""
-    if v is None or (isinstance(v, float) and not math.isfinite(v)):
-        return "-"
-    if isinstance(v, bool):
-        return "yes" if v else "NO"
-    return spec.format(v)
 
 
 def bench_table(runs: dict[str, dict]) -> Table:

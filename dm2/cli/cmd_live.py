@@ -44,7 +44,7 @@ def run_live_monitor(cell_path: Path, out: Path, max_duration_s: float | None = 
         fail(f"{cell_path}: cannot open the live sources: {exc}")
     view = None
     if view_port is not None:
-        from dm2.cli.cmd_view import start_live_view
+        from dm2.cli.common import start_live_view
 
         pipeline = runner.analysis.pipeline
         view = start_live_view(runner.calibration, lambda: pipeline.last_T_B_F, view_port)

@@ -210,7 +210,7 @@ def monitor(
     pipeline = Pipeline(cal, monitor_cfg, process, plate_size_mm=plate_mm, toolpath=tp,
                         on_layer=on_layer, gates=gates)
     if view:
-        from dm2.cli.cmd_view import start_live_view
+        from dm2.cli.common import start_live_view
 
         live_view = start_live_view(cal, lambda: pipeline.last_T_B_F, view_port)
     mon = pipeline.fusion

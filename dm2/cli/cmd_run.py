@@ -159,7 +159,7 @@ def run(
         def on_pipeline(pipeline):
             nonlocal view_handle
             if view:
-                from dm2.cli.cmd_view import start_live_view
+                from dm2.cli.common import start_live_view
 
                 view_handle = start_live_view(pipeline.fusion.calibration,
                                               lambda: pipeline.last_T_B_F, view_port)

@@ -11,8 +11,7 @@ from pathlib import Path
 import typer
 from rich.table import Table
 
-from dm2.cli.cmd_bench import fmt_cell
-from dm2.cli.common import app, bad_input_exits, console, fail, require_extra
+from dm2.cli.common import app, bad_input_exits, console, fail, fmt_cell, require_extra
 from dm2.report.outdir import claim_outputs, prepare_output_dir
 
 

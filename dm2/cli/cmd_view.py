@@ -11,16 +11,6 @@ from dm2.cli.common import app, bad_input_exits, console, require_extra
 VIEW_PORT = 8080
 
 
-def start_live_view(calibration, pose_source, port: int, limit_mm: float = 1.0):
-    """A dm2.view.live.LiveView on 127.0.0.1:port, its URL printed."""
-    require_extra("viser", "view", "--view")
-    from dm2.view.live import LiveView
-
-    view = LiveView(calibration, pose_source, limit_mm=limit_mm, port=port)
-    console.print(f"3D view: [bold]{view.url}[/]")
-    return view
-
-
 @app.command()
 def view(
     run: Path = typer.Argument(..., help="Run folder (from `dm2 run`, or `dm2 monitor --out`)."),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 from contextlib import contextmanager
 
 import typer
@@ -142,3 +143,23 @@ def main_callback(
     verbose: bool = typer.Option(False, "--verbose", "-v", help="Debug logging."),
 ) -> None:
     setup_logging(verbose)
+
+
+def start_live_view(calibration, pose_source, port: int, limit_mm: float = 1.0):
+    """The live 3D view (dm2.view.live.LiveView) on 127.0.0.1:port, its URL printed; the
+    ``[view]`` extra named when it is missing."""
+    require_extra("viser", "view", "--view")
+    from dm2.view.live import LiveView
+
+    view = LiveView(calibration, pose_source, limit_mm=limit_mm, port=port)
+    console.print(f"3D view: [bold]{view.url}[/]")
+    return view
+
+
+def fmt_cell(v, spec: str = "{:.2f}") -> str:
+    """A table cell: ``-`` for none or not finite, yes/NO for a flag, else ``spec``."""
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "-"
+    if isinstance(v, bool):
+        return "yes" if v else "NO"
+    return spec.format(v)
