@@ -33,6 +33,18 @@ def test_one_line_per_drop_reason_largest_first():
         "dropped 40 points: nan_points", "dropped 3 messages: late_message"]
 
 
+def test_profiles_that_saw_nothing_are_counted_not_announced():
+    dropped = {"empty_profile": 143, "late_message": 2}
+    assert drop_lines(dropped) == ["dropped 2 messages: late_message"]
+    # they still count towards the lost share, and a failed run names them
+    code, text = run_verdict(profiles_fused=10, messages_in=400, max_lost_share=0.25,
+                             dropped=dropped)
+    assert code == EXIT_MISSED and "145 of 400" in text
+    assert "143 of them profiles that saw nothing in range" in text
+    assert run_verdict(profiles_fused=10, messages_in=4000, max_lost_share=0.25,
+                       dropped=dropped) == (EXIT_OK, None)
+
+
 def test_damaged_input_is_one_sentence():
     assert damaged_input_sentence({"complete": True}) is None
     text = damaged_input_sentence({"file": "cut.mcap", "complete": False,
