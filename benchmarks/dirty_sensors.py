@@ -3,7 +3,8 @@
 A 22 x 16 x 8 mm box (10 layers of 0.8 mm, default toolpath, seed 1) is simulated on the twin
 and monitored once with only the 0.05 mm range noise, then once per artefact with that
 artefact alone at its level in the table below (the "realistic" preset's level,
-``scenarios/noise/realistic.toml``). Printed per case: the reconstruction RMS against the
+``[noise] preset = "realistic"``, ``twin.schema.NOISE_PRESETS``), and once with the whole
+preset. Printed per case: the reconstruction RMS against the
 twin's true surface (the bench's check, :func:`dm2.bench.reconstruction.truth_checks`: the
 RMS over layers of each layer's RMS, and the worst layer's), the share of profile points the
 pipeline rejected before fusion (:mod:`dm2.fusion.point_filter`), false tracks and wall time.
@@ -32,6 +33,13 @@ ARTEFACTS: dict[str, dict] = {
     "speckle": {"speckle_sigma_mm": 0.02},
     "dropout": {"dropout_prob": 0.02},
     "outliers": {"outlier_prob": 0.002},
+    "plume": {"plume_particle_prob": 0.02},
+    "ghost lines": {"ghost_line_prob": 0.05},
+    "specular": {"specular_run_prob": 0.05},
+    "bursts": {"burst_prob": 0.02},
+    "jitter+lost": {"clock_jitter_ms": 1.0, "lost_profile_prob": 0.005},
+    "drift": {"mount_drift_mm_min": 0.02},
+    "realistic": {"preset": "realistic"},
 }
 
 
