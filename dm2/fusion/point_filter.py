@@ -15,7 +15,9 @@ no wider than its place between them: where a profile comes in fragments (occlus
 walls) no line is trusted across a gap. On a surface the TSDF can resolve (0.5 mm voxels
 against 0.08 mm between points) no point lies that far off a line its neighbours agree on;
 at an edge or a corner the neighbours do not agree on one line, so nothing there is
-rejected. Points within three of a profile's ends are never tested.
+rejected. Points within three of a profile's ends are never tested. Only a run entered and
+left by a jump of more than ``reject_mm - agree_mm / 2`` between neighbours is fitted at all
+(a clean profile has none, so it costs a pass over its points).
 
 :class:`PointFilter` applies it to a batch of profiles and counts what it took out, by
 reason and by sensor (report.json ``point_filter``).
@@ -33,6 +35,14 @@ REASONS = {SINGLE: "single", BURST: "burst"}
 SIDE = 3  # points tried on each side of a run
 # the gap across a run along the line is at most this many times its length in steps
 GAP_SLACK = 2.5
+
+
+@njit(cache=True, nogil=True)
+def _jump(xz, q):
+    """Distance [mm] from point ``q`` to point ``q + 1``."""
+    dx = xz[q + 1, 0] - xz[q, 0]
+    dz = xz[q + 1, 1] - xz[q, 1]
+    return np.sqrt(dx * dx + dz * dz)
 
 
 @njit(cache=True, nogil=True)
@@ -122,23 +132,23 @@ def line_outliers(xz_S, offsets, reject_mm, agree_mm, max_step_mm, max_run, out_
     docstring). Shorter runs are tried first; a rejected run is skipped past."""
     out_reason[:] = KEEP
     idx = np.empty(2 * SIDE, dtype=np.int64)
+    jump_mm = reject_mm - 0.5 * agree_mm
     for p in range(offsets.shape[0] - 1):
         a, b = offsets[p], offsets[p + 1]
         i = a + SIDE
         while i < b - SIDE:
             found = 0
-            # a run starts where its first point leaves the line of its left neighbours
-            dx = xz_S[i - 1, 0] - xz_S[i - 2, 0]
-            dz = xz_S[i - 1, 1] - xz_S[i - 2, 1]
-            norm = np.sqrt(dx * dx + dz * dz)
-            lead = (abs((xz_S[i, 0] - xz_S[i - 1, 0]) * dz - (xz_S[i, 1] - xz_S[i - 1, 1]) * dx)
-                    / norm if norm > 0.0 else np.inf)
-            for r in range(1, max_run + 1):
-                if i + r + SIDE > b or lead <= 0.5 * reject_mm:
-                    break
-                if _run_is_off(xz_S, i, r, a, b, reject_mm, agree_mm, max_step_mm, idx):
-                    found = r
-                    break
+            # a run starts with a jump off its left neighbour and ends with one back to its
+            # right neighbour (screens before the fit: a clean profile has neither)
+            if _jump(xz_S, i - 1) > jump_mm:
+                for r in range(1, max_run + 1):
+                    if i + r + SIDE > b:
+                        break
+                    if (_jump(xz_S, i + r - 1) > jump_mm
+                            and _run_is_off(xz_S, i, r, a, b, reject_mm, agree_mm,
+                                            max_step_mm, idx)):
+                        found = r
+                        break
             if found:
                 code = SINGLE if found == 1 else BURST
                 for q in range(i, i + found):
