@@ -16,8 +16,9 @@ walls) no line is trusted across a gap. On a surface the TSDF can resolve (0.5 m
 against 0.08 mm between points) no point lies that far off a line its neighbours agree on;
 at an edge or a corner the neighbours do not agree on one line, so nothing there is
 rejected. Points within three of a profile's ends are never tested. Only a run entered and
-left by a jump of more than ``reject_mm - agree_mm / 2`` between neighbours is fitted at all
-(a clean profile has none, so it costs a pass over its points).
+left by a jump of more than ``reject_mm - agree_mm / 2`` between neighbours, whose first point
+lies that far off the chord across it, is fitted at all (a clean profile has few, so it costs
+about a pass over its points).
 
 :class:`PointFilter` applies it to a batch of profiles and counts what it took out, by
 reason and by sensor (report.json ``point_filter``).
@@ -43,6 +44,17 @@ def _jump(xz, q):
     dx = xz[q + 1, 0] - xz[q, 0]
     dz = xz[q + 1, 1] - xz[q, 1]
     return np.sqrt(dx * dx + dz * dz)
+
+
+@njit(cache=True, nogil=True)
+def _off_chord(xz, j, k, p):
+    """Distance [mm] of point ``p`` from the line through points ``j`` and ``k``."""
+    dx = xz[k, 0] - xz[j, 0]
+    dz = xz[k, 1] - xz[j, 1]
+    norm = np.sqrt(dx * dx + dz * dz)
+    if norm == 0.0:
+        return 0.0
+    return abs((xz[p, 0] - xz[j, 0]) * dz - (xz[p, 1] - xz[j, 1]) * dx) / norm
 
 
 @njit(cache=True, nogil=True)
@@ -145,6 +157,7 @@ def line_outliers(xz_S, offsets, reject_mm, agree_mm, max_step_mm, max_run, out_
                     if i + r + SIDE > b:
                         break
                     if (_jump(xz_S, i + r - 1) > jump_mm
+                            and _off_chord(xz_S, i - 1, i + r, i) > jump_mm
                             and _run_is_off(xz_S, i, r, a, b, reject_mm, agree_mm,
                                             max_step_mm, idx)):
                         found = r
@@ -156,6 +169,20 @@ def line_outliers(xz_S, offsets, reject_mm, agree_mm, max_step_mm, max_run, out_
                 i += found
             else:
                 i += 1
+
+
+@njit(cache=True, nogil=True)
+def count_reasons(offsets, rows, reason, points, rejected):
+    """Add each profile's points to ``points[rows[j]]`` and its rejected points to
+    ``rejected[rows[j], reason]``; returns how many were rejected."""
+    bad = 0
+    for j in range(offsets.shape[0] - 1):
+        points[rows[j]] += offsets[j + 1] - offsets[j]
+        for q in range(offsets[j], offsets[j + 1]):
+            if reason[q] != KEEP:
+                rejected[rows[j], reason[q]] += 1
+                bad += 1
+    return bad
 
 
 class PointFilter:
@@ -190,14 +217,11 @@ class PointFilter:
         line_outliers(xz_S, offsets, self.reject_mm, self.agree_mm, self.max_step_mm,
                       self.max_run, reason)
         rows = np.asarray(sensor_rows, dtype=np.int64)
-        np.add.at(self.points, rows, np.diff(offsets))
-        bad = reason != KEEP
-        if not bad.any():
+        if not count_reasons(offsets, rows, reason, self.points, self.rejected):
             return xz_S, offsets
-        profile = np.repeat(np.arange(rows.size), np.diff(offsets))
-        np.add.at(self.rejected, (rows[profile[bad]], reason[bad]), 1)
-        kept_before = np.concatenate([[0], np.cumsum(~bad)])
-        return np.ascontiguousarray(xz_S[~bad]), kept_before[offsets]
+        keep = reason == KEEP
+        kept_before = np.concatenate([[0], np.cumsum(keep)])
+        return np.ascontiguousarray(xz_S[keep]), kept_before[offsets]
 
     def counts(self) -> dict[str, int]:
         """Rejected points by reason, all sensors (``point_filter_<reason>``, non-zero only)."""
