@@ -93,3 +93,17 @@ def test_clean_batch_is_passed_through_unchanged():
     pf = PointFilter(CFG.reject_mm, CFG.agree_mm, CFG.max_step_mm, CFG.max_run_points, ["S1"])
     out, out_offsets = pf.apply(xz, offsets, [0])
     assert out is xz and out_offsets is offsets and pf.counts() == {}
+
+
+def test_a_sensor_rejecting_far_more_than_usual_is_a_finding_in_the_verdict():
+    from dm2.report.summary import verdict
+
+    report = {"layers": [], "tracks": [], "point_filter": {"by_sensor": {
+        "S1": {"points": 1000, "rejected": 4, "share": 0.004},
+        "S2": {"points": 1000, "rejected": 140, "share": 0.14},
+        "S3": {"points": 1000, "rejected": 19, "share": 0.019}}}}
+    v = verdict(report)
+    assert v["sentences"] == ["Sensor finding: S2 rejected 14 % of its points as not surface "
+                              "(window dirty, or spatter on the line?)."]
+    assert v["findings"] == 1 and v["defects"] == 0
+    assert verdict({"layers": [], "tracks": []})["findings"] == 0

@@ -139,14 +139,30 @@ def model_findings(report: dict) -> list[str]:
     return out
 
 
+# a profiler whose points the pipeline rejected before fusion (dm2.fusion.point_filter) at this
+# share or more is said in the verdict: 5x the realistic sensor preset's whole share (0.4 %)
+SENSOR_FINDING_SHARE = 0.02
+
+
+def sensor_findings(report: dict) -> list[str]:
+    """The profilers that lost :data:`SENSOR_FINDING_SHARE` of their points or more to the
+    point filter (report.json ``point_filter``), e.g. "S2 rejected 14 % of its points as not
+    surface (window dirty, or spatter on the line?)"."""
+    per = (report.get("point_filter") or {}).get("by_sensor") or {}
+    return [f"{sid} rejected {100 * s['share']:.0f} % of its points as not surface (window "
+            "dirty, or spatter on the line?)" for sid, s in per.items()
+            if s.get("share", 0.0) >= SENSOR_FINDING_SHARE]
+
+
 def verdict(report: dict) -> dict:
     """``{"headline", "sentences", "more", "defects", "uncertain", "layers", "findings"}``: the
     verdict of a report dict, from its tracks, layers, process findings (what the
-    reference's process fit absorbed, dm2.pipeline.process_fit) and model findings
-    (:func:`model_findings`) only."""
+    reference's process fit absorbed, dm2.pipeline.process_fit), model findings
+    (:func:`model_findings`) and sensor findings (:func:`sensor_findings`) only."""
     findings = [f"Process finding: {f}." for f in
                 (report.get("process") or {}).get("findings", [])]
     findings += [f"Model finding: {f}." for f in model_findings(report)]
+    findings += [f"Sensor finding: {f}." for f in sensor_findings(report)]
     tracks = by_severity(report.get("tracks", []))
     defects = [t for t in tracks if is_defect(t)]
     uncertain = len(tracks) - len(defects)
