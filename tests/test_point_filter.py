@@ -107,3 +107,30 @@ def test_a_sensor_rejecting_far_more_than_usual_is_a_finding_in_the_verdict():
                               "(window dirty, or spatter on the line?)."]
     assert v["findings"] == 1 and v["defects"] == 0
     assert verdict({"layers": [], "tracks": []})["findings"] == 0
+
+
+def test_the_finding_says_since_which_layer_and_the_layers_are_counted():
+    from dm2.report.summary import sensor_findings
+
+    pf = PointFilter(CFG.reject_mm, CFG.agree_mm, CFG.max_step_mm, CFG.max_run_points,
+                     ["S1", "S2"])
+    for layer in range(4):  # S2's window gets dirty at layer 2: a ghost in each profile
+        for _ in range(10):
+            a, b = profile(layer), profile(layer + 10)
+            if layer >= 2:
+                b[100, 1] += 2.0
+                b[300:305, 1] += 1.5
+            pf.apply(np.concatenate([a, b]), np.array([0, 640, 1280]), [0, 1])
+        pf.close_layer(layer)
+    s = pf.summary()
+    assert [lay["rejected"] for lay in s["by_layer"]] == [
+        {"S1": 0, "S2": 0}, {"S1": 0, "S2": 0}, {"S1": 0, "S2": 60}, {"S1": 0, "S2": 60}]
+    assert all(lay["points"] == {"S1": 6400, "S2": 6400} for lay in s["by_layer"])
+    # over the whole run S2 lost 120 / 25600 = 0.5 %: under the finding's 2 %
+    assert sensor_findings({"point_filter": s}) == []
+    # the same rate in a sensor with fewer points: 6 of 100 per layer from layer 2 on
+    report = {"point_filter": {"by_sensor": {"S2": {"share": 0.03}}, "by_layer": [
+        {"layer": k, "points": {"S2": 100}, "rejected": {"S2": 0 if k < 2 else 6}}
+        for k in range(4)]}}
+    assert sensor_findings(report) == ["S2 rejected 6 % of its points since layer 2 as not "
+                                       "surface (window dirty, or spatter on the line?)"]

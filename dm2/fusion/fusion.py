@@ -266,6 +266,8 @@ class TsdfFusion:
                                                                           strict=True))
 
     def _finish_layer(self, layer: int) -> None:
+        if self.point_filter is not None:
+            self.point_filter.close_layer(layer)
         pending = self.extractor.gather()
         log.info("layer %d done: %d blocks, %d chunks to mesh", layer, self.tsdf.n_blocks,
                  pending.n_to_mesh)

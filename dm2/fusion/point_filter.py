@@ -198,6 +198,8 @@ class PointFilter:
     ----------
     points : (sensors,) int64, points seen per sensor
     rejected : (sensors, reasons) int64, points rejected per sensor and reason
+    layers : ``[(layer, points (sensors,), rejected (sensors,))]``: each finished layer's own
+        counts (:meth:`close_layer`)
     """
 
     def __init__(self, reject_mm: float, agree_mm: float, max_step_mm: float, max_run: int,
@@ -209,6 +211,15 @@ class PointFilter:
         self.sensor_ids = list(sensor_ids)
         self.points = np.zeros(len(self.sensor_ids), dtype=np.int64)
         self.rejected = np.zeros((len(self.sensor_ids), len(REASONS) + 1), dtype=np.int64)
+        self.layers: list[tuple[int, np.ndarray, np.ndarray]] = []
+        self._at_close = (self.points.copy(), self.rejected.sum(axis=1))
+
+    def close_layer(self, layer: int) -> None:
+        """Keep what the layer ``layer`` that just finished saw and rejected, per sensor."""
+        points, rejected = self.points.copy(), self.rejected.sum(axis=1)
+        self.layers.append((int(layer), points - self._at_close[0],
+                            rejected - self._at_close[1]))
+        self._at_close = (points, rejected)
 
     def apply(self, xz_S: np.ndarray, offsets: np.ndarray, sensor_rows):
         """``(xz_S, offsets)`` of the batch with the rejected points taken out (the same
@@ -230,7 +241,9 @@ class PointFilter:
                 if tot[code]}
 
     def summary(self) -> dict:
-        """report.json ``point_filter``: points seen and rejected by reason, per sensor."""
+        """report.json ``point_filter``: points seen and rejected by reason, per sensor, and
+        per finished layer (``by_layer``: ``{"layer", "points": {sensor: n}, "rejected":
+        {sensor: n}}``)."""
         per = {}
         for s, sid in enumerate(self.sensor_ids):
             n, rej = int(self.points[s]), self.rejected[s]
@@ -241,4 +254,8 @@ class PointFilter:
         total = int(self.rejected.sum())
         return {"reject_mm": self.reject_mm, "max_run": self.max_run, "points": n,
                 "rejected": total, "share": float(total / n) if n else 0.0,
-                "by_sensor": per}
+                "by_sensor": per,
+                "by_layer": [{"layer": layer,
+                              "points": dict(zip(self.sensor_ids, pts.tolist(), strict=True)),
+                              "rejected": dict(zip(self.sensor_ids, rej.tolist(), strict=True))}
+                             for layer, pts, rej in self.layers]}

@@ -146,12 +146,29 @@ SENSOR_FINDING_SHARE = 0.02
 
 def sensor_findings(report: dict) -> list[str]:
     """The profilers that lost :data:`SENSOR_FINDING_SHARE` of their points or more to the
-    point filter (report.json ``point_filter``), e.g. "S2 rejected 14 % of its points as not
-    surface (window dirty, or spatter on the line?)"."""
-    per = (report.get("point_filter") or {}).get("by_sensor") or {}
-    return [f"{sid} rejected {100 * s['share']:.0f} % of its points as not surface (window "
-            "dirty, or spatter on the line?)" for sid, s in per.items()
-            if s.get("share", 0.0) >= SENSOR_FINDING_SHARE]
+    point filter (report.json ``point_filter``), since the first layer that rejected that much
+    and from which on the layers together did, e.g. "S2 rejected 14 % of its points since
+    layer 30 as not surface (window dirty, or spatter on the line?)"."""
+    pf = report.get("point_filter") or {}
+    out = []
+    for sid, s in (pf.get("by_sensor") or {}).items():
+        if s.get("share", 0.0) < SENSOR_FINDING_SHARE:
+            continue
+        # since the first layer that rejected that much itself and from which on the layers
+        # together did
+        since, share = None, s["share"]
+        layers = pf.get("by_layer") or []
+        for k, lay in enumerate(layers):
+            n, r = lay["points"].get(sid, 0), lay["rejected"].get(sid, 0)
+            n_on = sum(la["points"].get(sid, 0) for la in layers[k:])
+            r_on = sum(la["rejected"].get(sid, 0) for la in layers[k:])
+            if n and r / n >= SENSOR_FINDING_SHARE and r_on / n_on >= SENSOR_FINDING_SHARE:
+                since, share = lay["layer"], r_on / n_on
+                break
+        when = f" since layer {since}" if since is not None else ""
+        out.append(f"{sid} rejected {100 * share:.0f} % of its points{when} as not surface "
+                   "(window dirty, or spatter on the line?)")
+    return out
 
 
 def verdict(report: dict) -> dict:
