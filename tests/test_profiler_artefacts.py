@@ -158,3 +158,23 @@ def test_filter_takes_out_exactly_a_twin_burst(counter):
                   cfg.max_run_points, reason)
     rays = np.flatnonzero(d.valid)
     np.testing.assert_array_equal(rays[reason != KEEP], burst)
+
+
+def test_filter_kernel_equals_its_plain_statement_on_dirty_twin_profiles():
+    from tests.oracles.point_filter_numpy import line_outliers_numpy
+
+    noise = NoiseConfig(preset="realistic", burst_prob=0.5, ghost_line_prob=0.5,
+                        outlier_prob=0.01)
+    hf, prof = _profiler(noise)
+    cfg = PointFilterConfig()
+    xzs = [np.ascontiguousarray(p.xz_S[p.valid]) for p in
+           (prof.scan(hf, T_B_O, 0.1 * k, k) for k in range(40))]
+    xz = np.concatenate(xzs)
+    offsets = np.concatenate([[0], np.cumsum([len(a) for a in xzs])])
+    got = np.empty(len(xz), np.int8)
+    line_outliers(xz, offsets, cfg.reject_mm, cfg.agree_mm, cfg.max_step_mm,
+                  cfg.max_run_points, got)
+    want = line_outliers_numpy(xz, offsets, cfg.reject_mm, cfg.agree_mm, cfg.max_step_mm,
+                               cfg.max_run_points)
+    assert (want != KEEP).sum() > 100  # the artefacts were found
+    np.testing.assert_array_equal(got, want)
