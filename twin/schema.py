@@ -92,7 +92,21 @@ class CellConfig(_Model):
     wrist_singularity_deg: float = Field(5.0, ge=0, lt=90)  # smallest allowed |axis 5|
 
 
+# [noise] preset = "realistic": a cold-spray cell's dirty profilers (docs/dirty-sensors.md
+# says where each level comes from); keys given beside the preset override its values
+NOISE_PRESETS: dict[str, dict] = {
+    "realistic": {
+        "range_sigma_mm": 0.05, "speckle_sigma_mm": 0.02, "dropout_prob": 0.02,
+        "outlier_prob": 0.002, "plume_particle_prob": 0.02, "ghost_line_prob": 0.05,
+        "specular_run_prob": 0.05, "burst_prob": 0.02, "clock_jitter_ms": 1.0,
+        "lost_profile_prob": 0.005, "mount_drift_mm_min": 0.02,
+    },
+}
+
+
 class NoiseConfig(_Model):
+    # a named set of the levels below (NOISE_PRESETS); keys given beside it override it
+    preset: Literal["realistic"] | None = None
     range_sigma_mm: float = Field(0.05, ge=0)
     speckle_sigma_mm: float = Field(0.0, ge=0)
     dropout_prob: float = Field(0.0, ge=0, le=1)
@@ -101,13 +115,67 @@ class NoiseConfig(_Model):
     outlier_offset_mm: tuple[float, float] = (0.5, 5.0)  # ghost lies this far beyond, along ray
     min_intensity: float = Field(0.02, ge=0, lt=1)  # weaker returns (grazing incidence) dropped
     robot_repeatability_mm: float = Field(0.0, ge=0)
+    # The artefacts of a cold-spray cell (twin.profiler.artefacts), each off at 0. None of
+    # their levels has a published figure for laser-line profilers on a cold-spray cell; the
+    # "realistic" preset (scenarios/noise/realistic.toml) says how its levels were chosen.
+    # Powder in the plume: a ray crossing the jet returns a particle in front of the surface
+    # with this probability per profile where it meets the jet's axis, falling off as a
+    # Gaussian of plume_particle_sigma_mm from it, times feed / plume_feed_ref_g_min, while
+    # the spray is on.
+    plume_particle_prob: float = Field(0.0, ge=0, le=1)
+    plume_particle_sigma_mm: float = Field(3.0, gt=0)
+    plume_feed_ref_g_min: float = Field(26.0, gt=0)
+    # Secondary reflections: per profile, the probability of a stretch of ghost_line_points
+    # [min, max] points replaced by a second reflection ghost_line_offset_mm behind the
+    # surface, its offset growing along the stretch; placed at the profile's sharpest concave
+    # kink (a wall foot, a corner) where it has one, else anywhere.
+    ghost_line_prob: float = Field(0.0, ge=0, le=1)
+    ghost_line_points: tuple[int, int] = (4, 12)
+    ghost_line_offset_mm: tuple[float, float] = (0.4, 2.0)
+    # Specular dropouts and saturation: per profile, the probability of a run of
+    # specular_run_points [min, max] points mirrored into the camera: lost, or (half of the
+    # runs) saturated: clipped to full intensity, the peak's centroid biased by
+    # saturation_bias_mm along the ray.
+    specular_run_prob: float = Field(0.0, ge=0, le=1)
+    specular_run_points: tuple[int, int] = (5, 40)
+    saturation_bias_mm: float = Field(0.05, ge=0)
+    # Outlier bursts: per profile, the probability of a stretch of burst_points [min, max]
+    # points misread together, burst_offset_mm [min, max] in front of or behind the surface.
+    burst_prob: float = Field(0.0, ge=0, le=1)
+    burst_points: tuple[int, int] = (3, 12)
+    burst_offset_mm: tuple[float, float] = (0.4, 3.0)
+    # Clock jitter: each profile's stamp off its exposure by up to +- this (uniform) [ms];
+    # lost profiles: this share of profiles never arrives.
+    clock_jitter_ms: float = Field(0.0, ge=0, le=50)
+    lost_profile_prob: float = Field(0.0, ge=0, lt=1)
+    # Slow mount drift: the profiler creeps along its own z_S by this many mm per minute of
+    # process time (the mount warms up), each sensor at its share of it (1, -0.6, 0.8).
+    mount_drift_mm_min: float = Field(0.0, ge=-1, le=1)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _preset(cls, data):
+        if isinstance(data, dict) and data.get("preset") in NOISE_PRESETS:
+            return {**NOISE_PRESETS[data["preset"]], **data}
+        return data
 
     @model_validator(mode="after")
     def _outlier_offsets(self):
         lo, hi = self.outlier_offset_mm
         if not 0 <= lo <= hi:
             raise ValueError("outlier_offset_mm must be [min, max] with 0 <= min <= max")
+        for name in ("ghost_line_points", "specular_run_points", "burst_points",
+                     "ghost_line_offset_mm", "burst_offset_mm"):
+            lo, hi = getattr(self, name)
+            if not 0 < lo <= hi:
+                raise ValueError(f"{name} must be [min, max] with 0 < min <= max")
         return self
+
+    def dirty(self) -> bool:
+        """Whether any artefact of twin.profiler.artefacts is on."""
+        return any(getattr(self, k) for k in (
+            "plume_particle_prob", "ghost_line_prob", "specular_run_prob", "burst_prob",
+            "clock_jitter_ms", "lost_profile_prob", "mount_drift_mm_min"))
 
 
 class FaultConfig(_Model):

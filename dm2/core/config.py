@@ -134,6 +134,23 @@ class InputGateConfig(_Model):
         return self
 
 
+class PointFilterConfig(_Model):
+    """``[monitor.point_filter]``: what is not surface, taken out of each profile before fusion
+    (:mod:`dm2.fusion.point_filter`)."""
+
+    enabled: bool = True
+    # a run of points this far off the line its neighbours agree on is not surface: 6 sigma of
+    # the 0.05 mm range noise, so a clean profile loses nothing
+    reject_mm: float = Field(0.3, gt=0)
+    # the neighbours agree on a line when they lie within this of it
+    agree_mm: float = Field(0.15, gt=0)
+    # the points around a run lie at most this far apart along the line on average (0.09 mm
+    # between the twin's and a scanCONTROL 29xx-50's points at the far end of the range):
+    # where a profile comes in fragments, no line is trusted across the gap
+    max_step_mm: float = Field(0.3, gt=0)
+    max_run_points: int = Field(16, ge=1, le=256)  # the longest run rejected [points]
+
+
 class MonitorConfig(_Model):
     voxel_mm: float = Field(0.5, gt=0, le=2.0)
     truncation_voxels: float = Field(3.0, gt=0)
@@ -180,6 +197,7 @@ class MonitorConfig(_Model):
     process_fit_bound: float = Field(0.25, ge=0, lt=0.5)
     process_finding_threshold: float = Field(0.05, gt=0)
     gates: InputGateConfig = InputGateConfig()
+    point_filter: PointFilterConfig = PointFilterConfig()
 
     @model_validator(mode="after")
     def _deposit_cap(self):

@@ -24,6 +24,7 @@ from dm2.core.config import MonitorConfig, ProcessConfig
 from dm2.core.messages import Calibration, Toolpath
 from dm2.core.plume import plume_sigma_mm
 from dm2.fusion.layers import LayerTracker
+from dm2.fusion.point_filter import PointFilter
 from dm2.fusion.profile_merge import merge_profile_points
 from dm2.fusion.registration import profile_frames, register_profile, spot_B
 from dm2.fusion.surface import PendingSurface, SurfaceExtractor, SurfaceMesh
@@ -156,6 +157,10 @@ class TsdfFusion:
         self._T_B_S = np.stack([np.asarray(T, np.float64) for T in calibration.T_B_S.values()])
         self._T_F_O = np.ascontiguousarray(calibration.T_F_O, np.float64)
         self._merge_mm = float(monitor_cfg.ray_merge_voxels) * voxel
+        pf = monitor_cfg.point_filter
+        self.point_filter = (PointFilter(pf.reject_mm, pf.agree_mm, pf.max_step_mm,
+                                         pf.max_run_points,
+                                         self._sensor_ids) if pf.enabled else None)
 
     # --------------------------------------------------------------------------------- input
     @property
@@ -164,6 +169,8 @@ class TsdfFusion:
         points)."""
         out = Counter(self.sync.dropped)
         out.update(self._point_drops)
+        if self.point_filter is not None:
+            out.update(self.point_filter.counts())
         return {k: int(v) for k, v in sorted(out.items()) if v}
 
     @property
@@ -237,6 +244,8 @@ class TsdfFusion:
         xz = np.concatenate(self._p_xz) if len(self._p_xz) > 1 else self._p_xz[0]
         offsets = np.zeros(len(self._p_xz) + 1, dtype=np.int64)
         np.cumsum([len(a) for a in self._p_xz], out=offsets[1:])
+        if self.point_filter is not None:  # what is not surface (dm2.fusion.point_filter)
+            xz, offsets = self.point_filter.apply(xz, offsets, self._p_sensor)
         T_O_S, spots_O, axes_O = profile_frames(
             np.array(self._p_T), self._T_F_O, self._T_B_S, np.array(self._p_sensor),
             self._spot_B, self._axis_B)
@@ -257,6 +266,8 @@ class TsdfFusion:
                                                                           strict=True))
 
     def _finish_layer(self, layer: int) -> None:
+        if self.point_filter is not None:
+            self.point_filter.close_layer(layer)
         pending = self.extractor.gather()
         log.info("layer %d done: %d blocks, %d chunks to mesh", layer, self.tsdf.n_blocks,
                  pending.n_to_mesh)

@@ -138,9 +138,12 @@ class Pipeline:
         return {**self.session.timing.to_dict(), **extra}
 
     def sections(self, **extra) -> dict:
-        """The report sections of the pipeline (real-time alarms, process fit) plus ``extra``."""
+        """The report sections of the pipeline (real-time alarms, process fit, the points
+        rejected before fusion: dm2.fusion.point_filter) plus ``extra``."""
+        pf = self.session.fusion.point_filter
         return {"realtime": self.session.realtime_summary(),
-                "process": self.session.process_summary(), **extra}
+                "process": self.session.process_summary(),
+                **({"point_filter": pf.summary()} if pf is not None else {}), **extra}
 
     # ----------------------------------------------------------------------------- outputs
     def write_outputs(self, out_dir: str | Path, *, full: bool = True, results=None,

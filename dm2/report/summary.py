@@ -139,14 +139,47 @@ def model_findings(report: dict) -> list[str]:
     return out
 
 
+# a profiler whose points the pipeline rejected before fusion (dm2.fusion.point_filter) at this
+# share or more is said in the verdict: 5x the realistic sensor preset's whole share (0.4 %)
+SENSOR_FINDING_SHARE = 0.02
+
+
+def sensor_findings(report: dict) -> list[str]:
+    """The profilers that lost :data:`SENSOR_FINDING_SHARE` of their points or more to the
+    point filter (report.json ``point_filter``), since the first layer that rejected that much
+    and from which on the layers together did, e.g. "S2 rejected 14 % of its points since
+    layer 30 as not surface (window dirty, or spatter on the line?)"."""
+    pf = report.get("point_filter") or {}
+    out = []
+    for sid, s in (pf.get("by_sensor") or {}).items():
+        if s.get("share", 0.0) < SENSOR_FINDING_SHARE:
+            continue
+        # since the first layer that rejected that much itself and from which on the layers
+        # together did
+        since, share = None, s["share"]
+        layers = pf.get("by_layer") or []
+        for k, lay in enumerate(layers):
+            n, r = lay["points"].get(sid, 0), lay["rejected"].get(sid, 0)
+            n_on = sum(la["points"].get(sid, 0) for la in layers[k:])
+            r_on = sum(la["rejected"].get(sid, 0) for la in layers[k:])
+            if n and r / n >= SENSOR_FINDING_SHARE and r_on / n_on >= SENSOR_FINDING_SHARE:
+                since, share = lay["layer"], r_on / n_on
+                break
+        when = f" since layer {since}" if since is not None else ""
+        out.append(f"{sid} rejected {100 * share:.0f} % of its points{when} as not surface "
+                   "(window dirty, or spatter on the line?)")
+    return out
+
+
 def verdict(report: dict) -> dict:
     """``{"headline", "sentences", "more", "defects", "uncertain", "layers", "findings"}``: the
     verdict of a report dict, from its tracks, layers, process findings (what the
-    reference's process fit absorbed, dm2.process.process_fit) and model findings
-    (:func:`model_findings`) only."""
+    reference's process fit absorbed, dm2.process.process_fit), model findings
+    (:func:`model_findings`) and sensor findings (:func:`sensor_findings`) only."""
     findings = [f"Process finding: {f}." for f in
                 (report.get("process") or {}).get("findings", [])]
     findings += [f"Model finding: {f}." for f in model_findings(report)]
+    findings += [f"Sensor finding: {f}." for f in sensor_findings(report)]
     tracks = by_severity(report.get("tracks", []))
     defects = [t for t in tracks if is_defect(t)]
     uncertain = len(tracks) - len(defects)

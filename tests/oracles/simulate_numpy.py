@@ -25,6 +25,7 @@ def per_sample_messages(sim, hf=None) -> Iterator[Profile | RobotState | LayerMa
     ``hf`` is the height field to grow (a new bare plate by default); pass one to inspect the
     reference's final surface.
     """
+    from twin.profiler.artefacts import schedule_artefacts
     from twin.profiler.occluders import nozzle_occluder
     from twin.profiler.sensor import VirtualProfiler
     from twin.profiler.trigger import trigger_schedule
@@ -37,16 +38,20 @@ def per_sample_messages(sim, hf=None) -> Iterator[Profile | RobotState | LayerMa
     if hf is None:
         hf = HeightField((plate[0], plate[1]), HEIGHTFIELD_CELL_MM, plate[2])
     spray = twin_spray_model(sc)
-    profs = [VirtualProfiler(s, cell.T_B_S[s], sc.sensors, sc.noise, seed=sc.seed)
-             for s in SENSOR_IDS]
+    profs = [VirtualProfiler(s, cell.T_B_S[s], sc.sensors, sc.noise, seed=sc.seed,
+                             T_B_N=cell.T_B_N) for s in SENSOR_IDS]
     occ = [nozzle_occluder(cell.T_B_N, sc.cell)]
     rng = np.random.default_rng([sc.seed, ROBOT_NOISE_SEED_OFFSET])
     sigma = sc.noise.robot_repeatability_mm
     t = motion.t_s
     n = int(np.searchsorted(t, sim.end_s, side="right"))
     trig_s, trig_j, trig_c = trigger_schedule(float(t[n - 1]), sc.sensors)
+    stamped, kept = schedule_artefacts(sc.noise, sc.seed, trig_s)  # jitter, lost profiles
+    trig_s, trig_j, trig_c, stamped = trig_s[kept], trig_j[kept], trig_c[kept], stamped[kept]
     poses = PoseInterpolator(t[:n], motion.T_B_O[:n])(trig_s)
     feed = faults.feed_factor(t[:n], motion.layer[:n])
+    spray_now = np.interp(trig_s, t[:n], np.asarray(motion.spray_on[:n], bool) * feed) * (
+        sc.process.feed_g_min / sc.noise.plume_feed_ref_g_min)
     eff = faults.efficiency_factor(motion.layer[:n])
     stand = faults.standoff_delta_mm(t[:n], motion.layer[:n])
     k, prev = 0, -1
@@ -67,6 +72,6 @@ def per_sample_messages(sim, hf=None) -> Iterator[Profile | RobotState | LayerMa
         t_next = float(t[i + 1]) if i + 1 < n else np.inf
         while k < trig_s.size and trig_s[k] < t_next:
             p = profs[int(trig_j[k])]
-            yield p.measure_numpy(p.trace_numpy(hf, poses[k], occ), float(trig_s[k]),
-                                      int(trig_c[k]))
+            yield p.measure_numpy(p.trace_numpy(hf, poses[k], occ), float(stamped[k]),
+                                  int(trig_c[k]), float(spray_now[k]))
             k += 1

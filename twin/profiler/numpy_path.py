@@ -109,8 +109,10 @@ def _camera_visibility(hf, T_B_O, camera_O, camera_reach_mm, hits_O, normals_O,
     return out
 
 
-def measure_numpy(prof, trace: ProfileTrace, stamp_s: float, counter: int) -> Profile:
-    """``prof.measure`` in whole-array numpy operations."""
+def measure_numpy(prof, trace: ProfileTrace, stamp_s: float, counter: int,
+                  spray: float = 1.0) -> Profile:
+    """``prof.measure`` in whole-array numpy operations (the artefacts of
+    :mod:`twin.profiler.artefacts` are numpy already: the same call)."""
     counter = int(counter)
     noisy_range, reason, intensity = _noise(prof, trace, counter)
     z = noisy_range * prof.dirs_S[:, 2]
@@ -121,6 +123,8 @@ def measure_numpy(prof, trace: ProfileTrace, stamp_s: float, counter: int) -> Pr
     xz[valid, 0] = noisy_range[valid] * prof.dirs_S[valid, 0]
     xz[valid, 1] = z[valid]
     intensity = np.where(valid, intensity, 0.0).astype(np.float32)
+    if prof._artefacts is not None:
+        prof._artefacts.apply(xz, valid, intensity, float(stamp_s), counter, spray)
     return Profile(prof.sensor_id, stamp_s, counter, xz, valid, intensity)
 
 def _noise(prof, trace: ProfileTrace, counter: int):

@@ -26,6 +26,7 @@ from dm2.core.config import SensorConfig
 from dm2.core.messages import COUNTER_MODULO, SENSOR_IDS, Profile
 from twin.profiler import noise_kernels as PN
 from twin.profiler import scan_kernels as PS
+from twin.profiler.artefacts import ProfileArtefacts
 from twin.profiler.kernels import PlateField
 from twin.profiler.model import _FACE_TOL_MM, _LIFT_MM, ProfileTrace, first_occluder_hit
 from twin.profiler.occluders import CylinderOccluder
@@ -51,10 +52,12 @@ class VirtualProfiler:
     T_B_S : (4, 4) float64, the profiler's true pose in the robot base [mm]
     sensors, noise : the scenario's ``[sensors]`` and ``[noise]`` sections
     seed : int, scenario seed; the profile noise stream is ``(seed, sensor, counter)``
+    T_B_N : (4, 4) the nozzle in B, where the powder jet crosses the laser sheet (the plume
+        particles of :mod:`twin.profiler.artefacts`); None: no particles
     """
 
     def __init__(self, sensor_id: str, T_B_S: np.ndarray, sensors: SensorConfig,
-                 noise: NoiseConfig, seed: int = 0):
+                 noise: NoiseConfig, seed: int = 0, T_B_N: np.ndarray | None = None):
         if sensor_id not in SENSOR_IDS:
             raise ValueError(f"VirtualProfiler: sensor_id {sensor_id!r} not in {SENSOR_IDS}")
         T = np.asarray(T_B_S, dtype=np.float64)
@@ -93,6 +96,11 @@ class VirtualProfiler:
                                            float(noise.outlier_prob), float(noise.dropout_prob),
                                            self._dir_x, self._dir_z, float(sensors.z_start_mm),
                                            float(sensors.z_end_mm)))
+        # a cold-spray cell's artefacts (twin.profiler.artefacts), when [noise] asks for one
+        T_S_N = None if T_B_N is None else np.linalg.solve(T, np.asarray(T_B_N, np.float64))
+        self._artefacts = (ProfileArtefacts(noise, self.seed, self.sensor_index, self.dirs_S,
+                                            (sensors.z_start_mm, sensors.z_end_mm), T_S_N)
+                           if noise.dirty() else None)
 
     # ------------------------------------------------------------------ geometry
     def trace(self, hf, T_B_O: np.ndarray, occluders: Sequence | None = None) -> ProfileTrace:
@@ -184,7 +192,7 @@ class VirtualProfiler:
 
     # ------------------------------------------------------------------ sensor output
     def scan(self, hf, T_B_O: np.ndarray, stamp_s: float, counter: int,
-             occluders: Sequence | None = None) -> Profile:
+             occluders: Sequence | None = None, spray: float = 1.0) -> Profile:
         """One profile of ``hf`` with the plate at ``T_B_O``, stamped ``stamp_s``.
 
         Parameters
@@ -194,11 +202,13 @@ class VirtualProfiler:
         T_B_O : (4, 4) float64, plate pose in the robot base at ``stamp_s`` [mm]
         stamp_s : float [s]; counter : int, the 24-bit profile counter
         occluders : objects with ``hit_t(origins_B, dirs_B) -> t_mm`` (e.g. the nozzle body)
+        spray : the feed now over ``[noise] plume_feed_ref_g_min`` (0: spray off), for the
+            plume particles
         """
         occluders = tuple(occluders or ())
         setup = self._kernel_setup(occluders)
         if not isinstance(hf, HeightField) or setup is None:
-            return self.measure(self.trace(hf, T_B_O, occluders), stamp_s, counter)
+            return self.measure(self.trace(hf, T_B_O, occluders), stamp_s, counter, spray)
         counter = self._check_counter(counter)
         n = self.dirs_S.shape[0]
         xz = np.empty((n, 2))
@@ -207,6 +217,8 @@ class VirtualProfiler:
         PS.scan_pass(_plate_field(hf), setup, self._stream, self._model,
                      np.ascontiguousarray(T_B_O, dtype=np.float64), counter, xz, valid,
                      intensity)
+        if self._artefacts is not None:
+            self._artefacts.apply(xz, valid, intensity, float(stamp_s), counter, spray)
         return Profile.trusted(self.sensor_id, float(stamp_s), counter, xz, valid, intensity)
 
     def _check_counter(self, counter) -> int:
@@ -215,8 +227,10 @@ class VirtualProfiler:
             raise ValueError(f"{self.sensor_id}: counter {counter} outside the 24-bit range")
         return counter
 
-    def measure(self, trace: ProfileTrace, stamp_s: float, counter: int) -> Profile:
-        """Apply the sensor's noise to a trace and format it as a :class:`Profile`."""
+    def measure(self, trace: ProfileTrace, stamp_s: float, counter: int,
+                spray: float = 1.0) -> Profile:
+        """Apply the sensor's noise (and artefacts: ``spray`` as for :meth:`scan`) to a trace
+        and format it as a :class:`Profile`."""
         counter = self._check_counter(counter)
         n = trace.range_mm.size
         xz = np.empty((n, 2))
@@ -227,6 +241,8 @@ class VirtualProfiler:
                         np.ascontiguousarray(trace.reason, dtype=np.int8),
                         np.ascontiguousarray(trace.cos_incidence, dtype=np.float64),
                         xz, valid, intensity)
+        if self._artefacts is not None:
+            self._artefacts.apply(xz, valid, intensity, float(stamp_s), counter, spray)
         return Profile.trusted(self.sensor_id, float(stamp_s), counter, xz, valid, intensity)
 
     def _draws(self, counter: int, n: int):
@@ -237,11 +253,12 @@ class VirtualProfiler:
         PN.noise_draws(self._stream, int(counter), tuple(draws))
         return tuple(draws)
 
-    def measure_numpy(self, trace: ProfileTrace, stamp_s: float, counter: int) -> Profile:
+    def measure_numpy(self, trace: ProfileTrace, stamp_s: float, counter: int,
+                      spray: float = 1.0) -> Profile:
         """:meth:`measure` in plain numpy (:mod:`twin.profiler.numpy_path`)."""
         from twin.profiler.numpy_path import measure_numpy
 
-        return measure_numpy(self, trace, stamp_s, counter)
+        return measure_numpy(self, trace, stamp_s, counter, spray)
 
     def _noise(self, trace: ProfileTrace, counter: int):
         """Noisy ranges, reasons (DROPOUT marked) and intensities, before the measuring range."""

@@ -128,6 +128,7 @@ class Simulation:
         False keeps everything on the calling thread). ``worker_fan_share`` fixes the worker's
         share of each fan instead.
         """
+        from twin.profiler.artefacts import schedule_artefacts
         from twin.profiler.occluders import nozzle_occluder
         from twin.profiler.sensor import VirtualProfiler
         from twin.profiler.trigger import trigger_schedule
@@ -140,8 +141,8 @@ class Simulation:
         hf = HeightField(size_mm=(plate[0], plate[1]), cell_mm=HEIGHTFIELD_CELL_MM,
                          thickness_mm=plate[2])
         spray = twin_spray_model(sc)  # the twin's own physics ([twin_process])
-        profilers = [VirtualProfiler(sid, cell.T_B_S[sid], sc.sensors, sc.noise, seed=sc.seed)
-                     for sid in SENSOR_IDS]
+        profilers = [VirtualProfiler(sid, cell.T_B_S[sid], sc.sensors, sc.noise, seed=sc.seed,
+                                     T_B_N=cell.T_B_N) for sid in SENSOR_IDS]
         occluders = [nozzle_occluder(cell.T_B_N, sc.cell)]
         truth = TruthWriter(truth_dir, self) if truth_dir is not None else None
         robot_rng = np.random.default_rng([sc.seed, ROBOT_NOISE_SEED_OFFSET])
@@ -164,7 +165,16 @@ class Simulation:
         plan = spray.plan_samples(motion.position_O[:n], motion.axis_O[:n], dt,
                                   spray_on=spraying, feed_factor=feed,
                                   efficiency_factor=efficiency, standoff_delta_mm=standoff)
-        trig_stamps, trig_sensor, trig_counter = (trig_s.tolist(), trig_j.tolist(),
+        # clock jitter and lost profiles (twin.profiler.artefacts): a profile is exposed at
+        # its trigger, stamped off it; a lost one is never cast
+        stamped_s, kept = schedule_artefacts(sc.noise, sc.seed, trig_s)
+        if not kept.all():
+            trig_s, trig_j, trig_c = trig_s[kept], trig_j[kept], trig_c[kept]
+            stamped_s, trig_T_B_O = stamped_s[kept], trig_T_B_O[kept]
+        # the feed over the plume particles' reference feed, at each trigger (0: spray off)
+        trig_spray = (np.interp(trig_s, t[:n], spraying * feed)
+                      * (sc.process.feed_g_min / sc.noise.plume_feed_ref_g_min)).tolist()
+        trig_stamps, trig_sensor, trig_counter = (stamped_s.tolist(), trig_j.tolist(),
                                                   trig_c.tolist())
         # The true field grows on a worker thread, a few chunks ahead: it deposits a chunk
         # (one GIL-free kernel call), casts its share of the chunk's profiler fans on the field
@@ -205,7 +215,8 @@ class Simulation:
                 # a whole fan is measured here too (the noise is drawn from the profile's own
                 # (seed, sensor, counter) stream: the same bits on either thread)
                 traces.append(out if rays < n_rays else
-                              prof.measure(out, trig_stamps[q], trig_counter[q]))
+                              prof.measure(out, trig_stamps[q], trig_counter[q],
+                                           trig_spray[q]))
             changes = (hf.take_changes() if mirror is not hf and trig_end[c] > k0
                        and rays < n_rays else None)
             c2 = time.thread_time()
@@ -246,14 +257,14 @@ class Simulation:
                     prof = profilers[trig_sensor[q]]
                     if rays == 0:  # a whole fan in one call
                         yield prof.scan(mirror, trig_T_B_O[q], trig_stamps[q], trig_counter[q],
-                                        occluders)
+                                        occluders, trig_spray[q])
                         continue
                     out = traces[q - k]
                     if rays == n_rays:  # cast and measured on the worker
                         yield out
                         continue
                     prof.trace_rays(mirror, trig_T_B_O[q], occluders, out, rays, n_rays)
-                    yield prof.measure(out, trig_stamps[q], trig_counter[q])
+                    yield prof.measure(out, trig_stamps[q], trig_counter[q], trig_spray[q])
                 k = trig_end[c]
         finally:
             worker.close()
