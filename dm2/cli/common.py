@@ -101,7 +101,7 @@ def fail(message: str, code: int = EXIT_BAD_INPUT) -> None:
     brackets in it (``[live]``, ``[mm]``, lists) are printed, not read as console markup."""
     from rich.markup import escape
 
-    err_console.print(f"[bold red]error:[/] {escape(message)}", highlight=False)
+    err_console.print(f"[bold red]error:[/] {escape(message)}", highlight=False, soft_wrap=True)
     raise typer.Exit(code)
 
 
