@@ -1,8 +1,8 @@
 """Configuration errors a user can act on: the bad value shown, the nearest known key named.
 
 :func:`describe_errors` turns a pydantic ``ValidationError`` into one line per error, naming
-the file, the field (``monitor.voxel_mm``), the problem and the value given (``got -1``); an unknown key
-gets the nearest known key of its table (``did you mean 'voxel_mm'?``).
+the file, the field (``monitor.voxel_mm``), the problem and the value given (``got -1``); an
+unknown key gets the nearest known key of its table (``did you mean 'voxel_mm'?``).
 """
 
 from __future__ import annotations
