@@ -17,7 +17,15 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
-from dm2.cli.common import app, bad_input_exits, console, fail, log_file, note_cold_kernel_cache
+from dm2.cli.common import (
+    app,
+    bad_input_exits,
+    console,
+    fail,
+    log_file,
+    note_cold_kernel_cache,
+    on_write_failure,
+)
 from dm2.cli.outcome import EXIT_MISSED, drop_lines, exit_code
 
 
@@ -141,6 +149,8 @@ def run(
     from twin.cell.kinematics import ReachError
 
     log_path = run_dir.parent / f".{run_dir.name}.run.log"
+    # a failed write: the log goes (the report folder being written is removed by its writer)
+    on_write_failure(run_dir, lambda: log_path.unlink(missing_ok=True))
     view_handle = None
     with progress_bar() as bar, log_file(log_path):
         task = bar.add_task("simulating + monitoring", total=1.0, done="")

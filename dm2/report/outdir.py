@@ -41,6 +41,10 @@ class OutputRefused(ValueError):
     """The output folder cannot be written without putting files dm2 did not write at risk."""
 
 
+class OutputNotWritable(OutputRefused):
+    """The system does not let dm2 write there (permission, a read-only file system)."""
+
+
 class UnsafeManifest(OutputRefused):
     """A manifest lists an entry outside its folder (absolute, ``..``, through a symlink)."""
 
@@ -170,7 +174,7 @@ def check_output_dir(out_dir: str | Path, *, force: bool = False, inputs=()) -> 
         raise OutputRefused(f"output folder {out}: exists and is not a folder")
     target = out if out.exists() else parent
     if not os.access(target, os.W_OK | os.X_OK):
-        raise OutputRefused(f"output folder {out}: {target} is not writable")
+        raise OutputNotWritable(f"output folder {out}: {target} is not writable")
     for inp in inputs:
         if inp is not None and _same_file(Path(inp), out):
             raise OutputRefused(f"output folder {out}: is the input {inp}")
@@ -279,6 +283,27 @@ def claim_outputs(out_dir: str | Path, before: set[str], command: str) -> None:
     write_manifest(out, [f for f in files_below(out) if f not in before], command=command)
 
 
+def discard_partial(folder: str | Path, before: set[str]) -> None:
+    """After a failed write into ``folder`` (a full disk, say): the files this run left there
+    (not in ``before``) are listed in the manifest, so a rerun replaces them without
+    ``--force``; a half-written ``.part`` file is removed, as is every other new file when the
+    manifest itself cannot be written. A file that was there before is never touched."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return
+    new = [f for f in files_below(folder) if f not in before and f != MANIFEST_NAME]
+    for rel in [f for f in new if f.endswith(".part")]:
+        (folder / rel).unlink(missing_ok=True)
+    rest = [f for f in new if not f.endswith(".part")]
+    try:
+        listed = read_manifest(folder)
+        write_manifest(folder, [*(listed or {"files": []})["files"], *rest],
+                       command=(listed or {}).get("command", ""))
+    except (OSError, ValueError):
+        for rel in rest:
+            (folder / rel).unlink(missing_ok=True)
+
+
 def written_by_dm2(path: Path) -> bool:
     """Whether the single file ``path`` is one dm2 writes: an MCAP recording whose header
     names the library ``dm2``, a canonical toolpath CSV, a RAPID module dm2 generated, or a
@@ -312,7 +337,11 @@ def check_output_file(path: str | Path, *, force: bool = False, inputs=()) -> Pa
         raise OutputRefused(f"output file {path}: is a folder")
     if not path.parent.is_dir():
         raise OutputRefused(f"output file {path}: folder {path.parent} does not exist")
-    if path.exists() and not force and not written_by_dm2(path):
-        raise OutputRefused(f"output file {path}: exists and was not written by dm2; choose "
-                            "another name, or give --force to replace it")
+    part = path.with_name(path.name + ".part")  # where a recording is written first
+    for p in (path, part):
+        if p.exists() and not force and not written_by_dm2(p):
+            raise OutputRefused(f"output file {path}: {p} exists and was not written by dm2; "
+                                "choose another name, or give --force to replace it")
+    if not os.access(path.parent, os.W_OK | os.X_OK):
+        raise OutputNotWritable(f"output file {path}: folder {path.parent} is not writable")
     return path
