@@ -8,6 +8,8 @@ fails :func:`test_every_command_is_walked`.
 
 from __future__ import annotations
 
+import inspect
+
 import pytest
 import typer
 from test_monitor_cli import _record
@@ -127,3 +129,41 @@ def test_a_wrong_input_is_a_message_not_a_traceback(tmp_path, inputs, command, r
     assert res.exit_code == 2, (args, res.exit_code, res.output)
     assert paths[kind].name in errors[0], (args, errors[0])  # the file is named
     assert not (tmp_path / "out").exists() or command == "calibrate"
+
+
+# a valid invocation of each command, to which one number option is then added
+VALID = {"simulate": ["pad"], "toolpath": ["pad", "--out", "{out}.csv"],
+         "monitor": ["{good}", "--out", "{out}"], "calibrate": ["--rehearse"],
+         "fit-efficiency": ["{good}", "--out", "{out}.toml"], "run": ["pad"],
+         "serve-twin": ["pad"], "recover": ["{good}"], "bench": [], "sweep": ["pad"],
+         "view": ["{out}"], "report": ["{out}"]}
+
+
+def _number_options():
+    """(command, option) for every float option, read from the commands' signatures."""
+    out = []
+    for name, cmd in sorted(typer.main.get_command(app).commands.items()):
+        for p in inspect.signature(cmd.callback).parameters.values():
+            decls = [d for d in getattr(p.default, "param_decls", None) or ()
+                     if d.startswith("--")]
+            if p.annotation in (float, "float") and decls:
+                out.append((name, decls[0]))
+    return out
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "-inf"])
+def test_a_number_option_that_is_not_finite_is_refused(tmp_path, inputs, value):
+    """click reads ``nan`` and ``inf`` as floats (and ``nan`` passes its ranges): every float
+    option of every command refuses them before any work, naming the option."""
+    _, _, good = inputs
+    assert set(VALID) == set(SLOTS)
+    options = _number_options()
+    assert len(options) >= 10
+    for command, option in options:
+        args = [a.format(good=good, out=tmp_path / "out") for a in VALID[command]]
+        res = CliRunner().invoke(app, [command, *args, option, value])
+        assert res.exit_code == 2, (command, option, res.output)
+        assert res.exception is None or isinstance(res.exception, SystemExit), \
+            (command, option, repr(res.exception))
+        assert option in res.output, (command, option, res.output)
+        assert not (tmp_path / "out").exists()

@@ -41,6 +41,7 @@ class _App(typer.Typer):
         def decorator(func):
             @functools.wraps(func)
             def guarded(*a, **k):
+                _refuse_non_finite(func, k)
                 _CLEANUPS.clear()
                 try:
                     with cannot_write_exits():
@@ -52,6 +53,21 @@ class _App(typer.Typer):
             return func
 
         return decorator
+
+
+def _refuse_non_finite(func, values: dict) -> None:
+    """A number option given as ``inf`` or ``nan`` (click reads both as floats): exit 2
+    naming the option as the user typed it."""
+    import inspect
+    import math
+
+    bad = [(k, v) for k, v in values.items() if isinstance(v, float) and not math.isfinite(v)]
+    if not bad:
+        return
+    key, value = bad[0]
+    default = inspect.signature(func).parameters[key].default
+    decls = [d for d in getattr(default, "param_decls", None) or () if d.startswith("--")]
+    fail(f"{decls[0] if decls else key} {value}: not a finite number")
 
 
 app = _App(
