@@ -195,7 +195,8 @@ def cannot_write_exits(path=None, cleanup=None):
             if undo is not None:
                 undo()
         where = exc.filename or path or next((p for p, _ in registered), "the output")
-        fail(f"cannot write {where}: {exc.strerror or errno.errorcode.get(exc.errno)}",
+        verb = "cannot access" if exc.errno in (errno.EACCES, errno.EPERM) else "cannot write"
+        fail(f"{verb} {where}: {exc.strerror or errno.errorcode.get(exc.errno)}",
              EXIT_CANNOT_WRITE)
 
 
