@@ -64,7 +64,7 @@ ARTIFACT_SCHEMA = 1
 
 
 class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class _Mount(_Model):
@@ -98,7 +98,8 @@ class _ArtifactFile(_Model):
     certificate: _Certificate = _Certificate()
     spheres: tuple[_Sphere, ...] = Field(min_length=1)
 
-    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True,
+                              allow_inf_nan=False)
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,18 @@ from typing import Literal
 
 from pydantic import Field, model_validator
 
-from dm2.core.config import ProcessConfig, Scenario, _Model, register_scenario_model
+from dm2.core.config import (
+    MAX_FEED_G_MIN,
+    MAX_NOZZLE_EXIT_MM,
+    MAX_PACKETS_PER_S,
+    MAX_PLUME_SIGMA_MM,
+    MAX_POWDER_DENSITY_G_CM3,
+    MAX_STANDOFF_MM,
+    ProcessConfig,
+    Scenario,
+    _Model,
+    register_scenario_model,
+)
 
 
 class TwinProcessConfig(_Model):
@@ -29,21 +40,22 @@ class TwinProcessConfig(_Model):
     that deposits exactly with the nominal model (see ``twin.world.twin_physics``).
     """
 
-    feed_g_min: float | None = Field(None, gt=0)
-    standoff_mm: float | None = Field(None, gt=0)
-    nozzle_exit_mm: float | None = Field(None, gt=0)
-    powder_density_g_cm3: float | None = Field(None, gt=0)
+    # the [process] bounds hold here too (dm2.core.config: why each)
+    feed_g_min: float | None = Field(None, gt=0, le=MAX_FEED_G_MIN)
+    standoff_mm: float | None = Field(None, gt=0, le=MAX_STANDOFF_MM)
+    nozzle_exit_mm: float | None = Field(None, gt=0, le=MAX_NOZZLE_EXIT_MM)
+    powder_density_g_cm3: float | None = Field(None, gt=0, le=MAX_POWDER_DENSITY_G_CM3)
     deposition_efficiency: float | None = Field(None, gt=0, le=1)
-    plume_sigma_mm: float | None = Field(None, gt=0)
+    plume_sigma_mm: float | None = Field(None, gt=0, le=MAX_PLUME_SIGMA_MM)
     critical_angle_deg: float | None = Field(None, gt=0, le=90)
     plume_half_angle_deg: float | None = Field(None, ge=0, lt=45)
-    packets_per_s: float | None = Field(None, gt=0)
+    packets_per_s: float | None = Field(None, gt=0, le=MAX_PACKETS_PER_S)
     # sigma multiplier on the (overridden) plume sigma: +8 %, what a divergence half-angle of
     # 6 instead of 5 deg gives at 30 mm standoff (+9 %); the half-angle is rarely known better
-    plume_sigma_factor: float = Field(1.08, gt=0)
+    plume_sigma_factor: float = Field(1.08, gt=0, le=5)  # 5x: a plume no nozzle gives
     # normal-impact efficiency multiplier: -7 %, a powder-lot / gas-temperature difference of
     # the size cold-spray deposition efficiencies scatter by between nominally equal runs
-    efficiency_factor: float = Field(0.93, gt=0)
+    efficiency_factor: float = Field(0.93, gt=0, le=2)  # efficiency stays <= 1 (checked)
     # efficiency against impact angle: "cos2" (the nominal cos^2(pi/2 (theta/theta_c)^2)),
     # "cos" (cos theta up to theta_c), "linear" (1 - theta/theta_c) or "plateau" (flat to
     # plateau_angle_deg, then linear to 0 at theta_c). Default "plateau": the shape measured
@@ -92,6 +104,17 @@ class CellConfig(_Model):
     wrist_singularity_deg: float = Field(5.0, ge=0, lt=90)  # smallest allowed |axis 5|
 
 
+# Upper bounds on the twin's errors, each far past a real profiler or robot (a value beyond
+# one is a typo: it would empty every profile, or overflow the height field, without a word)
+MAX_NOISE_MM = 1.0  # laser profilers' range noise is a few um; 1 mm is 20x the default
+MAX_OUTLIER_OFFSET_MM = 50.0  # a ghost farther than the 50 mm measuring range is not seen
+MAX_FAULT_HEIGHT_MM = 50.0  # a bump or dent of 50 mm is the whole part; the plate is 6 mm
+MAX_FAULT_WIDTH_MM = 200.0  # wider than the 120 mm plate
+MAX_FAULT_FACTOR = 10.0  # feed or efficiency multiplier: 10x full feed is no feeder
+MAX_STANDOFF_CHANGE_MM = 100.0  # the nozzle would be far off the part's reach
+MAX_DWELL_S = 600.0  # ten minutes at one corner
+
+
 # [noise] preset = "realistic": a cold-spray cell's dirty profilers (docs/dirty-sensors.md
 # says where each level comes from); keys given beside the preset override its values
 NOISE_PRESETS: dict[str, dict] = {
@@ -107,14 +130,14 @@ NOISE_PRESETS: dict[str, dict] = {
 class NoiseConfig(_Model):
     # a named set of the levels below (NOISE_PRESETS); keys given beside it override it
     preset: Literal["realistic"] | None = None
-    range_sigma_mm: float = Field(0.05, ge=0)
-    speckle_sigma_mm: float = Field(0.0, ge=0)
+    range_sigma_mm: float = Field(0.05, ge=0, le=MAX_NOISE_MM)
+    speckle_sigma_mm: float = Field(0.0, ge=0, le=MAX_NOISE_MM)
     dropout_prob: float = Field(0.0, ge=0, le=1)
     outlier_prob: float = Field(0.0, ge=0, le=1)
     speckle_length_points: float = Field(4.0, gt=0)  # speckle correlation length along the line
     outlier_offset_mm: tuple[float, float] = (0.5, 5.0)  # ghost lies this far beyond, along ray
     min_intensity: float = Field(0.02, ge=0, lt=1)  # weaker returns (grazing incidence) dropped
-    robot_repeatability_mm: float = Field(0.0, ge=0)
+    robot_repeatability_mm: float = Field(0.0, ge=0, le=MAX_NOISE_MM)  # IRB 4600: 0.05
     # The artefacts of a cold-spray cell (twin.profiler.artefacts), each off at 0. None of
     # their levels has a published figure for laser-line profilers on a cold-spray cell; the
     # "realistic" preset (scenarios/noise/realistic.toml) says how its levels were chosen.
@@ -123,7 +146,7 @@ class NoiseConfig(_Model):
     # Gaussian of plume_particle_sigma_mm from it, times feed / plume_feed_ref_g_min, while
     # the spray is on.
     plume_particle_prob: float = Field(0.0, ge=0, le=1)
-    plume_particle_sigma_mm: float = Field(3.0, gt=0)
+    plume_particle_sigma_mm: float = Field(3.0, gt=0, le=MAX_FAULT_WIDTH_MM)
     plume_feed_ref_g_min: float = Field(26.0, gt=0)
     # Secondary reflections: per profile, the probability of a stretch of ghost_line_points
     # [min, max] points replaced by a second reflection ghost_line_offset_mm behind the
@@ -138,7 +161,7 @@ class NoiseConfig(_Model):
     # saturation_bias_mm along the ray.
     specular_run_prob: float = Field(0.0, ge=0, le=1)
     specular_run_points: tuple[int, int] = (5, 40)
-    saturation_bias_mm: float = Field(0.05, ge=0)
+    saturation_bias_mm: float = Field(0.05, ge=0, le=MAX_NOISE_MM)
     # Outlier bursts: per profile, the probability of a stretch of burst_points [min, max]
     # points misread together, burst_offset_mm [min, max] in front of or behind the surface.
     burst_prob: float = Field(0.0, ge=0, le=1)
@@ -162,13 +185,18 @@ class NoiseConfig(_Model):
     @model_validator(mode="after")
     def _outlier_offsets(self):
         lo, hi = self.outlier_offset_mm
-        if not 0 <= lo <= hi:
-            raise ValueError("outlier_offset_mm must be [min, max] with 0 <= min <= max")
+        if not 0 <= lo <= hi <= MAX_OUTLIER_OFFSET_MM:
+            raise ValueError(f"outlier_offset_mm must be [min, max] with 0 <= min <= max <= "
+                             f"{MAX_OUTLIER_OFFSET_MM:g} (the profilers' measuring range)")
         for name in ("ghost_line_points", "specular_run_points", "burst_points",
                      "ghost_line_offset_mm", "burst_offset_mm"):
             lo, hi = getattr(self, name)
             if not 0 < lo <= hi:
                 raise ValueError(f"{name} must be [min, max] with 0 < min <= max")
+        for name in ("ghost_line_offset_mm", "burst_offset_mm"):
+            if getattr(self, name)[1] > MAX_OUTLIER_OFFSET_MM:
+                raise ValueError(f"{name} must be at most {MAX_OUTLIER_OFFSET_MM:g} mm (the "
+                                 "profilers' measuring range)")
         return self
 
     def dirty(self) -> bool:
@@ -185,14 +213,16 @@ class FaultConfig(_Model):
                   "standoff_change", "bump", "dent", "corner_dwell"]
     layers: tuple[int, int] | None = None  # inclusive layer window
     time_s: tuple[float, float] | None = None  # process-time window
-    factor: float | None = None  # feed or efficiency multiplier at full effect
-    per_layer: float | None = None  # efficiency drift per layer (fraction)
-    delta_mm: float | None = None  # standoff change
+    # feed or efficiency multiplier at full effect
+    factor: float | None = Field(None, ge=0, le=MAX_FAULT_FACTOR)
+    per_layer: float | None = Field(None, ge=-1, le=1)  # efficiency drift per layer (fraction)
+    # standoff change
+    delta_mm: float | None = Field(None, ge=-MAX_STANDOFF_CHANGE_MM, le=MAX_STANDOFF_CHANGE_MM)
     center_O_mm: tuple[float, float] | None = None  # bump / dent
-    height_mm: float | None = Field(None, gt=0)
-    width_mm: float | None = Field(None, gt=0)
-    corner_angle_deg: float | None = None
-    extra_dwell_s: float | None = Field(None, gt=0)
+    height_mm: float | None = Field(None, gt=0, le=MAX_FAULT_HEIGHT_MM)
+    width_mm: float | None = Field(None, gt=0, le=MAX_FAULT_WIDTH_MM)
+    corner_angle_deg: float | None = Field(None, ge=0, le=360)
+    extra_dwell_s: float | None = Field(None, gt=0, le=MAX_DWELL_S)
 
     @model_validator(mode="after")
     def _window(self):

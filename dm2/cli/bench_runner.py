@@ -50,6 +50,8 @@ class ScenarioRun:
     process_s : float [s], simulated process time
     wall_s : float [s], wall time of the whole run (twin included)
     monitor_s : float [s], wall time spent in the pipeline (fusion, reference, analysis)
+    verdict : ``(code, sentence)`` of :func:`dm2.cli.outcome.run_verdict`, as ``dm2 monitor``
+        judges a run: exit 1 and why when it fused nothing or lost too much of its input
     """
 
     scenario: Scenario
@@ -62,6 +64,7 @@ class ScenarioRun:
     process_s: float = 0.0
     wall_s: float = 0.0
     monitor_s: float = 0.0
+    verdict: tuple[int, str | None] = (0, None)
 
 
 def recorded(messages, writer):
@@ -130,6 +133,7 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
     ValueError : ``run_dir`` cannot be written (nothing written)
     """
     from dm2.bench.reconstruction import truth_checks
+    from dm2.cli.outcome import run_verdict
     from dm2.core.toml_write import dump_toml
     from dm2.pipeline.pipeline import Pipeline
     from dm2.report import check_output_dir
@@ -170,10 +174,14 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
             inputs=[scenario_file], stage=report_stage)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
+    verdict = run_verdict(profiles_fused=pipeline.fusion.profiles_fused,
+                          dropped=pipeline.dropped, messages_in=pipeline.messages,
+                          max_lost_share=sc.monitor.gates.max_lost_share)
     return ScenarioRun(scenario=sc, run_dir=run_dir, report=report, fault_truth=truth,
                        reconstruction=recon, footprints=footprints,
                        track_truth=tracks_vs_truth, process_s=float(sim.end_s),
-                       wall_s=time.perf_counter() - t_start, monitor_s=float(monitor_s))
+                       wall_s=time.perf_counter() - t_start, monitor_s=float(monitor_s),
+                       verdict=verdict)
 
 
 def track_footprints(results) -> dict:

@@ -10,7 +10,15 @@ from pathlib import Path
 import numpy as np
 import typer
 
-from dm2.cli.common import app, bad_input_exits, console, fail, log_file, note_cold_kernel_cache
+from dm2.cli.common import (
+    app,
+    bad_input_exits,
+    console,
+    fail,
+    log_file,
+    note_cold_kernel_cache,
+    on_write_failure,
+)
 
 log = logging.getLogger(__name__)
 
@@ -165,11 +173,23 @@ def monitor(
         fail("give a recording to replay, or --live CELL.toml")
     from rich.table import Table
 
-    from dm2.cli.outcome import damaged_input_sentence, drop_lines, exit_code, run_verdict
+    from dm2.cli.outcome import (
+        EXIT_CANNOT_WRITE,
+        damaged_input_sentence,
+        drop_lines,
+        exit_code,
+        run_verdict,
+    )
     from dm2.core.toml_write import dump_toml
     from dm2.fusion.gates import InputGates
     from dm2.pipeline.pipeline import Pipeline
-    from dm2.report.outdir import add_to_manifest, check_output_dir, clear_outputs
+    from dm2.report.outdir import (
+        add_to_manifest,
+        check_output_dir,
+        clear_outputs,
+        discard_partial,
+        files_below,
+    )
 
     t_start = time.perf_counter()
     with bad_input_exits():
@@ -182,9 +202,11 @@ def monitor(
     try:
         out.mkdir(parents=True, exist_ok=True)
         clear_outputs(out, inputs=[run])  # the earlier run's files: no stale layer survives
-        add_to_manifest(out, ["monitor.toml"], command="dm2 monitor")
+        before = set(files_below(out))  # a user's files (--force), kept
+        add_to_manifest(out, ["monitor.toml", "monitor.log"], command="dm2 monitor")
     except OSError as exc:
-        fail(f"--out {out}: cannot prepare the folder: {exc.strerror}")
+        fail(f"--out {out}: cannot prepare the folder: {exc.strerror}", EXIT_CANNOT_WRITE)
+    on_write_failure(out, lambda: discard_partial(out, before))  # a full disk: no unlisted debris
     config_toml = dump_toml({
         "recording": str(run),
         "monitor": monitor_cfg.model_dump(mode="json", exclude_none=True),
@@ -229,7 +251,7 @@ def monitor(
                "clock_steps": gates.steps, "input": input_info,
                "layer_source": mon.layers.source, "layers": written}
     (out / "monitor.json").write_text(json.dumps(summary, indent=2), encoding="utf-8")
-    add_to_manifest(out, ["monitor.json", "monitor.log"])
+    add_to_manifest(out, ["monitor.json"])
     if hasattr(rec, "close"):  # a rosbag2 recording holds its files open while read
         rec.close()
     if analyse and pipeline.results:

@@ -17,8 +17,16 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
-from dm2.cli.common import app, bad_input_exits, console, fail, log_file, note_cold_kernel_cache
-from dm2.cli.outcome import EXIT_MISSED, drop_lines
+from dm2.cli.common import (
+    app,
+    bad_input_exits,
+    console,
+    fail,
+    log_file,
+    note_cold_kernel_cache,
+    on_write_failure,
+)
+from dm2.cli.outcome import EXIT_MISSED, drop_lines, exit_code
 
 
 def default_run_dir(root: Path, name: str) -> Path:
@@ -113,7 +121,9 @@ def run(
 
     The run folder must be new or empty, or hold an earlier dm2 run (its manifest
     `.dm2-manifest.json`), whose files are then replaced; other files there need `--force` and
-    are kept. Exits 1 when an expectation of the scenario's `[expect]` section is missed.
+    are kept. Exits 1 when an expectation of the scenario's `[expect]` section is missed, or,
+    as `dm2 monitor`, when the run fused no profile or lost more than
+    `monitor.gates.max_lost_share` of its input.
 
     Example: `dm2 run` or `dm2 run pad --out runs/pad`
     """
@@ -139,6 +149,8 @@ def run(
     from twin.cell.kinematics import ReachError
 
     log_path = run_dir.parent / f".{run_dir.name}.run.log"
+    # a failed write: the log goes (the report folder being written is removed by its writer)
+    on_write_failure(run_dir, lambda: log_path.unlink(missing_ok=True))
     view_handle = None
     with progress_bar() as bar, log_file(log_path):
         task = bar.add_task("simulating + monitoring", total=1.0, done="")
@@ -195,6 +207,9 @@ def run(
     for line in drop_lines(report.get("dropped", {})):
         console.print(line, highlight=False)
     missed = [e for e in report.get("expectations", []) if not e.get("passed")]
+    code, verdict = done.verdict  # the gate of `dm2 monitor`: fused nothing, lost too much
+    if verdict:
+        console.print(f"{sc.name}: {verdict}", highlight=False, markup=False)
     if view_handle is not None:
         view_handle.close()
         console.print(f"3D view: [bold]{view_handle.url}[/] (Ctrl-C ends)")
@@ -204,6 +219,7 @@ def run(
             serve_forever()
         finally:
             view_handle.stop_server()
-    if missed:
-        raise typer.Exit(EXIT_MISSED)
+    code = exit_code(code, EXIT_MISSED if missed else 0)
+    if code:
+        raise typer.Exit(code)
 

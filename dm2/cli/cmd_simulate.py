@@ -6,7 +6,14 @@ from pathlib import Path
 
 import typer
 
-from dm2.cli.common import app, bad_input_exits, console, fail, require_extra
+from dm2.cli.common import (
+    app,
+    bad_input_exits,
+    cannot_write_exits,
+    console,
+    fail,
+    require_extra,
+)
 
 
 @app.command()
@@ -31,7 +38,12 @@ def simulate(
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
     from dm2.core.config import load_scenario
-    from dm2.report.outdir import check_output_file, claim_outputs, prepare_output_dir
+    from dm2.report.outdir import (
+        check_output_file,
+        claim_outputs,
+        discard_partial,
+        prepare_output_dir,
+    )
     from scenarios import resolve_scenario
 
     with bad_input_exits():
@@ -56,9 +68,16 @@ def simulate(
         except ReachError as exc:
             fail(f"{path}: the robot cannot follow the toolpath: {exc}")
     viewer = _open_gui(sim) if gui else None
-    with Progress(TextColumn("[bold]simulating[/]"), BarColumn(),
-                  TextColumn("{task.completed:.1f}/{task.total:.1f} s"), TimeRemainingColumn(),
-                  console=console, transient=True) as bar:
+
+    def discard() -> None:  # a failed write leaves no half recording, no unlisted truth file
+        out.with_name(out.name + ".part").unlink(missing_ok=True)
+        if truth is not None:
+            discard_partial(truth, kept)
+
+    bar = Progress(TextColumn("[bold]simulating[/]"), BarColumn(),
+                   TextColumn("{task.completed:.1f}/{task.total:.1f} s"), TimeRemainingColumn(),
+                   console=console, transient=True)
+    with cannot_write_exits(out, discard), bar:
         task = bar.add_task("sim", total=sim.end_s)
 
         def progress(done_s: float, total_s: float) -> None:
@@ -66,10 +85,10 @@ def simulate(
 
         result = run_simulation(sc, out, truth, progress, simulation=sim,
                                 on_message=viewer.on_message if viewer is not None else None)
+        if truth is not None:
+            claim_outputs(truth, kept, "dm2 simulate --truth")
     if viewer is not None:
         viewer.cell.close()
-    if truth is not None:
-        claim_outputs(truth, kept, "dm2 simulate --truth")
     c = result.counts
     console.print(f"wrote {out}: {result.process_s:.1f} s of process, {result.n_layers} layers, "
                   f"{c.get('Profile', 0)} profiles, {c.get('RobotState', 0)} robot states"

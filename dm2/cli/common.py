@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import errno
+import functools
 import logging
 import math
 from contextlib import contextmanager
@@ -11,6 +13,7 @@ from rich.console import Console
 from rich.logging import RichHandler
 
 from dm2 import __version__
+from dm2.cli.outcome import EXIT_CANNOT_WRITE
 
 EXAMPLES = """Examples:
 
@@ -23,7 +26,52 @@ EXAMPLES = """Examples:
 ```
 """
 
-app = typer.Typer(
+# errors of the system, not of the input: the disk is full, the file system read-only, the
+# user may not write there (exit 4, EXIT_CANNOT_WRITE)
+WRITE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM,
+                          errno.EFBIG})
+
+
+class _App(typer.Typer):
+    """Every command runs inside :func:`cannot_write_exits`: a full disk or a refused write
+    ends with one line naming the path and exit 4, never a traceback."""
+
+    def command(self, *args, **kwargs):
+        register = super().command(*args, **kwargs)
+
+        def decorator(func):
+            @functools.wraps(func)
+            def guarded(*a, **k):
+                _refuse_non_finite(func, k)
+                _CLEANUPS.clear()
+                try:
+                    with cannot_write_exits():
+                        return func(*a, **k)
+                finally:
+                    _CLEANUPS.clear()
+
+            register(guarded)
+            return func
+
+        return decorator
+
+
+def _refuse_non_finite(func, values: dict) -> None:
+    """A number option given as ``inf`` or ``nan`` (click reads both as floats): exit 2
+    naming the option as the user typed it."""
+    import inspect
+    import math
+
+    bad = [(k, v) for k, v in values.items() if isinstance(v, float) and not math.isfinite(v)]
+    if not bad:
+        return
+    key, value = bad[0]
+    default = inspect.signature(func).parameters[key].default
+    decls = [d for d in getattr(default, "param_decls", None) or () if d.startswith("--")]
+    fail(f"{decls[0] if decls else key} {value}: not a finite number")
+
+
+app = _App(
     name="dm2",
     help="3D-DM2: in-process 3D deviation mapping and defect monitoring for robotic cold "
     "spray additive manufacturing, with a digital twin.\n\n" + EXAMPLES,
@@ -102,7 +150,7 @@ def fail(message: str, code: int = EXIT_BAD_INPUT) -> None:
     brackets in it (``[live]``, ``[mm]``, lists) are printed, not read as console markup."""
     from rich.markup import escape
 
-    err_console.print(f"[bold red]error:[/] {escape(message)}", highlight=False)
+    err_console.print(f"[bold red]error:[/] {escape(message)}", highlight=False, soft_wrap=True)
     raise typer.Exit(code)
 
 
@@ -120,14 +168,49 @@ def require_extra(module: str, extra: str, what: str) -> None:
 
 @contextmanager
 def bad_input_exits():
-    """Turn the project's input errors into a clear message and exit code 2."""
+    """Turn the project's input errors into a clear message and exit code 2 (an output folder
+    the system does not let dm2 write: 4)."""
     from dm2.core.config import ConfigError
     from dm2.core.messages import MessageError
+    from dm2.report.outdir import OutputNotWritable
 
     try:
         yield
+    except OutputNotWritable as exc:
+        fail(str(exc), EXIT_CANNOT_WRITE)
     except (ConfigError, MessageError, FileNotFoundError, ValueError) as exc:
         fail(str(exc))
+
+
+_CLEANUPS: list = []  # the running command's on_write_failure (path, callback) pairs
+
+
+def on_write_failure(path, cleanup) -> None:
+    """Have ``cleanup()`` run when the running command ends on a refused write into ``path``
+    (exit 4): it takes away what the failed write left half done (:func:`cannot_write_exits`)."""
+    _CLEANUPS.append((path, cleanup))
+
+
+@contextmanager
+def cannot_write_exits(path=None, cleanup=None):
+    """A write the system refuses (:data:`WRITE_ERRNOS`: no space, read-only, no permission)
+    becomes one line naming the file (else ``path``) and exit 4, after ``cleanup()`` (and
+    every :func:`on_write_failure` callback) took away what the failed write left half
+    done."""
+    try:
+        yield
+    except OSError as exc:
+        if exc.errno not in WRITE_ERRNOS:
+            raise
+        registered = _CLEANUPS[::-1]
+        _CLEANUPS.clear()
+        for undo in [cleanup] + [c for _, c in registered]:
+            if undo is not None:
+                undo()
+        where = exc.filename or path or next((p for p, _ in registered), "the output")
+        verb = "cannot access" if exc.errno in (errno.EACCES, errno.EPERM) else "cannot write"
+        fail(f"{verb} {where}: {exc.strerror or errno.errorcode.get(exc.errno)}",
+             EXIT_CANNOT_WRITE)
 
 
 def version_callback(value: bool) -> None:

@@ -11,6 +11,8 @@ code   meaning
        write)
 3      completed on damaged input (a truncated or corrupt recording), unless
        ``--allow-truncated``
+4      the system refused to write: out of disk space, a read-only file system or no
+       permission (one line names the path; no partial file is left unlisted)
 =====  =============================================================================
 
 Where several apply, the highest wins (:func:`exit_code`).
@@ -18,7 +20,7 @@ Where several apply, the highest wins (:func:`exit_code`).
 
 from __future__ import annotations
 
-EXIT_OK, EXIT_MISSED, EXIT_BAD_INPUT, EXIT_DAMAGED_INPUT = 0, 1, 2, 3
+EXIT_OK, EXIT_MISSED, EXIT_BAD_INPUT, EXIT_DAMAGED_INPUT, EXIT_CANNOT_WRITE = 0, 1, 2, 3, 4
 
 # drop reasons that count points or connections, not messages: no share of the input
 NOT_MESSAGES = frozenset({"nan_points", "out_of_range", "reference_pose_gap",

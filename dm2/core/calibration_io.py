@@ -176,6 +176,9 @@ def read_calibration_toml(path: str | Path) -> Calibration:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read calibration file: {exc.strerror}") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not a calibration file (not UTF-8 text: byte "
+                          f"{exc.start})") from None
     return calibration_from_toml(text, str(path))
 
 

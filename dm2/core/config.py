@@ -28,7 +28,7 @@ class ConfigError(ValueError):
 
 
 class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class PartConfig(_Model):
@@ -69,19 +69,31 @@ class ToolpathConfig(_Model):
     max_layers: int | None = Field(None, gt=0)
 
 
+# Upper bounds on physical values, each well past any cold-spray cell (a value beyond one is a
+# typo or a forged file; it would overflow the kernels or empty the run without a word).
+MAX_FEED_G_MIN = 1000.0  # powder feeders deliver up to a few hundred g/min
+MAX_STANDOFF_MM = 300.0  # standoffs are 10-60 mm; the deposit is gone past a few hundred
+MAX_NOZZLE_EXIT_MM = 50.0  # nozzle exits are 2-15 mm across
+MAX_POWDER_DENSITY_G_CM3 = 25.0  # the densest element (osmium) is 22.6 g/cm3
+MAX_PLUME_SIGMA_MM = 50.0  # a plume this wide deposits no track; the plate is 120 mm
+MAX_PACKETS_PER_S = 1e6  # the twin draws each packet: 50x the default at most
+
+
 class ProcessConfig(_Model):
-    feed_g_min: float = Field(12.0, gt=0)
-    standoff_mm: float = Field(30.0, gt=0)
-    nozzle_exit_mm: float = Field(6.55, gt=0)
-    powder_density_g_cm3: float = Field(4.51, gt=0)
+    feed_g_min: float = Field(12.0, gt=0, le=MAX_FEED_G_MIN)
+    standoff_mm: float = Field(30.0, gt=0, le=MAX_STANDOFF_MM)
+    nozzle_exit_mm: float = Field(6.55, gt=0, le=MAX_NOZZLE_EXIT_MM)
+    powder_density_g_cm3: float = Field(4.51, gt=0, le=MAX_POWDER_DENSITY_G_CM3)
     deposition_efficiency: float = Field(0.5, gt=0, le=1)  # zeta at normal impact
-    plume_sigma_mm: float | None = Field(None, gt=0)  # default derived from exit and standoff
+    # default derived from exit and standoff
+    plume_sigma_mm: float | None = Field(None, gt=0, le=MAX_PLUME_SIGMA_MM)
     critical_angle_deg: float = Field(75.0, gt=0, le=90)  # zeta(theta) falls to 0 here
     # the cell's curve falls off faster than the model's by cos(theta)**this (0: the model's
     # curve; fitted from a fault-free recording by `dm2 fit-efficiency`)
     efficiency_cos_exponent: float = Field(0.0, ge=0, le=MAX_EFFICIENCY_COS_EXPONENT)
     plume_half_angle_deg: float = Field(5.0, ge=0, lt=45)  # jet divergence past the exit
-    packets_per_s: float = Field(20000.0, gt=0)  # particle packets drawn per second at full feed
+    # particle packets drawn per second at full feed
+    packets_per_s: float = Field(20000.0, gt=0, le=MAX_PACKETS_PER_S)
 
 
 class SensorConfig(_Model):
@@ -249,7 +261,8 @@ class Scenario(_Model):
     monitor: MonitorConfig = MonitorConfig()
     expect: ExpectConfig = ExpectConfig()
 
-    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True,
+                              allow_inf_nan=False)
 
     @field_validator("schema_")
     @classmethod
@@ -311,6 +324,8 @@ def read_toml(path: str | Path, what: str = "file") -> dict[str, Any]:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read {what}: {exc.strerror}") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not a {what} (not UTF-8 text: byte {exc.start})") from None
     try:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:

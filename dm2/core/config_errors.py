@@ -1,8 +1,8 @@
 """Configuration errors a user can act on: the bad value shown, the nearest known key named.
 
 :func:`describe_errors` turns a pydantic ``ValidationError`` into one line per error, naming
-the field (``monitor.voxel_mm``), the problem and the value given (``got -1``); an unknown key
-gets the nearest known key of its table (``did you mean 'voxel_mm'?``).
+the file, the field (``monitor.voxel_mm``), the problem and the value given (``got -1``); an
+unknown key gets the nearest known key of its table (``did you mean 'voxel_mm'?``).
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from pydantic import BaseModel, ValidationError
 
 
 def describe_errors(source: str, exc: ValidationError, model=None) -> str:
-    lines = [f"{source}: invalid configuration"]
+    lines = []
     for err in exc.errors():
         loc = ".".join(str(p) for p in err["loc"]) or "(top level)"
         msg = err["msg"].removeprefix("Value error, ")
@@ -26,7 +26,7 @@ def describe_errors(source: str, exc: ValidationError, model=None) -> str:
                 msg += f" (did you mean '{near[0]}'?)"
         elif "input" in err and not isinstance(err["input"], dict):
             msg += f" (got {_shown(err['input'])})"
-        lines.append(f"  field '{loc}': {msg}")
+        lines.append(f"{source}: field '{loc}': {msg}")
     return "\n".join(lines)
 
 

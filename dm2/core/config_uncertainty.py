@@ -15,7 +15,7 @@ class UncertaintyConfig(BaseModel):
     dm2.defects.uncertainty_fit.DEFAULT_EXCLUDE); refit them for a cell of one's own (README:
     "Refitting the uncertainty model")."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     confidence_k: float = Field(3.0, gt=0)  # called a defect only beyond k combined sigmas
     floor_mm: float = Field(0.127, ge=0)  # everywhere: reconstruction and reference floor

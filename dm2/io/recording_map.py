@@ -159,6 +159,8 @@ def read_map(path: str | Path) -> RecordingMap:
         raise FileNotFoundError(f"--map {path}: file not found") from None
     except OSError as exc:
         raise MapError(f"--map {path}: cannot read: {exc.strerror}") from None
+    except UnicodeDecodeError as exc:
+        raise MapError(f"--map {path}: not a map (not UTF-8 text: byte {exc.start})") from None
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:

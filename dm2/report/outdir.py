@@ -12,7 +12,11 @@ Rules (:func:`check_output_dir`, before any work is done):
 * a folder holding a manifest and other files too is refused unless ``force``: then only the
   manifest's files are replaced, every other file stays as it is;
 * any other folder (files but no manifest) is refused, with or without ``force``;
-* a file being read by the command (``inputs``) is never removed, even when a manifest lists it.
+* a file being read by the command (``inputs``) is never removed, even when a manifest lists it;
+* every manifest entry must be a relative, normalised path inside the folder (no absolute path,
+  no ``..``, no ``.``, not through a symlink that leads out of the folder): a manifest holding
+  any other entry is refused (:class:`UnsafeManifest`) before a file is touched, and a symlink
+  inside the folder is removed as a link, never followed.
 
 A refusal is an :class:`OutputRefused` (a ``ValueError``: the CLI exits 2) naming the folder and
 up to three of the files that would have been at risk.
@@ -23,6 +27,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import posixpath
 import shutil
 from pathlib import Path
 
@@ -36,9 +41,39 @@ class OutputRefused(ValueError):
     """The output folder cannot be written without putting files dm2 did not write at risk."""
 
 
+class OutputNotWritable(OutputRefused):
+    """The system does not let dm2 write there (permission, a read-only file system)."""
+
+
+class UnsafeManifest(OutputRefused):
+    """A manifest lists an entry outside its folder (absolute, ``..``, through a symlink)."""
+
+
+def _entry_problem(folder: Path, entry) -> str | None:
+    """Why ``entry`` of the manifest of ``folder`` may not be used, or None when it is a
+    relative, normalised path inside the folder (a nested folder ends with ``/``)."""
+    if not isinstance(entry, str) or not entry.strip("/"):
+        return "is not a file name"
+    name = entry[:-1] if entry.endswith("/") else entry
+    if "\0" in name or "\\" in name:
+        return "holds a NUL or backslash"
+    if posixpath.isabs(name) or os.path.isabs(name):
+        return "is an absolute path"
+    parts = name.split("/")
+    if any(p in ("", ".", "..") for p in parts):
+        return "is not a normalised path inside the folder ('..', '.' or an empty part)"
+    root = os.path.realpath(folder)
+    parent = os.path.realpath(os.path.join(folder, *parts[:-1]))
+    real = os.path.realpath(os.path.join(folder, *parts)) if entry.endswith("/") else parent
+    if os.path.commonpath([root, parent]) != root or os.path.commonpath([root, real]) != root:
+        return "leads out of the folder through a symlink"
+    return None
+
+
 def read_manifest(folder: str | Path) -> dict | None:
     """The folder's manifest (``{"schema", "dm2", "command", "files"}``) or None when it has
-    none or it is not one dm2 wrote."""
+    none or it is not one dm2 wrote. Raises :class:`UnsafeManifest` naming the manifest and
+    the entry when an entry is not a relative, normalised path inside the folder."""
     path = Path(folder) / MANIFEST_NAME
     if not path.is_file():
         return None
@@ -49,6 +84,12 @@ def read_manifest(folder: str | Path) -> dict | None:
     if not isinstance(data, dict) or not isinstance(data.get("files"), list) \
             or data.get("schema") != MANIFEST_SCHEMA:
         return None
+    for entry in data["files"]:
+        problem = _entry_problem(Path(folder), entry)
+        if problem is not None:
+            raise UnsafeManifest(f"{path}: entry {entry!r} {problem}; dm2 touched nothing "
+                                 "(a manifest lists only files inside its own folder): remove "
+                                 "that entry, or choose a new folder")
     return data
 
 
@@ -60,9 +101,15 @@ def write_manifest(folder: str | Path, files, command: str = "") -> Path:
     folder = Path(folder)
     entries = sorted({str(f).replace(os.sep, "/") for f in files if str(f) != MANIFEST_NAME})
     path = folder / MANIFEST_NAME
-    path.write_text(json.dumps({"schema": MANIFEST_SCHEMA, "dm2": __version__,
-                                "command": command, "files": entries}, indent=1),
-                    encoding="utf-8")
+    tmp = folder / f"{MANIFEST_NAME}.part"  # replaced whole: a full disk keeps the old one
+    try:
+        tmp.write_text(json.dumps({"schema": MANIFEST_SCHEMA, "dm2": __version__,
+                                   "command": command, "files": entries}, indent=1),
+                       encoding="utf-8")
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     return path
 
 
@@ -127,7 +174,7 @@ def check_output_dir(out_dir: str | Path, *, force: bool = False, inputs=()) -> 
         raise OutputRefused(f"output folder {out}: exists and is not a folder")
     target = out if out.exists() else parent
     if not os.access(target, os.W_OK | os.X_OK):
-        raise OutputRefused(f"output folder {out}: {target} is not writable")
+        raise OutputNotWritable(f"output folder {out}: {target} is not writable")
     for inp in inputs:
         if inp is not None and _same_file(Path(inp), out):
             raise OutputRefused(f"output folder {out}: is the input {inp}")
@@ -178,7 +225,8 @@ def clear_outputs(out_dir: str | Path, inputs=()) -> list[str]:
 def _remove_empty_dirs(folder: Path, stop: Path | None = None) -> None:
     """Remove ``folder`` and its empty parents up to (not including) ``stop`` while empty."""
     folder = Path(folder)
-    while folder.is_dir() and folder != stop and not any(folder.iterdir()):
+    while folder.is_dir() and not folder.is_symlink() and folder != stop \
+            and not any(folder.iterdir()):
         folder.rmdir()
         folder = folder.parent
         if stop is None:
@@ -235,6 +283,27 @@ def claim_outputs(out_dir: str | Path, before: set[str], command: str) -> None:
     write_manifest(out, [f for f in files_below(out) if f not in before], command=command)
 
 
+def discard_partial(folder: str | Path, before: set[str]) -> None:
+    """After a failed write into ``folder`` (a full disk, say): the files this run left there
+    (not in ``before``) are listed in the manifest, so a rerun replaces them without
+    ``--force``; a half-written ``.part`` file is removed, as is every other new file when the
+    manifest itself cannot be written. A file that was there before is never touched."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return
+    new = [f for f in files_below(folder) if f not in before and f != MANIFEST_NAME]
+    for rel in [f for f in new if f.endswith(".part")]:
+        (folder / rel).unlink(missing_ok=True)
+    rest = [f for f in new if not f.endswith(".part")]
+    try:
+        listed = read_manifest(folder)
+        write_manifest(folder, [*(listed or {"files": []})["files"], *rest],
+                       command=(listed or {}).get("command", ""))
+    except (OSError, ValueError):
+        for rel in rest:
+            (folder / rel).unlink(missing_ok=True)
+
+
 def written_by_dm2(path: Path) -> bool:
     """Whether the single file ``path`` is one dm2 writes: an MCAP recording whose header
     names the library ``dm2``, a canonical toolpath CSV, a RAPID module dm2 generated, or a
@@ -268,7 +337,11 @@ def check_output_file(path: str | Path, *, force: bool = False, inputs=()) -> Pa
         raise OutputRefused(f"output file {path}: is a folder")
     if not path.parent.is_dir():
         raise OutputRefused(f"output file {path}: folder {path.parent} does not exist")
-    if path.exists() and not force and not written_by_dm2(path):
-        raise OutputRefused(f"output file {path}: exists and was not written by dm2; choose "
-                            "another name, or give --force to replace it")
+    part = path.with_name(path.name + ".part")  # where a recording is written first
+    for p in (path, part):
+        if p.exists() and not force and not written_by_dm2(p):
+            raise OutputRefused(f"output file {path}: {p} exists and was not written by dm2; "
+                                "choose another name, or give --force to replace it")
+    if not os.access(path.parent, os.W_OK | os.X_OK):
+        raise OutputNotWritable(f"output file {path}: folder {path.parent} is not writable")
     return path

@@ -96,6 +96,8 @@ def read_csv(path: str | Path) -> Toolpath:
         lines = path.read_text(encoding="utf-8").splitlines()
     except OSError as exc:
         raise FileNotFoundError(f"{path}: cannot read toolpath CSV: {exc.strerror}") from None
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{path}: not a toolpath CSV (not UTF-8 text: byte {exc.start})") from None
     if not lines or tuple(lines[0].strip().split(",")) != CSV_COLUMNS:
         raise ValueError(f"{path}: line 1: header must be {','.join(CSV_COLUMNS)}")
     rows = [ln.split(",") for ln in lines[1:] if ln.strip()]
@@ -109,21 +111,50 @@ def read_csv(path: str | Path) -> Toolpath:
         where = f"{path}: line {i + 2}"
         if len(r) != len(CSV_COLUMNS):
             raise ValueError(f"{where}: expected {len(CSV_COLUMNS)} columns, got {len(r)}")
-        try:
-            if int(r[0]) != i:
-                raise ValueError(f"{where}: column 'index' is {r[0]}, expected {i}")
-            pos[i] = float(r[1]), float(r[2]), float(r[3])
-            axis[i] = float(r[4]), float(r[5]), float(r[6])
-            speed[i] = float(r[7])
-            layer[i] = int(r[9])
-            spray[i] = {"1": True, "0": False}[r[10].strip()]
-            zone[i] = float(r[11])
-        except (ValueError, KeyError) as exc:
-            raise ValueError(f"{where}: bad value ({exc})") from None
+        v = {name: _csv_value(where, name, text) for name, text in zip(CSV_COLUMNS, r,
+                                                                        strict=True)}
+        if v["index"] != i:
+            raise ValueError(f"{where}: column 'index' is {r[0]}, expected {i}")
+        pos[i] = v["x_mm"], v["y_mm"], v["z_mm"]
+        axis[i] = v["ax"], v["ay"], v["az"]
+        if not np.any(axis[i]):
+            raise ValueError(f"{where}: columns 'ax', 'ay', 'az' are all 0 (no spray axis)")
+        speed[i], layer[i], spray[i], zone[i] = (v["speed_mm_s"], v["layer"], v["spray_on"],
+                                                 v["zone_mm"])
         if r[8] not in KIND_CODE:
             raise ValueError(f"{where}: column 'kind' is {r[8]!r}, not one of {TOOLPATH_KINDS}")
         kind[i] = KIND_CODE[r[8]]
     return Toolpath(pos, axis, speed, kind, layer, spray, zone, meta=_meta_from_rows(pos, layer))
+
+
+_CSV_INTS = ("index", "layer", "spray_on")
+_CSV_POSITIVE = ("speed_mm_s",)
+_CSV_NON_NEGATIVE = ("zone_mm",)
+
+
+def _csv_value(where: str, column: str, text: str):
+    """One cell of a canonical CSV row: an int, a finite float (positive or at least 0 where
+    the column says so), or the kind's name; ValueError naming line, column and value."""
+    if column == "kind":
+        return text
+    text = text.strip()
+    try:
+        value = int(text) if column in _CSV_INTS else float(text)
+    except ValueError:
+        raise ValueError(f"{where}: column '{column}' is {text!r}, not a "
+                         f"{'whole number' if column in _CSV_INTS else 'number'}") from None
+    if column in _CSV_INTS:
+        if value < 0 or (column == "spray_on" and value > 1):
+            raise ValueError(f"{where}: column '{column}' is {text!r}, expected "
+                             + ("0 or 1" if column == "spray_on" else "0 or more"))
+        return value
+    if not np.isfinite(value) or abs(value) > 1e6:
+        raise ValueError(f"{where}: column '{column}' is {text!r}, not a finite value "
+                         "within 1 km")
+    if (column in _CSV_POSITIVE and value <= 0) or (column in _CSV_NON_NEGATIVE and value < 0):
+        raise ValueError(f"{where}: column '{column}' is {text!r}, expected a "
+                         + ("positive value" if column in _CSV_POSITIVE else "value >= 0"))
+    return value
 
 
 def axis_to_quat_wxyz(axis_O: np.ndarray) -> np.ndarray:
@@ -200,6 +231,8 @@ def read_rapid(path: str | Path) -> Toolpath:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise FileNotFoundError(f"{path}: cannot read RAPID module: {exc.strerror}") from None
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{path}: not a RAPID module (not UTF-8 text: byte {exc.start})") from None
     speed_of = {m[1]: float(m[2]) for m in _SPEED_RE.finditer(text)}
     zone_of = {m[1]: float(m[2]) for m in _ZONE_RE.finditer(text)}
     zone_of["fine"] = 0.0
