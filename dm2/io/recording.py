@@ -34,6 +34,7 @@ from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
 from mcap.exceptions import McapError
 from mcap.reader import NonSeekingReader, make_reader
 
@@ -229,6 +230,16 @@ class Recording:
             raw.close()
             self._has_counters = any(seqs)
         return self._has_counters
+
+    def robot_poses(self) -> Iterator[tuple[float, np.ndarray]]:
+        """``(stamp_s, T_B_F)`` of every robot state, decoding only ``/tf`` (file order)."""
+        for _schema, _channel, message in self._iter_raw([TF_TOPIC]):
+            try:
+                for ns, parent, child, T in ros.decode_tf(message.data):
+                    if (parent, child) == ("B", "F"):
+                        yield ns_to_stamp(ns), T
+            except (ros.CdrError, ValueError):
+                continue
 
     def messages(self) -> Iterator[Profile | RobotState | LayerMark]:
         """Pipeline messages in stamp order (a RobotState once its joints and pose both came)."""
