@@ -3,7 +3,8 @@
 200 seeded copies of a small recording, each with one kind of damage (a flipped bit, a run of
 random bytes, a truncation), are decoded. Each must either read exactly the original messages
 and attachments, or stop at the damage, say so (``input_summary()['complete']`` False) and
-return only an unchanged prefix of the original messages.
+return only an unchanged prefix of the original messages. ``dm2 recover`` of each copy never
+crashes, never leaves its ``.recovering`` file, and keeps an unchanged prefix.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from dm2.core.frames import from_euler_deg
 from dm2.core.messages import Calibration, LayerMark, Profile, RobotState
 from dm2.io.recording import read_recording
 from dm2.io.recording_writer import RecordingWriter
+from dm2.live.recover import recover_recording
 
 N_COPIES = 200
 
@@ -80,6 +82,24 @@ def _damage(data: bytes, rng) -> tuple[str, bytes]:
     return kind, bytes(buf)
 
 
+def _recover_keeps_a_prefix(path, keys, n, kind):
+    """`dm2 recover` of a damaged copy: a file whose messages are an unchanged prefix, or a
+    ValueError naming the file; never a crash, never a ``.recovering`` file left."""
+    out = path.with_name(path.stem + ".fixed.mcap")
+    try:
+        res = recover_recording(path, out)
+    except ValueError as exc:
+        assert str(path) in str(exc) and not out.exists(), (n, kind)
+        return
+    finally:
+        assert not out.with_name(out.name + ".recovering").exists(), (n, kind)
+    rec = read_recording(out)
+    got = [_key(m) for m in rec.messages()]
+    assert got == keys[: len(got)], (n, kind, "recovered, but changed")
+    assert rec.recovered["intact"] and rec.recovered["complete"] == str(res.complete).lower()
+    out.unlink()
+
+
 def test_damaged_copies_read_exactly_or_stop_at_the_damage(original, tmp_path):
     data, keys, attachments = original
     rng = np.random.default_rng(2026)
@@ -107,6 +127,7 @@ def test_damaged_copies_read_exactly_or_stop_at_the_damage(original, tmp_path):
         else:
             assert got == keys[: len(got)], (n, kind, "stopped, but what it read changed")
             outcomes["stopped"] += 1
+        _recover_keeps_a_prefix(path, keys, n, kind)
         path.unlink()
     # the damage mostly falls in the chunks, which must be caught, not read as good
     assert outcomes["stopped"] > outcomes["exact"] > 0, outcomes

@@ -172,19 +172,24 @@ def _copy_into(path: Path, part: Path) -> tuple[RecoveryResult, dict[str, str]]:
             src.seek(here)
             return data
 
-        try:
-            for rec in StreamReader(src, validate_crcs=True).records:
-                end = src.tell()
-                if not started:
-                    profile = getattr(rec, "profile", "")
-                    writer.start(profile=profile, library="dm2 recover")
-                    started = True
-                else:
-                    copy.add(rec, lambda s=prev_end, e=end: raw_record(s, e))
-                prev_end = end
-        except READ_ERRORS as exc:
-            complete, reason, stopped_at = False, str(exc) or type(exc).__name__, prev_end
-            log.info("%s: stopped at a damaged or missing record (%s)", path, reason)
+        records = StreamReader(src, validate_crcs=True).records
+        while True:
+            try:  # only reading is damage; an error writing the copy is not caught here
+                rec = next(records)
+            except StopIteration:
+                break
+            except READ_ERRORS as exc:
+                complete, reason, stopped_at = False, str(exc) or type(exc).__name__, prev_end
+                log.info("%s: stopped at a damaged or missing record (%s)", path, reason)
+                break
+            end = src.tell()
+            if not started:
+                profile = getattr(rec, "profile", "")
+                writer.start(profile=profile, library="dm2 recover")
+                started = True
+            else:
+                copy.add(rec, lambda s=prev_end, e=end: raw_record(s, e))
+            prev_end = end
         if not started:
             writer.start(profile=profile, library="dm2 recover")
         last_s = copy.last_ns / 1e9 if copy.last_ns is not None else float("nan")
@@ -200,7 +205,7 @@ def _copy_into(path: Path, part: Path) -> tuple[RecoveryResult, dict[str, str]]:
         if copy.bad_attachments:
             note += "; attachments left out (CRC): " + ", ".join(copy.bad_attachments)
         fields = {"original_file": path.name, "original_bytes": str(size),
-                  "complete": "true" if complete else "false",
+                  "complete": "true" if complete and not copy.bad_attachments else "false",
                   "stopped_at_byte": "" if stopped_at is None else str(stopped_at),
                   "reason": reason[:200], "last_stamp_s": f"{last_s:.6f}",
                   "lost_s": "" if lost_s is None else f"{lost_s:.3f}", "note": note}
