@@ -44,6 +44,8 @@ def test_first_departure_names_the_window_and_layer_where_the_paths_part():
     # 6 mm from the moved line, nearer the move that joins the layers at its start
     assert 3.0 < part.median_mm <= 6.0
     assert part.windows == 5  # four windows on layer 0 agreed first
+    marked = first_departure(t, spots, moved, marks=[(0.0, 0), (3.99, 7)])
+    assert (marked.layer, marked.layer_source) == (7, "layer marks")  # the recording's own
     still = np.tile(spots[:1] + [0, 30, 0], (len(t), 1))  # standing still far off: not judged
     assert first_departure(t, still, moved) is None
 
@@ -70,7 +72,8 @@ def test_monitor_refuses_a_toolpath_the_robot_did_not_follow(tmp_path, recording
     assert res.exit_code == 2, res.output
     text = "".join(res.output.split())  # the console wraps long paths
     assert f"{tmp_path / name}doesnotmatchtherecording" in text, text
-    assert "".join(f"they part at {when} (near toolpath layer {layer})".split()) in text, text
+    where = f"they part at {when} (layer {layer}, the nearest toolpath layer)"
+    assert "".join(where.split()) in text, text
     assert "Traceback" not in res.output and not out.exists()
 
 

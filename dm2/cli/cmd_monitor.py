@@ -86,11 +86,11 @@ def check_toolpath_matches(rec, cal, tp, process, tp_name) -> None:
     whole run: see :mod:`dm2.fusion.path_agreement` for the windows and the bound."""
     from dm2.fusion.path_agreement import MAX_MEDIAN_MM, executed_spots, first_departure
 
-    stamps_s, spots_O = executed_spots(rec, cal, process.standoff_mm)
-    part = first_departure(stamps_s, spots_O, tp)
+    stamps_s, spots_O, marks = executed_spots(rec, cal, process.standoff_mm)
+    part = first_departure(stamps_s, spots_O, tp, marks=marks)
     if part is not None:
         raise ValueError(f"{tp_name} does not match the recording {rec.path}: they part at "
-                         f"{part.start_s:.1f} s (near toolpath layer {part.layer}), where the "
+                         f"{part.where()}, where the "
                          f"spray spot lies a median {part.median_mm:.1f} mm from the toolpath "
                          f"until {part.end_s:.1f} s (at most {MAX_MEDIAN_MM} mm allowed)")
 

@@ -241,6 +241,15 @@ class Recording:
             except (ros.CdrError, ValueError):
                 continue
 
+    def layer_marks(self) -> Iterator[tuple[float, int]]:
+        """``(stamp_s, layer)`` of every layer mark, decoding only ``/dm2/layer``."""
+        for _schema, _channel, message in self._iter_raw([LAYER_TOPIC]):
+            try:
+                ns, layer = ros.decode_layer_mark(message.data)
+            except (ros.CdrError, ValueError):
+                continue
+            yield ns_to_stamp(ns), layer
+
     def messages(self) -> Iterator[Profile | RobotState | LayerMark]:
         """Pipeline messages in stamp order (a RobotState once its joints and pose both came)."""
         scan_ids = {t: sid for sid, t in SCAN_TOPICS.items()}
