@@ -89,7 +89,7 @@ def test_recover_stops_at_the_damage_and_the_recovered_file_remembers_it(recorde
     out = tmp_path / "o"
     res = CliRunner().invoke(app, ["monitor", str(fixed), "--out", str(out)])
     assert res.exit_code == 3, res.output
-    assert (f"was recovered by `dm2 recover` from flip200.mcap ({bad.stat().st_size} bytes): "
+    assert (f"was recovered by `dm2 recover` from flip200.mcap ({bad.stat().st_size:,} bytes): "
             f"last {lost_s:.1f} s lost") in " ".join(res.output.split())
     info = json.loads((out / "report" / "report.json").read_text())["input"]
     assert info["complete"] is False and info["recovered"]["lost_s"] == f"{lost_s:.3f}"

@@ -82,8 +82,10 @@ def damaged_input_sentence(info: dict) -> str | None:
     rec = info.get("recovered")
     if rec is not None:
         trust = "" if rec.get("intact", True) else " (its recovery record fails its CRC)"
+        size = str(rec.get("original_bytes", "?"))
+        size = f"{int(size):,}" if size.isdigit() else size
         parts.append(f"{name} was recovered by `dm2 recover` from {rec.get('original_file')} "
-                     f"({rec.get('original_bytes')} bytes): {rec.get('note')}{trust}.")
+                     f"({size} bytes): {rec.get('note')}{trust}.")
     if info.get("summary_damaged"):
         parts.append(f"{name}: its summary (the index) fails its CRC; it was read record by "
                      "record instead.")
