@@ -67,6 +67,30 @@ def test_a_toolpath_the_robot_did_not_follow_is_refused_before_any_work(tmp_path
     assert not out.exists()
 
 
+def test_a_toolpath_scaled_10x_is_refused_naming_where_it_parts(tmp_path, recording):
+    """The pad's toolpath scaled 10x about its centre (200 mm on the 120 mm plate): its first
+    seconds pass within 3 mm of the spot, then the two part; the attached one passes."""
+    from dm2.cli.cmd_monitor import check_toolpath_matches
+    from dm2.core.config import ProcessConfig
+    from dm2.io.recording import read_recording
+
+    rec = read_recording(recording)
+    tp = rec.toolpath
+    check_toolpath_matches(rec, rec.calibration, tp, ProcessConfig(), "attached")  # passes
+    c = np.r_[tp.position_O[:, :2].mean(axis=0), 0.0]
+    big = type(tp)(c + (tp.position_O - c) * [10, 10, 1], tp.axis_O, tp.speed_mm_s, tp.kind,
+                   tp.layer, tp.spray_on, tp.zone_mm)
+    write_csv(big, tmp_path / "x10.csv")
+    out = tmp_path / "out"
+    res = CliRunner().invoke(app, ["monitor", str(recording), "--out", str(out),
+                                   "--toolpath", str(tmp_path / "x10.csv")])
+    assert res.exit_code == 2, res.output
+    text = "".join(res.output.split())
+    assert f"{tmp_path / 'x10.csv'}doesnotmatchtherecording" in text
+    assert "theypartat" in text and "bytherecording'slayermarks" in text
+    assert "Traceback" not in res.output and not out.exists()
+
+
 def test_an_output_path_that_is_a_file_is_refused(tmp_path, recording):
     target = tmp_path / "taken"
     target.write_text("not a folder")

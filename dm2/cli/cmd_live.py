@@ -153,7 +153,11 @@ def recover(
     out: Path = typer.Option(None, "--out", "-o", help="Output file (default: FILE without "
                              ".part, or FILE.recovered.mcap)."),
 ) -> None:
-    """Make a recording cut short by a crash readable again (complete chunks are kept)."""
+    """Make a recording cut short by a crash, or damaged, readable again.
+
+    Every chunk up to the first one cut off, undecompressable or failing its CRC is kept; the
+    new file records that it was recovered and what was lost (a run on it exits 3 unless
+    `--allow-truncated`)."""
     from dm2.live.recover import default_output, recover_recording
 
     with bad_input_exits():
@@ -161,7 +165,8 @@ def recover(
         if target.exists():
             raise ValueError(f"{target}: already exists; choose another --out")
         result = recover_recording(file, target)
-    state = "complete" if result.complete else "cut off; kept every complete chunk"
+    state = ("complete" if result.complete
+             else f"cut off or damaged; kept every intact chunk before that: {result.note}")
     upto = f" up to {result.last_stamp_s:.3f} s" if result.messages else ""
     console.print(f"recovered {result.messages} messages and {result.attachments} "
                   f"attachments{upto} ({state}) -> {result.out_path}")

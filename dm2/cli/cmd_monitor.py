@@ -7,7 +7,6 @@ import logging
 import time
 from pathlib import Path
 
-import numpy as np
 import typer
 
 from dm2.cli.common import (
@@ -90,37 +89,18 @@ def load_inputs(run: Path, calibration: Path | None, toolpath: Path | None,
     return rec, cal, tp, monitor_cfg, process, plate_mm
 
 
-def check_toolpath_matches(rec, cal, tp, process, tp_name, n_states: int = 500,
-                           max_median_mm: float = 3.0) -> None:
-    """Refuse a toolpath the recorded robot did not follow (before any fusion work).
+def check_toolpath_matches(rec, cal, tp, process, tp_name) -> None:
+    """Refuse a toolpath the recorded robot did not follow (before any fusion work), over the
+    whole run: see :mod:`dm2.fusion.path_agreement` for the windows and the bound."""
+    from dm2.fusion.path_agreement import MAX_MEDIAN_MM, executed_spots, first_departure
 
-    The spray spot of the first ``n_states`` robot states (in ``O``) must lie within
-    ``max_median_mm`` (median) of the toolpath polyline.
-    """
-    from scipy.spatial import cKDTree
-
-    from dm2.core.frames import invert
-    from dm2.core.messages import RobotState
-    from dm2.fusion.layers import resample_toolpath
-    from dm2.fusion.registration import spot_B
-
-    spot = spot_B(cal, process.standoff_mm)
-    spots = []
-    for msg in rec.messages():
-        if isinstance(msg, RobotState):
-            T_O_B = invert(msg.T_B_F @ cal.T_F_O)
-            spots.append(T_O_B[:3, :3] @ spot + T_O_B[:3, 3])
-            if len(spots) >= n_states:
-                break
-    if not spots:
-        return
-    pts, _ = resample_toolpath(tp, spacing_mm=0.5)
-    dist, _ = cKDTree(pts).query(np.asarray(spots))
-    med = float(np.median(dist))
-    if med > max_median_mm:
-        raise ValueError(f"{tp_name} does not match the recording {rec.path}: the spray spot of "
-                         f"its first {len(spots)} robot states lies a median {med:.1f} mm from "
-                         f"the toolpath (at most {max_median_mm} mm expected)")
+    stamps_s, spots_O, marks = executed_spots(rec, cal, process.standoff_mm)
+    part = first_departure(stamps_s, spots_O, tp, marks=marks)
+    if part is not None:
+        raise ValueError(f"{tp_name} does not match the recording {rec.path}: they part at "
+                         f"{part.where()}, where the "
+                         f"spray spot lies a median {part.median_mm:.1f} mm from the toolpath "
+                         f"until {part.end_s:.1f} s (at most {MAX_MEDIAN_MM} mm allowed)")
 
 
 @app.command()

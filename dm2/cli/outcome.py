@@ -77,11 +77,31 @@ def run_verdict(*, profiles_fused: int, dropped: dict, messages_in: int,
 
 
 def damaged_input_sentence(info: dict) -> str | None:
-    """One plain sentence when the input was truncated or damaged, else None."""
+    """One plain sentence when the input was truncated, damaged or recovered from a damaged
+    file (its ``input`` section), else None."""
     if info.get("complete", True):
         return None
-    upto = info.get("last_stamp_s")
-    where = f"up to {upto:.3f} s" if upto is not None else "before its first message"
-    skipped = info.get("bytes_skipped", 0)
-    return (f"{info.get('file', 'the input')} is truncated or damaged: it was read {where}, "
-            f"and {skipped:,} bytes after that could not be read.")
+    name = info.get("file", "the input")
+    parts = []
+    if info.get("error") is not None or info.get("bytes_skipped"):
+        upto = info.get("last_stamp_s")
+        where = f"up to {upto:.3f} s" if upto is not None else "before its first message"
+        at, why = info.get("stopped_at_byte"), info.get("reason")
+        rest = (f"bytes from byte {at:,} on could not be read ({why})" if at is not None
+                else "bytes after that could not be read")
+        parts.append(f"{name} is truncated or damaged: it was read {where}, and "
+                     f"{info.get('bytes_skipped', 0):,} {rest}.")
+    rec = info.get("recovered")
+    if rec is not None:
+        trust = "" if rec.get("intact", True) else " (its recovery record fails its CRC)"
+        size = str(rec.get("original_bytes", "?"))
+        size = f"{int(size):,}" if size.isdigit() else size
+        parts.append(f"{name} was recovered by `dm2 recover` from {rec.get('original_file')} "
+                     f"({size} bytes): {rec.get('note')}{trust}.")
+    if info.get("summary_damaged"):
+        parts.append(f"{name}: its summary (the index) fails its CRC; it was read record by "
+                     "record instead.")
+    if info.get("bad_attachments"):
+        parts.append(f"{name}: attachments that fail their CRC were left out: "
+                     + ", ".join(info["bad_attachments"]) + ".")
+    return " ".join(parts) or f"{name} is damaged."

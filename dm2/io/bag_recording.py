@@ -237,7 +237,7 @@ class BagRecording:
                     yield RobotState(stamp, seq, joints, T_B_F)
                     seq += 1
                 yield Profile(sid, stamp, None, xz, valid, inten)
-            except (CloudError, MessageError, AttributeError, ValueError) as exc:
+            except (CloudError, MessageError, AttributeError, TypeError, ValueError) as exc:
                 self.skipped[f"{topic}: {type(exc).__name__}"] += 1
                 log.debug("%s: skipped a %s message: %s", self.path, topic, exc)
         for topic, c in per_topic.items():

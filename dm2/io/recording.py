@@ -29,17 +29,27 @@ crash loses at most about a second; the file is written as ``<path>.part`` and r
 from __future__ import annotations
 
 import logging
-import struct
 import tempfile
 from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
 from mcap.exceptions import McapError
 from mcap.reader import NonSeekingReader, make_reader
 
 from dm2.core.messages import SENSOR_IDS, Calibration, LayerMark, MessageError, Profile, RobotState
 from dm2.io import ros_messages as ros
+from dm2.io.mcap_integrity import (
+    READ_ERRORS,
+    RECOVERED_METADATA,
+    SeekTracker,
+    indexed_attachments,
+    indexed_metadata,
+    linear_extras,
+    recovery_note,
+    summary_intact,
+)
 
 log = logging.getLogger(__name__)
 
@@ -75,7 +85,11 @@ class Recording:
     skipped : Counter of reasons -> messages that could not be turned into pipeline messages
     complete : False when the file has no readable summary (cut short, or damaged)
     damage : None, or after a full pass of :meth:`messages` that stopped at a record it could
-        not read: ``{"error", "good_bytes"}`` (see :meth:`input_summary`)
+        not read (or a chunk that failed its CRC): ``{"error", "reason", "good_bytes",
+        "offset"}`` (see :meth:`input_summary`, and :mod:`dm2.io.mcap_integrity` for what the
+        CRCs cover)
+    recovered : None, or the ``dm2.recovered`` record of a file ``dm2 recover`` rewrote
+    bad_attachments : names of attachments left out because they fail their CRC
     """
 
     def __init__(self, path: Path):
@@ -86,29 +100,32 @@ class Recording:
         self._has_counters: bool | None = None
         self.damage: dict | None = None
         self.last_stamp_ns: int | None = None  # newest log time read by a full pass
+        self._linear = False
+        self.summary_damaged = False  # a footer is there but the summary fails its CRC
         with open(path, "rb") as f:
             if f.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
                 raise ValueError(f"{path}: not an MCAP file (bad magic bytes)")
-            f.seek(0)
             try:
-                reader = make_reader(f)
+                if not summary_intact(f):
+                    f.seek(-len(MCAP_MAGIC), 2)
+                    self.summary_damaged = f.read() == MCAP_MAGIC  # ends properly: damaged
+                    raise McapError("the summary fails its CRC")
+                f.seek(0)
+                reader = make_reader(f, validate_crcs=True)
                 self.summary = reader.get_summary()
-                atts = list(reader.iter_attachments())
-            except Exception as exc:  # noqa: BLE001 - any damage to the summary: read linearly
-                log.debug("%s: no summary (%s); reading it linearly", path, exc)
+                if self.summary is None:  # written without one: read linearly, as it is
+                    self._linear = True
+                    atts, self.bad_attachments, meta = linear_extras(f)
+                else:
+                    atts, self.bad_attachments = indexed_attachments(f, self.summary)
+                    meta = indexed_metadata(reader)
+            except READ_ERRORS as exc:  # any damage to the summary: read linearly
+                log.debug("%s: no usable summary (%s); reading it linearly", path, exc)
                 self.complete, self.summary = False, None
-                atts = self._linear_attachments(f)
-        self.attachments = {a.name: bytes(a.data) for a in atts}
-
-    @staticmethod
-    def _linear_attachments(f) -> list:
-        f.seek(0)
-        out = []
-        try:
-            out.extend(NonSeekingReader(f).iter_attachments())
-        except (McapError, EOFError, ValueError, struct.error):
-            pass
-        return out
+                atts, self.bad_attachments, meta = linear_extras(f)
+        self.attachments = atts
+        rec = meta.get(RECOVERED_METADATA)
+        self.recovered = recovery_note(rec) if rec is not None else None
 
     @property
     def scenario_toml(self) -> str | None:
@@ -144,13 +161,15 @@ class Recording:
     def _iter_raw(self, topics=None):
         full = topics is None  # a full pass records how far the file could be read
         good = 0
-        with open(self.path, "rb") as f:
+        with open(self.path, "rb") as raw_f:
+            f = SeekTracker(raw_f)
             try:
-                if self.complete:
-                    it = make_reader(f).iter_messages(topics=topics, log_time_order=True)
+                if self.complete and not self._linear:
+                    it = make_reader(f, validate_crcs=True).iter_messages(
+                        topics=topics, log_time_order=True)
                 else:
-                    it = NonSeekingReader(f).iter_messages(topics=topics,
-                                                           log_time_order=False)
+                    it = NonSeekingReader(f, validate_crcs=True).iter_messages(
+                        topics=topics, log_time_order=False)
                 for item in it:
                     if full:
                         t = item[2].log_time
@@ -158,25 +177,45 @@ class Recording:
                             self.last_stamp_ns = t
                         good = f.tell()
                     yield item
-            except (McapError, EOFError, ValueError, struct.error, OSError) as exc:
-                log.debug("%s: stopped at a record it cannot read (%s)", self.path,
-                          str(exc) or type(exc).__name__)
-                if full:
-                    self.damage = {"error": type(exc).__name__, "good_bytes": int(good)}
+            except READ_ERRORS as exc:
+                why = str(exc) or type(exc).__name__
+                log.debug("%s: stopped at a record it cannot read (%s)", self.path, why)
+                if full:  # indexed: the chunk last sought to; linear: after the last good one
+                    indexed = self.complete and not self._linear
+                    at = max(0, f.last_seek - 9) if indexed else good
+                    self.damage = {"error": type(exc).__name__, "reason": why[:200],
+                                   "good_bytes": int(good), "offset": int(at)}
 
     def input_summary(self) -> dict:
         """What the full pass of :meth:`messages` read: ``complete`` (False when it stopped at
-        a record it could not read), ``truncated`` (no summary: cut short), ``last_stamp_s``
-        (newest message read), ``bytes_skipped`` (bytes after the last chunk read)."""
+        a record it could not read, an attachment failed its CRC, or the file was recovered
+        from a cut or damaged one),
+        ``truncated`` (no usable summary: cut short), ``last_stamp_s`` (newest message read),
+        ``bytes_skipped`` (bytes after the last chunk read), ``stopped_at_byte`` and
+        ``stopped_at_stamp_s`` (where the reading stopped), ``recovered`` (the record
+        ``dm2 recover`` left), ``bad_attachments`` (left out: they fail their CRC)."""
         size = self.path.stat().st_size
         damaged = self.damage is not None
         skipped = max(0, size - self.damage["good_bytes"]) if damaged else 0
-        return {"file": str(self.path), "complete": not damaged,
-                "truncated": damaged and not self.complete, "indexed": self.complete,
-                "last_stamp_s": (None if self.last_stamp_ns is None
-                                 else ns_to_stamp(self.last_stamp_ns)),
-                "bytes": size, "bytes_skipped": skipped,
-                "error": self.damage["error"] if damaged else None}
+        last = None if self.last_stamp_ns is None else ns_to_stamp(self.last_stamp_ns)
+        rec = self.recovered
+        lost = rec is not None and not (rec.get("complete") == "true" and rec["intact"])
+        out = {"file": str(self.path),
+               "complete": not (damaged or lost or self.bad_attachments
+                                or self.summary_damaged),
+               "truncated": damaged and not self.complete, "indexed": self.complete,
+               "last_stamp_s": last, "bytes": size, "bytes_skipped": skipped,
+               "error": self.damage["error"] if damaged else None}
+        if damaged:
+            out.update(stopped_at_byte=self.damage["offset"], stopped_at_stamp_s=last,
+                       reason=self.damage["reason"])
+        if self.recovered is not None:
+            out["recovered"] = self.recovered
+        if self.summary_damaged:
+            out["summary_damaged"] = True
+        if self.bad_attachments:
+            out["bad_attachments"] = list(self.bad_attachments)
+        return out
 
     @property
     def has_counters(self) -> bool:
@@ -191,6 +230,25 @@ class Recording:
             raw.close()
             self._has_counters = any(seqs)
         return self._has_counters
+
+    def robot_poses(self) -> Iterator[tuple[float, np.ndarray]]:
+        """``(stamp_s, T_B_F)`` of every robot state, decoding only ``/tf`` (file order)."""
+        for _schema, _channel, message in self._iter_raw([TF_TOPIC]):
+            try:
+                for ns, parent, child, T in ros.decode_tf(message.data):
+                    if (parent, child) == ("B", "F"):
+                        yield ns_to_stamp(ns), T
+            except (ros.CdrError, ValueError):
+                continue
+
+    def layer_marks(self) -> Iterator[tuple[float, int]]:
+        """``(stamp_s, layer)`` of every layer mark, decoding only ``/dm2/layer``."""
+        for _schema, _channel, message in self._iter_raw([LAYER_TOPIC]):
+            try:
+                ns, layer = ros.decode_layer_mark(message.data)
+            except (ros.CdrError, ValueError):
+                continue
+            yield ns_to_stamp(ns), layer
 
     def messages(self) -> Iterator[Profile | RobotState | LayerMark]:
         """Pipeline messages in stamp order (a RobotState once its joints and pose both came)."""

@@ -71,11 +71,13 @@ class RecordingMap:
             if topic not in offered:
                 raise MapError(f"{self.source}: {key} = {topic!r}: the recording has no such "
                                f"topic; it has: {listing}")
+        if self.tf_static in offered:
+            wanted["topics.tf_static"] = self.tf_static
         for key, topic in wanted.items():
-            if key.startswith("topics.profiles.") and \
-                    offered[topic] != "sensor_msgs/msg/PointCloud2":
+            kinds = _TOPIC_TYPES[key.split(".")[1]]
+            if offered[topic] not in kinds:
                 raise MapError(f"{self.source}: {key} = {topic!r} is a {offered[topic]}, not a "
-                               "sensor_msgs/msg/PointCloud2")
+                               f"{' or '.join(kinds)}")
 
     def check_frames(self, keys: list[str], offered: list[str]) -> None:
         """Raise MapError for a frame (of the map ``keys``) the tf tree lacks."""
@@ -92,6 +94,13 @@ PROJECT_MAP = RecordingMap(profiles={sid: f"/scan/{sid}" for sid in SENSOR_IDS},
                            optional_topics_required=False)
 
 _TOPIC_KEYS = {"profiles", "tf", "tf_static", "joint_states", "layer"}
+_TF = ("tf2_msgs/msg/TFMessage",)
+# the message types each topic key can be read as (a layer mark: ours, or a bare integer)
+_TOPIC_TYPES = {"profiles": ("sensor_msgs/msg/PointCloud2",), "tf": _TF, "tf_static": _TF,
+                "joint_states": ("sensor_msgs/msg/JointState",),
+                "layer": ("dm2_msgs/msg/LayerMark",) + tuple(
+                    f"std_msgs/msg/{k}" for k in ("Int32", "UInt32", "Int64", "UInt64",
+                                                  "Int16", "UInt16", "Int8", "UInt8"))}
 _FRAME_KEYS = {"base", "flange", "work_object", "nozzle", "sensors"}
 
 
