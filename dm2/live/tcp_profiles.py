@@ -30,7 +30,8 @@ EVICT_IDLE_S = 1.0  # [s] a connection this long without a valid frame yields to
 
 
 class ProfileServer:
-    """TCP listener for profile bridges, feeding an :class:`Inbox` (source ``"profiles"``).
+    """TCP listener for profile bridges, feeding an :class:`Inbox` (source
+    ``"profiles HOST:PORT"``, one per connection).
 
     Parameters
     ----------
@@ -109,6 +110,7 @@ class ProfileServer:
         parser = FrameParser(self.max_frame_bytes)
         conn.settimeout(0.1)
         reported: dict[str, int] = {}
+        source = f"{self.name} {addr[0]}:{addr[1]}"  # one stream per connection
         log.info("profile bridge connected from %s:%d", *addr)
         try:
             while not self._stop.is_set():
@@ -124,7 +126,7 @@ class ProfileServer:
                         break
                     n = 0
                     for p in parser.feed(data):
-                        self.inbox.put(p, self.name, now)
+                        self.inbox.put(p, source, now)
                         n += 1
                     if n:
                         with self._lock:
