@@ -50,9 +50,19 @@ def serve(sim, msgs, tmp_path, attack):
     cell_path = write_cell_files(sim, tmp_path / "cell", egm="127.0.0.1:0",
                                  profiles="127.0.0.1:0", speed=SPEED)
     runner = LiveRunner(load_cell_file(cell_path), tmp_path / "out", record=False)
-    addr = runner.open_sources()
+    try:
+        send(msgs, runner.open_sources(), attack, runner.drain)
+        runner.run(idle_stop_s=1.0, max_duration_s=30)
+    finally:
+        runner.close()
+    return runner
+
+
+def send(msgs, addr, attack, after_each=lambda: None):
+    """The twin's messages paced at SPEED to the listeners at ``addr``, the attack beside."""
     udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     bridge, second = ProfileClient(*addr["profiles"]), _Later(addr["profiles"])
+    bridge.connect()  # the monitor is listening: its EGM socket is bound too
     layer, t0, s0 = None, time.monotonic(), msgs[0].stamp_s
     try:
         for m in msgs:
@@ -68,16 +78,11 @@ def serve(sim, msgs, tmp_path, attack):
             elif isinstance(m, Profile):
                 attack(m, bridge, second)
                 bridge.send(m)
-            runner.drain()
-        bridge.close()  # the stream ends: its bridges leave (not idle_connection)
-        second.close()
-        runner.run(idle_stop_s=1.0, max_duration_s=30)
-    finally:
+            after_each()
+    finally:  # the stream ends: its bridges leave (not idle_connection)
         udp.close()
         bridge.close()
         second.close()
-        runner.close()
-    return runner
 
 
 class _Later:
@@ -159,14 +164,8 @@ def test_a_counter_collision_on_the_sensors_own_stream_fails_the_run_naming_it(t
     duplicate_counter, and though the robot's thousands of states outnumber them, S3's own
     lost share fails the run (exit 1) with a line naming S3."""
     sim, msgs, clean = twin
-    n = []
-
-    def attack(m, bridge, second):
-        if m.sensor_id == "S3" and m.stamp_s > 0.5:
-            bridge.send(_empty("S3", m.stamp_s - 0.001, m.counter))
-            n.append(1)
-
-    r = serve(sim, msgs, tmp_path, attack)
+    n: list = []
+    r = serve(sim, msgs, tmp_path, _s3_collision(n))
     extra = _extra(r.analysis.dropped, clean.analysis.dropped)
     assert extra["duplicate_counter"] == len(n) and extra["empty_profile"] == len(n)
     shares = r.stream_shares()
@@ -199,3 +198,47 @@ def test_a_flood_of_plausible_frames_from_a_second_source_is_dropped(twin, tmp_p
     report = r.stream_report()
     assert report["counters"] == {}
     assert [d["frames_dropped"] for d in report["duplicate_sources"]] == [len(n)]
+
+
+def _s3_collision(n):
+    def attack(m, bridge, second):
+        if m.sensor_id == "S3" and m.stamp_s > 0.5:
+            bridge.send(_empty("S3", m.stamp_s - 0.001, m.counter))
+            n.append(1)
+    return attack
+
+
+def test_dm2_monitor_live_exits_1_naming_the_blinded_sensor(twin, tmp_path):
+    """The command itself: the collision on S3's own stream ends `dm2 monitor --live` with
+    exit 1 and a line naming S3; the robot's and the other profilers' streams pass."""
+    import threading
+
+    from typer.testing import CliRunner
+
+    from dm2.cli.main import app
+    from twin.stream.serve import write_cell_files
+
+    sim, msgs, _ = twin
+    ports = []
+    for kind in (socket.SOCK_DGRAM, socket.SOCK_STREAM):
+        with socket.socket(socket.AF_INET, kind) as s:
+            s.bind(("127.0.0.1", 0))
+            ports.append(s.getsockname()[1])
+    egm, prof = ("127.0.0.1", ports[0]), ("127.0.0.1", ports[1])
+    cell = write_cell_files(sim, tmp_path / "cell", egm=f"127.0.0.1:{ports[0]}",
+                            profiles=f"127.0.0.1:{ports[1]}", speed=SPEED,
+                            live={"idle_stop_s": 1.0})
+    n: list = []
+    sender = threading.Thread(target=send, args=(msgs, {"egm": egm, "profiles": prof},
+                                                 _s3_collision(n)))
+    sender.start()
+    try:
+        res = CliRunner().invoke(app, ["monitor", "--live", str(cell), "--out",
+                                       str(tmp_path / "out")])
+    finally:
+        sender.join(60)
+    text = " ".join(res.output.split())
+    assert res.exit_code == 1, text
+    assert "cell.toml: stream S3 lost " in text
+    assert "stream S1" not in text and "stream S2" not in text and "stream robot" not in text
+    assert f"dropped {len(n):,} messages: duplicate_counter" in text

@@ -67,3 +67,12 @@ def test_a_profiler_that_lost_more_than_its_share_fails_the_run_by_name():
                      "monitor.gates.max_lost_share): its results are not trustworthy"]
     streams["S3"] = {"received": 1123, "kept": 1100, "lost_share": round(1 - 1100 / 1123, 4)}
     assert stream_verdicts(streams, 0.25) == (EXIT_OK, [])
+
+
+def test_a_bridge_whose_link_dropped_hands_its_sensors_to_its_reconnection_at_once():
+    g = StreamGuard(handover_s=1.0)
+    for k in range(10):
+        assert g.admit(_p("S1", k), "profiles a:1", 0.001 * k)
+    g.source_closed("profiles a:1")
+    assert g.admit(_p("S1", 10), "profiles a:2", 0.011)  # 1 ms later, the old one closed
+    assert g.dropped == {} and g.counters == {} and g.report()["sources"] == {"S1": "profiles a:2"}

@@ -154,7 +154,9 @@ class LiveRunner:
             host, port = parse_host_port(live.profiles, "live.profiles")
             prof = ProfileServer(self.inbox, host, port, bridges=live.bridges,
                                  max_frame_bytes=live.max_frame_bytes,
-                                 idle_timeout_s=live.bridge_idle_s).start()
+                                 idle_timeout_s=live.bridge_idle_s)
+            prof.on_close.append(self.streams.source_closed)
+            prof.start()
             self.sources.append(prof)
             addresses = {"egm": egm.address, "profiles": prof.address}
             if live.scancontrol:

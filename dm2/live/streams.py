@@ -5,9 +5,9 @@ every inbox item before the plausibility gates, in O(1) per message:
 
 ``duplicate_source`` (dropped)
     A profile for a sensor that already has a live stream, arriving on another connection.
-    The first stream is kept. Only when the owning connection has sent nothing for that sensor
-    for ``handover_s`` of host time (a bridge that restarted and reconnected) does the new
-    connection take the sensor over (logged).
+    The first stream is kept. Only when the owning connection has closed (a bridge whose link
+    dropped and that reconnected), or has sent nothing for that sensor for ``handover_s`` of
+    host time (a bridge that restarted), does the new connection take the sensor over (logged).
 
 ``counter_jump`` / ``counter_backwards`` (counted, not dropped)
     On the owning stream, a counter more than :data:`COUNTER_JUMP` ahead of the previous one
@@ -53,6 +53,11 @@ class StreamGuard:
         self.intruders: Counter = Counter()  # (sensor, source) -> frames dropped
         self._owner: dict[str, list] = {}  # sensor -> [source, last arrival]
         self._counter: dict[str, int] = {}
+        self._closed: set[str] = set()  # sources whose connection has closed
+
+    def source_closed(self, source: str) -> None:
+        """The connection ``source`` has closed (called from a listener's thread)."""
+        self._closed.add(source)
 
     def admit(self, msg, source: str, arrival_s: float) -> bool:
         """Whether ``msg`` (from ``source``, arrived at ``arrival_s``) goes on."""
@@ -66,15 +71,15 @@ class StreamGuard:
         if own is None:
             self._owner[sid] = [source, arrival_s]
         elif own[0] != source:
-            if arrival_s - own[1] <= self.handover_s:
+            if own[0] not in self._closed and arrival_s - own[1] <= self.handover_s:
                 self.dropped["duplicate_source"] += 1
                 if not self.intruders[(sid, source)]:
                     log.warning("a second source (%s) sends frames for %s, which already "
                                 "streams from %s: its frames are dropped", source, sid, own[0])
                 self.intruders[(sid, source)] += 1
                 return False
-            log.warning("%s: the stream from %s was silent for %.1f s; %s takes it over",
-                        sid, own[0], arrival_s - own[1], source)
+            log.info("%s: the stream from %s ended (closed, or silent for %.1f s); %s takes "
+                     "it over", sid, own[0], arrival_s - own[1], source)
             own[0] = source
             self._counter.pop(sid, None)
         self._owner[sid][1] = arrival_s

@@ -53,6 +53,7 @@ class ProfileServer:
         self.bridges = frozenset(bridges)
         self.max_frame_bytes = int(max_frame_bytes)
         self.max_connections = int(max_connections)
+        self.on_close: list = []  # callables f(source) told when a connection has closed
         self.connections = 0  # accepted so far
         self.disconnects = 0
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
@@ -149,6 +150,8 @@ class ProfileServer:
                 self._conns.pop(conn, None)
                 self.disconnects += 1
             conn.close()
+            for f in self.on_close:
+                f(source)
             log.info("profile bridge %s:%d disconnected", *addr)
 
     def _report(self, parser: FrameParser, reported: dict) -> None:
