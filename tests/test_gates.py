@@ -87,3 +87,41 @@ def test_layer_marks_ride_on_the_robot_clock():
         g.admit(_state(10.0 + DT * k, seq=k))
     assert [m for m, _ in g.admit(LayerMark(10.02, 1))] == [LayerMark(10.02, 1)]
     assert g.admit(LayerMark(9000.0, 2)) == [] and g.dropped == {"implausible_stamp": 1}
+
+
+def test_a_burst_of_forged_stamps_is_no_clock_step():
+    """Three stamps 1e9, 1e9+0.5 and 1e9+1.0 s arriving within 2 ms of host time span a
+    second of stamps: live, the host clock disagrees, so they stay dropped and the source's
+    clock is never re-synced to them; the stream goes on untouched."""
+    stamps = [10.0 + DT * k for k in range(300)]
+    arrivals = list(stamps)
+    forged = [1e9, 1e9 + 0.5, 1e9 + 1.0]
+    stamps[150:150] = forged
+    arrivals[150:150] = [arrivals[149] + 0.001 * i for i in range(3)]
+    g = InputGates()
+    got = _feed(g, stamps, arrivals)
+    assert got == pytest.approx([10.0 + DT * k for k in range(300)])
+    assert g.dropped == {"implausible_stamp": 3} and g.steps == []
+
+
+def test_a_live_step_the_host_clock_agrees_with_is_resynced():
+    """The same second of stepped stamps arriving over a second of host time is a step."""
+    n = 600
+    stamps = [10.0 + DT * k + (1e6 if k >= 300 else 0.0) for k in range(n)]
+    arrivals = [10.0 + DT * k for k in range(n)]
+    g = InputGates()
+    got = _feed(g, stamps, arrivals)
+    (s,) = g.steps
+    assert s["step_s"] == pytest.approx(1e6, abs=1e-6) and s["held"] == 251
+    assert len(got) == n  # the held second came back: nothing lost
+
+
+def test_forged_stamps_trickled_slower_than_the_host_clock_are_no_step():
+    """A second of stamps spread over 5 s of host time (stamp_rate_max 2: at most 2.5 s of
+    stamps in it) disagrees with the host clock: all dropped, no re-sync."""
+    g = InputGates()
+    arrivals = [10.0 + DT * k for k in range(10)]
+    _feed(g, [10.0 + DT * k for k in range(10)], arrivals)
+    forged = [1e9 + 0.1 * k for k in range(11)]
+    got = _feed(g, forged, [20.0 + 0.5 * k for k in range(11)])
+    assert got == [] and g.steps == [] and g.dropped == {"implausible_stamp": 11}

@@ -18,7 +18,13 @@ def run_live_monitor(cell_path: Path, out: Path, max_duration_s: float | None = 
     import signal
     import threading
 
-    from dm2.cli.outcome import drop_lines, run_verdict
+    from dm2.cli.outcome import (
+        drop_lines,
+        duplicate_source_lines,
+        exit_code,
+        run_verdict,
+        stream_verdicts,
+    )
     from dm2.live.config import load_cell_file
     from dm2.live.runner import LiveRunner
     from dm2.report.outdir import add_to_manifest, check_output_dir
@@ -74,13 +80,23 @@ def run_live_monitor(cell_path: Path, out: Path, max_duration_s: float | None = 
     for step in runner.gates.steps:
         console.print(f"the clock of {step['source']} stepped {step['step_s']:+.3f} s at "
                       f"{step['at_s']:.3f} s and was re-synced", highlight=False)
+    streams = runner.stream_report()
+    for line in duplicate_source_lines(streams):
+        console.print(line, highlight=False, markup=False)
     console.print(f"recording: {runner.recording_path}  report: {runner.report_dir}")
     transport = sum(v for k, v in runner.inbox.dropped.items())
-    code, verdict = run_verdict(profiles_fused=a.fusion.profiles_fused, dropped=dropped,
-                                messages_in=runner.messages_in + transport,
-                                max_lost_share=cell.monitor.gates.max_lost_share)
-    if verdict:
-        console.print(f"{cell_path.name}: {verdict}", highlight=False, markup=False)
+    # a second source's frames are no part of the cell's input: not in its lost share
+    foreign = dropped.get("duplicate_source", 0)
+    own = {k: v for k, v in dropped.items() if k != "duplicate_source"}
+    max_lost = cell.monitor.gates.max_lost_share
+    code, verdict = run_verdict(profiles_fused=a.fusion.profiles_fused, dropped=own,
+                                messages_in=runner.messages_in + transport - foreign,
+                                max_lost_share=max_lost)
+    stream_code, stream_lines = stream_verdicts(streams["per_stream"], max_lost)
+    for line in ([verdict] if verdict else []) + stream_lines:
+        console.print(f"{cell_path.name}: {line}", highlight=False, markup=False)
+    code = exit_code(code, stream_code)
+    if code:
         raise typer.Exit(code)
 
 

@@ -76,6 +76,30 @@ def run_verdict(*, profiles_fused: int, dropped: dict, messages_in: int,
     return EXIT_OK, None
 
 
+def stream_verdicts(streams: dict, max_lost_share: float) -> tuple[int, list[str]]:
+    """``(code, lines)`` for a live run's streams (``{"robot"|"S1"|...: {"received", "kept",
+    "lost_share"}}``): EXIT_MISSED with one line per stream, each profiler and the robot, that
+    lost more than ``max_lost_share`` of what it sent (a blinded sensor fails the run even
+    when the others' messages outnumber its loss)."""
+    lines = []
+    for name, s in sorted(streams.items()):
+        if s["received"] and s["lost_share"] > max_lost_share:
+            what = "robot states" if name == "robot" else "profiles"
+            lines.append(f"stream {name} lost {s['lost_share']:.0%} of its {what} "
+                         f"({s['received'] - s['kept']:,} of {s['received']:,}; at most "
+                         f"{max_lost_share:.0%} allowed by monitor.gates.max_lost_share): "
+                         "its results are not trustworthy")
+    return (EXIT_MISSED if lines else EXIT_OK), lines
+
+
+def duplicate_source_lines(streams: dict) -> list[str]:
+    """One line per second source that sent frames for a sensor with a live stream."""
+    return [f"a second source ({d['source']}) sent {d['frames_dropped']:,} frames for "
+            f"{d['sensor']}, which streams from {streams['sources'].get(d['sensor'])}: "
+            "dropped (duplicate_source), the first stream kept"
+            for d in streams.get("duplicate_sources", [])]
+
+
 def damaged_input_sentence(info: dict) -> str | None:
     """One plain sentence when the input was truncated, damaged or recovered from a damaged
     file (its ``input`` section), else None."""

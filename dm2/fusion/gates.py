@@ -19,7 +19,11 @@ source seconds away from the others). A replay has no host time to tell a step f
 pause of the recording, so there a step forward is released as it is (later stages see a gap).
 A plausible message ends the candidate: its held messages stay dropped. So a lasting step of a
 clock, forward or back, is re-synced within ``stamp_confirm_s`` of process time and loses at
-most that.
+most that. Live, the host's own clock must agree with the step: the candidate's stamps must
+have advanced between ``1 / stamp_rate_max`` and ``stamp_rate_max`` times the host time that
+passed between its first and newest arrival. Forged stamps sent in a burst (seconds of stamps
+in milliseconds) or trickled (a second of stamps over minutes) stay ``implausible_stamp``, and
+the source's clock is never re-synced to them.
 
 **Poses** (``implausible_pose``, robot states): the flange position outside the cell's
 workspace box ``workspace_B_mm``, a joint beyond ``joint_limits_deg``, or a motion from the
@@ -149,9 +153,23 @@ class InputGates:
             clock.cand_arr = arr
         if len(clock.cand) > MAX_HELD:
             del clock.cand[: len(clock.cand) - MAX_HELD]
-        if clock.cand_hi - clock.cand_lo >= cfg.stamp_confirm_s and len(clock.cand) >= 3:
+        if clock.cand_hi - clock.cand_lo >= cfg.stamp_confirm_s and len(clock.cand) >= 3 \
+                and self._host_agrees(clock):
             return self._resync(key, clock)
         return []
+
+    def _host_agrees(self, clock: _Clock) -> bool:
+        """A live step is confirmed only when the host time that passed over the candidate
+        agrees with its stamps: they advanced at most ``stamp_rate_max`` times, and at least
+        ``1 / stamp_rate_max`` of, the host time between its first and newest arrival (a burst
+        of forged stamps a second apart that arrived within milliseconds is no clock)."""
+        a0, a1 = clock.cand[0][1], clock.cand[-1][1]
+        if a0 is None or a1 is None:
+            return True  # a replay has no host time
+        rate = self.cfg.stamp_rate_max
+        host_s = a1 - a0
+        stamp_s = clock.cand_hi - clock.cand_lo
+        return host_s > 0 and host_s / rate <= stamp_s <= host_s * rate
 
     def _within(self, c: float, ref: float, ref_arr, arr) -> bool:
         band = self.cfg.stamp_band_s

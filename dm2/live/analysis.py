@@ -79,6 +79,7 @@ class LiveAnalysis:
         self.drop_sources: list = []  # callables returning dicts of transport drops
         self.layer_listeners: list = []  # callables f(LayerResult), e.g. a live 3D view
         self.events: Counter = Counter()
+        self.meta_sources: dict = {}  # report.json meta key -> callable giving its value
         self.report_s = 0.0
         self._last_profile_s: dict[str, float] = {}
         self._finished = False
@@ -179,7 +180,8 @@ class LiveAnalysis:
         results = list(self.results)
         mon = self.fusion
         meta = {**self.meta, "events": dict(self.events), "profiles_fused": mon.profiles_fused,
-                "points_fused": mon.points_fused, "complete": self._finished}
+                "points_fused": mon.points_fused, "complete": self._finished,
+                **{k: f() for k, f in self.meta_sources.items()}}
         timing = self.pipeline.timing(report_s=self.report_s)
         maps = None if self._finished else ([results[-1].layer] if results else [])
         return results, copy.deepcopy(self.tracks), self._dropped_now(), timing, meta, maps

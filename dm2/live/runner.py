@@ -41,7 +41,7 @@ import gc
 import logging
 import threading
 import time
-from collections import OrderedDict, deque
+from collections import Counter, OrderedDict, deque
 from pathlib import Path
 
 from dm2.core.messages import LayerMark, MessageError, Profile, RobotState
@@ -50,6 +50,7 @@ from dm2.live.analysis import LiveAnalysis
 from dm2.live.clock import ClockAligner
 from dm2.live.config import CellFile, parse_host_port
 from dm2.live.inbox import Inbox
+from dm2.live.streams import StreamGuard
 
 log = logging.getLogger(__name__)
 
@@ -94,8 +95,11 @@ class LiveRunner:
                                       out_dir=self.report_dir, config_toml=cell_toml,
                                       max_sensor_gap_s=live.max_sensor_gap_s,
                                       meta={"mode": "live", "cell": cell.name}, live=True)
+        self.streams = StreamGuard(live.max_sensor_gap_s)
+        self.kept: Counter = Counter()  # per stream: robot states past the gates, profiles fused
         self.analysis.drop_sources += [lambda: self.inbox.dropped, lambda: self.gates.dropped,
-                                       lambda: self.aligner.dropped]
+                                       lambda: self.aligner.dropped, lambda: self.streams.dropped]
+        self.analysis.meta_sources["streams"] = self.stream_report
         self.recorder = None
         if record:
             from dm2.live.recorder import LiveRecorder, RecorderThread
@@ -150,7 +154,9 @@ class LiveRunner:
             host, port = parse_host_port(live.profiles, "live.profiles")
             prof = ProfileServer(self.inbox, host, port, bridges=live.bridges,
                                  max_frame_bytes=live.max_frame_bytes,
-                                 idle_timeout_s=live.bridge_idle_s).start()
+                                 idle_timeout_s=live.bridge_idle_s)
+            prof.on_close.append(self.streams.source_closed)
+            prof.start()
             self.sources.append(prof)
             addresses = {"egm": egm.address, "profiles": prof.address}
             if live.scancontrol:
@@ -175,12 +181,15 @@ class LiveRunner:
     def process(self, msg, source: str, arrival_s: float) -> None:
         """Handle one inbox item: plausibility gates, align clocks, record, analyse."""
         self.messages_in += 1
+        if not self.streams.admit(msg, source, arrival_s):
+            return  # duplicate_source
         for m, arrival in self.gates.admit(msg, arrival_s):
             self._aligned(m, arrival, held=m is not msg)  # an earlier message, held till now
 
     def _aligned(self, msg, arrival_s: float, held: bool = False) -> None:
         if isinstance(msg, RobotState):
             self.aligner.pose(msg.stamp_s, arrival_s)
+            self.kept["robot"] += 1
             self._deliver(msg)
         elif isinstance(msg, Profile):
             taken = time.monotonic()
@@ -209,11 +218,34 @@ class LiveRunner:
         now = time.monotonic()
         log_ = self.analysis.fusion.fused_log
         while log_:
-            times = self._arrivals.pop(log_.popleft(), None)
+            key = log_.popleft()
+            self.kept[key[0]] += 1
+            times = self._arrivals.pop(key, None)
             if times is not None:
                 self.latencies_s.append(now - times[0])
                 self.inbox_waits_s.append(times[1] - times[0])
                 self.held_by_gates.append(times[2])
+
+    def stream_shares(self) -> dict[str, dict]:
+        """Each stream's messages received on its own connection, kept (robot states past the
+        gates, profiles fused) and the share lost: ``{"robot"|"S1"|...: {...}}``."""
+        kept = Counter(self.kept)
+        for _ in range(10):  # fused but not tallied yet (read from any thread)
+            try:
+                kept.update(k[0] for k in list(self.analysis.fusion.fused_log))
+                break
+            except RuntimeError:
+                continue
+        out = {}
+        for name, n in sorted(self.streams.received.items()):
+            k = min(int(kept[name]), int(n))
+            out[name] = {"received": int(n), "kept": k,
+                         "lost_share": round(1.0 - k / n, 4) if n else 0.0}
+        return out
+
+    def stream_report(self) -> dict:
+        """report.json's ``streams``: sources, duplicate sources, counters, per-stream loss."""
+        return {**self.streams.report(), "per_stream": self.stream_shares()}
 
     def run(self, stop: threading.Event | None = None, max_duration_s: float | None = None,
             idle_stop_s: float | None = None) -> dict | None:
@@ -299,7 +331,9 @@ class LiveRunner:
         try:
             report = self.analysis.finish()
             self.fused_at_end = self.analysis.fusion.profiles_fused - fused
-            self.analysis.fusion.fused_log.clear()
+            log_ = self.analysis.fusion.fused_log
+            while log_:
+                self.kept[log_.popleft()[0]] += 1
         finally:
             self._thaw_heap()
             if self.recorder is not None:

@@ -30,7 +30,8 @@ EVICT_IDLE_S = 1.0  # [s] a connection this long without a valid frame yields to
 
 
 class ProfileServer:
-    """TCP listener for profile bridges, feeding an :class:`Inbox` (source ``"profiles"``).
+    """TCP listener for profile bridges, feeding an :class:`Inbox` (source
+    ``"profiles HOST:PORT"``, one per connection).
 
     Parameters
     ----------
@@ -52,6 +53,7 @@ class ProfileServer:
         self.bridges = frozenset(bridges)
         self.max_frame_bytes = int(max_frame_bytes)
         self.max_connections = int(max_connections)
+        self.on_close: list = []  # callables f(source) told when a connection has closed
         self.connections = 0  # accepted so far
         self.disconnects = 0
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
@@ -109,6 +111,7 @@ class ProfileServer:
         parser = FrameParser(self.max_frame_bytes)
         conn.settimeout(0.1)
         reported: dict[str, int] = {}
+        source = f"{self.name} {addr[0]}:{addr[1]}"  # one stream per connection
         log.info("profile bridge connected from %s:%d", *addr)
         try:
             while not self._stop.is_set():
@@ -124,7 +127,7 @@ class ProfileServer:
                         break
                     n = 0
                     for p in parser.feed(data):
-                        self.inbox.put(p, self.name, now)
+                        self.inbox.put(p, source, now)
                         n += 1
                     if n:
                         with self._lock:
@@ -147,6 +150,8 @@ class ProfileServer:
                 self._conns.pop(conn, None)
                 self.disconnects += 1
             conn.close()
+            for f in self.on_close:
+                f(source)
             log.info("profile bridge %s:%d disconnected", *addr)
 
     def _report(self, parser: FrameParser, reported: dict) -> None:
