@@ -74,11 +74,21 @@ def stamp_s(ts) -> float:
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("scene")
-    res = CliRunner().invoke(app, ["run", str(bump_scenario(tmp)), "--out", str(tmp / "run"),
-                                   "--no-record"])
+    res = CliRunner().invoke(app, ["run", str(bump_scenario(tmp)), "--out", str(tmp / "run")])
     assert res.exit_code == 0, res.output
     report = json.loads((tmp / "run" / "report.json").read_text())
     return tmp / "run", report, read_scene(tmp / "run" / "scene.mcap")
+
+
+@pytest.fixture(scope="module")
+def monitored(run):
+    """``dm2 monitor`` of the run's own recording."""
+    run_dir = run[0]
+    out = run_dir.parent / "monitor"
+    res = CliRunner().invoke(app, ["monitor", str(run_dir / "run.mcap"), "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    report = json.loads((out / "report" / "report.json").read_text())
+    return out, report, read_scene(out / "scene.mcap")
 
 
 def test_every_channel_has_foxglove_schema_and_monotonic_run_stamps(run):
@@ -162,6 +172,30 @@ def test_frames_and_raw_profiles_in_the_plate_frame(run):
     assert top > 0
     assert np.all(np.abs(np.median(pts[:, :2], axis=0) - [60.0, 60.0]) < 15.0)
     assert -0.5 < np.median(pts[:, 2]) < 4.5
+
+
+def test_monitor_writes_the_scene_on_the_recordings_clock(run, monitored):
+    """dm2 monitor's scene: the same channels, its tracks and findings its report's, and every
+    raw profile and robot pose in it at the stamp of a message of the recording it read."""
+    from dm2.core.messages import Profile, RobotState
+    from dm2.io.recording import read_recording
+
+    out, report, scene = monitored
+    assert {t: e["schema"] for t, e in scene.items()} == CHANNELS
+    assert "scene.mcap" in json.loads((out / ".dm2-manifest.json").read_text())["files"]
+    test_tracks_and_findings_equal_the_report((out, report, scene))
+    test_frames_and_raw_profiles_in_the_plate_frame((out, report, scene))
+    stamps = {"prof": set(), "pose": set()}
+    for msg in read_recording(run[0] / "run.mcap").messages():
+        if isinstance(msg, Profile):
+            stamps["prof"].add(round(msg.stamp_s * 1e9))
+        elif isinstance(msg, RobotState):
+            stamps["pose"].add(round(msg.stamp_s * 1e9))
+    profiles = [t for t, _ in scene["/dm2/profiles"]["messages"]]
+    poses = [t for t, m in scene["/tf"]["messages"]
+             if any(x.child_frame_id == "flange" for x in m.transforms)]
+    assert profiles and all(t in stamps["prof"] for t in profiles)
+    assert poses and all(t in stamps["pose"] for t in poses)
 
 
 def test_a_users_scene_file_is_kept(tmp_path):
