@@ -212,9 +212,12 @@ FOXGLOVE_CLIENT = """import json, sys
 from websockets.sync.client import connect
 ws = connect(sys.argv[1], max_size=None, subprotocols=["foxglove.sdk.v1"])
 print("connected", flush=True)
-subscribed, n = set(), 0
+subscribed = set()
 while True:
-    frame = ws.recv()
+    try:
+        frame = ws.recv()
+    except Exception:  # the server stopped: the benchmark is over
+        break
     if isinstance(frame, str):
         op = json.loads(frame)
         if op["op"] == "advertise":
@@ -253,9 +256,11 @@ def foxglove_pair(cell, wire, speed: float, tmp: Path, runs: int) -> None:
               f"({fox.updates} layer updates sent; median of {runs} runs each, alternated; "
               f"goal p99 <= 20 ms at 10x)", flush=True)
     finally:
-        client.terminate()
-        client.wait(10)
         fox.stop_server()
+        try:
+            client.wait(10)
+        except subprocess.TimeoutExpired:
+            client.kill()
 
 
 SOCKET_CLIENT = """import sys
