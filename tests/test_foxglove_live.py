@@ -2,9 +2,10 @@
 
 The client is the protocol's own client side (the websockets package with the subprotocol
 foxglove-sdk's server speaks, ``foxglove.sdk.v1``: Foxglove's WebSocket protocol, formerly
-``foxglove.websocket.v1``, which that server no longer accepts): it reads the server's ``advertise``, subscribes to the surface,
-the tracks and the frames, and decodes the binary message frames (opcode 1: subscription id,
-log time, payload) with the schemas the server advertised. On the short pad run with a 1 mm
+``foxglove.websocket.v1``, which that server no longer accepts): it reads the server's
+``advertise``, subscribes to the surface, the tracks and the frames, and decodes the binary
+message frames (opcode 1: subscription id, log time, payload) with the schemas the server
+advertised. On the short pad run with a 1 mm
 bump from layer 2 (tests/test_scene_mcap.py) it receives a point cloud in the plate frame, the
 bump's overbuild track as a labelled box, and the frames of the flange, plate, nozzle and
 sensors. Also: the server refuses a non-loopback address unless ``allow_remote``.
@@ -137,3 +138,59 @@ def test_the_cell_file_refuses_a_remote_foxglove_address_without_allow_remote():
     with pytest.raises(ValueError, match="foxglove binds 0.0.0.0, not loopback"):
         LiveConfig(foxglove="0.0.0.0:8765")
     assert LiveConfig(foxglove="0.0.0.0:8765", allow_remote=True).foxglove == "0.0.0.0:8765"
+
+
+def test_live_monitor_serves_foxglove_and_writes_the_scene(tmp_path):
+    """``dm2 monitor --live CELL --foxglove`` on the twin served over loopback: the server
+    comes up on the cell file's address and goes away at the end; the folder's scene.mcap,
+    written from the live recording, holds report.json's tracks and findings."""
+    from test_live_rehearsal import pad_with_bump
+    from test_scene_mcap import check_tracks_and_findings, read_scene
+    from typer.testing import CliRunner
+
+    from dm2.cli.main import app
+    from twin.stream.serve import serve_twin, write_cell_files
+    from twin.stream.simulate import Simulation
+
+    sc = pad_with_bump(12.0)
+    sim = Simulation(sc)
+    egm, prof, fox = free_port(), free_port(), free_port()
+    cell = write_cell_files(sim, tmp_path / "cell", egm=f"127.0.0.1:{egm}",
+                            profiles=f"127.0.0.1:{prof}", speed=10.0,
+                            live={"idle_stop_s": 2.0, "foxglove": f"127.0.0.1:{fox}"})
+    import threading
+
+    seen = {}
+
+    def serve():
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and "client" not in seen:
+            try:  # the monitor's Foxglove server is up before the stream starts
+                with websockets.connect(f"ws://127.0.0.1:{fox}", subprotocols=[SUBPROTOCOL],
+                                        open_timeout=5) as ws:
+                    seen["client"] = json.loads(ws.recv(timeout=10))["op"]
+            except OSError:
+                time.sleep(0.2)
+        seen["served"] = serve_twin(sc, ("127.0.0.1", egm), ("127.0.0.1", prof), speed=10.0,
+                                    simulation=sim, connect_timeout_s=60)
+
+    thread = threading.Thread(target=serve)
+    thread.start()
+    res = CliRunner().invoke(app, ["monitor", "--live", str(cell), "--out",
+                                   str(tmp_path / "out"), "--foxglove"])
+    thread.join(60)
+    assert res.exit_code == 0, res.output
+    assert seen["client"] == "serverInfo"
+    assert f"ws://127.0.0.1:{fox}" in res.output
+    report = json.loads((tmp_path / "out" / "report" / "report.json").read_text())
+    assert [(t["id"], t["kind"]) for t in report["tracks"]] == [(1, "overbuild")]
+    scene = read_scene(tmp_path / "out" / "scene.mcap")
+    check_tracks_and_findings(report, scene, alarms=False)
+    # the live report holds no real-time section; the scene has the session's alarms, each
+    # one logged to monitor.log too
+    logged = (tmp_path / "out" / "monitor.log").read_text().count("real-time: ")
+    assert logged > 0  # the 1.5 mm bump raises alarms while it grows
+    assert len(scene.get("/dm2/alarms", {"messages": []})["messages"]) == logged
+    with pytest.raises(OSError):  # the server is gone with the run
+        websockets.connect(f"ws://127.0.0.1:{fox}", subprotocols=[SUBPROTOCOL],
+                           open_timeout=2).close()

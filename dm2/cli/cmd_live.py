@@ -119,7 +119,9 @@ def _write_live_scene(runner, out: Path) -> None:
     report_path = runner.report_dir / "report.json"
     report = json.loads(report_path.read_text(encoding="utf-8")) \
         if report_path.exists() else None
-    add_scene_to_run(out, scene_items(runner.analysis.results, report, runner.calibration, tap))
+    alarms = runner.analysis.pipeline.session.realtime_summary()["alarms"]  # not in the report
+    add_scene_to_run(out, scene_items(runner.analysis.results, report, runner.calibration, tap,
+                                      alarms=alarms))
 
 
 @app.command("serve-twin")

@@ -69,12 +69,14 @@ class SceneChannels:
 
 
 def scene_items(results, report: dict | None, calibration, tap=None,
-                limit_mm: float = 1.0) -> list:
+                limit_mm: float = 1.0, alarms: list | None = None) -> list:
     """Every message of a finished run's scene, sorted by stamp (stable: a topic's messages
     keep their order). ``report``: the run's report.json content (its alarms, verdict and
     findings; None where the run was not analysed). ``tap``: the run's
     :class:`~dm2.report.scene_inputs.StreamTap`, for the robot poses and raw profiles
-    (without it the frames are written once, without the flange's motion)."""
+    (without it the frames are written once, without the flange's motion). ``alarms``: the
+    real-time alarms (report.json ``realtime.alarms`` entries) where the report holds none
+    (a live report)."""
     items = []
     tops = []  # (stamp, top of the part) per finished layer, for the alarm markers' height
     for r in results:
@@ -82,7 +84,9 @@ def scene_items(results, report: dict | None, calibration, tap=None,
         v = r.deviation.vertices_O
         tops.append((float(r.deviation.stamp_s), float(v[:, 2].max()) if len(v) else 0.0))
     tops.sort()
-    for k, alarm in enumerate(((report or {}).get("realtime") or {}).get("alarms", [])):
+    if alarms is None:
+        alarms = ((report or {}).get("realtime") or {}).get("alarms", [])
+    for k, alarm in enumerate(alarms):
         z = max([0.0] + [z for t, z in tops if t <= alarm["stamp_s"]])
         items.extend(sm.alarm_messages(k, alarm, z))
     stamps = [t for t, _, _ in items]
