@@ -194,3 +194,20 @@ def test_live_monitor_serves_foxglove_and_writes_the_scene(tmp_path):
     with pytest.raises(OSError):  # the server is gone with the run
         websockets.connect(f"ws://127.0.0.1:{fox}", subprotocols=[SUBPROTOCOL],
                            open_timeout=2).close()
+
+
+def test_a_taken_port_is_a_clear_error_before_the_run(tmp_path):
+    from typer.testing import CliRunner
+
+    from dm2.cli.main import app
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        res = CliRunner().invoke(app, ["run", "pad", "--out", str(tmp_path / "run"),
+                                       "--foxglove", "--foxglove-port", str(port)])
+    assert res.exit_code == 2, res.output
+    assert f"Foxglove server on 127.0.0.1:{port}" in res.output
+    assert "Address already in use" in res.output
+    assert not (tmp_path / "run").exists()

@@ -59,8 +59,12 @@ def run_live_monitor(cell_path: Path, out: Path, max_duration_s: float | None = 
         from dm2.view.foxglove_live import FoxgloveLive
 
         host, port = parse_host_port(cell.live.foxglove, "foxglove")
-        fox = FoxgloveLive(runner.calibration, runner.analysis.pipeline, host=host, port=port,
-                           allow_remote=cell.live.allow_remote)
+        try:
+            fox = FoxgloveLive(runner.calibration, runner.analysis.pipeline, host=host,
+                               port=port, allow_remote=cell.live.allow_remote)
+        except ValueError as exc:
+            runner.close()
+            fail(f"{cell_path}: [live] foxglove: {exc}")
         runner.analysis.layer_listeners.append(fox.on_layer)
         console.print(f"Foxglove: connect to [bold]{fox.url}[/]")
     stop = threading.Event()

@@ -227,7 +227,8 @@ def monitor(
     if foxglove:
         from dm2.view.foxglove_live import FoxgloveLive
 
-        fox = FoxgloveLive(cal, pipeline, port=foxglove_port)
+        with bad_input_exits():
+            fox = FoxgloveLive(cal, pipeline, port=foxglove_port)
         console.print(f"Foxglove: connect to [bold]{fox.url}[/]")
     from dm2.report.scene_inputs import StreamTap
 

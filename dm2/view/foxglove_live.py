@@ -61,8 +61,11 @@ class FoxgloveLive:
         self.calibration = calibration
         self.limit_mm = float(limit_mm)
         self.channels = SceneChannels()
-        self.server = foxglove.start_server(name="dm2", host=check_host(host, allow_remote),
-                                            port=int(port), context=self.channels.context)
+        try:
+            self.server = foxglove.start_server(name="dm2", host=check_host(host, allow_remote),
+                                                port=int(port), context=self.channels.context)
+        except RuntimeError as exc:  # the SDK's FoxgloveError: the port is taken, ...
+            raise ValueError(f"Foxglove server on {host}:{port}: {exc}") from exc
         self.url = f"ws://{host}:{self.server.port}"
         self._lock = threading.Lock()
         self.attach(pipeline)
