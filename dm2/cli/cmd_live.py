@@ -86,7 +86,10 @@ def run_live_monitor(cell_path: Path, out: Path, max_duration_s: float | None = 
             fox.close()
     a = runner.analysis
     if scene:
-        _write_live_scene(runner, out)
+        try:
+            _write_live_scene(runner, out)
+        except (OSError, ValueError) as exc:  # the run's own outputs are written already
+            console.print(f"[bold yellow]warning:[/] no scene.mcap: {exc}", highlight=False)
     if fox is not None:
         fox.stop_server()
     dropped = a.dropped
