@@ -33,8 +33,13 @@ client connected and subscribed throughout, so the figures include what serving 
 it also renders the scene in software, on the same cores), ``--view-client socket`` a plain
 websocket client in another process that receives every scene message and draws nothing.
 
+With ``--foxglove`` each speed is run twice as often, alternating: without a Foxglove client
+and with the live Foxglove server (:class:`dm2.view.foxglove_live.FoxgloveLive`) following the
+run and a Foxglove WebSocket client in another process subscribed to every channel it
+advertises (it receives every message and draws nothing); both p99s are printed on one line.
+
 Run: .venv/bin/python benchmarks/live.py [--runs 3] [--seconds 30] [--speeds 10[,3,1]]
-    [--view [--view-client chromium|socket]]
+    [--view [--view-client chromium|socket]] [--foxglove]
 """
 
 from __future__ import annotations
@@ -78,9 +83,13 @@ def wire_stream(msgs):
     return out
 
 
-def one_run(cell, wire, speed: float, folder: Path, view=None) -> dict:
-    """Stream ``wire`` at ``speed`` into a live runner; latencies [ms] and load figures."""
+def one_run(cell, wire, speed: float, folder: Path, view=None, fox=None) -> dict:
+    """Stream ``wire`` at ``speed`` into a live runner; latencies [ms] and load figures.
+    ``fox``: a FoxgloveLive server that follows the run."""
     runner = LiveRunner(cell, folder, record=True)
+    if fox is not None:
+        fox.attach(runner.analysis.pipeline)
+        runner.analysis.layer_listeners.append(fox.on_layer)
     if view is not None:
         pipeline = runner.analysis.pipeline
         view.pose_source = lambda: pipeline.last_T_B_F
@@ -127,6 +136,9 @@ def main() -> None:
     ap.add_argument("--view", action="store_true", help="serve the live 3D view with a "
                     "client connected to it")
     ap.add_argument("--view-client", choices=("chromium", "socket"), default="chromium")
+    ap.add_argument("--foxglove", action="store_true", help="also run each speed with the "
+                    "live Foxglove server and a client subscribed to all its channels, and "
+                    "print both p99s")
     args = ap.parse_args()
     speeds = [float(v) for v in args.speeds.split(",")]
     load = " ".join(f"{v:.2f}" for v in os.getloadavg())
@@ -150,6 +162,10 @@ def main() -> None:
         if args.view:
             view, browser = open_view(cells[speeds[0]], tmp / "chromium", args.view_client)
         one_run(cells[speeds[0]], wire, speeds[0], tmp / "warmup", view)
+        if args.foxglove:
+            for speed in speeds:
+                foxglove_pair(cells[speed], wire, speed, tmp, args.runs)
+            return
         for speed in speeds:
             runs = [one_run(cells[speed], wire, speed, tmp / f"run{speed:g}_{k}", view)
                     for k in range(args.runs)]
@@ -190,6 +206,61 @@ def main() -> None:
             browser.wait(10)
             view.close()
             view.stop_server()
+
+
+FOXGLOVE_CLIENT = """import json, sys
+from websockets.sync.client import connect
+ws = connect(sys.argv[1], max_size=None, subprotocols=["foxglove.sdk.v1"])
+print("connected", flush=True)
+subscribed = set()
+while True:
+    try:
+        frame = ws.recv()
+    except Exception:  # the server stopped: the benchmark is over
+        break
+    if isinstance(frame, str):
+        op = json.loads(frame)
+        if op["op"] == "advertise":
+            new = [c["id"] for c in op["channels"] if c["id"] not in subscribed]
+            subscribed.update(new)
+            ws.send(json.dumps({"op": "subscribe",
+                                "subscriptions": [{"id": c, "channelId": c} for c in new]}))
+            print("subscribed", len(subscribed), flush=True)
+"""
+
+
+def foxglove_pair(cell, wire, speed: float, tmp: Path, runs: int) -> None:
+    """``runs`` runs without and ``runs`` with a Foxglove client, alternating; both p99s."""
+    import subprocess
+
+    from dm2.core.calibration_io import read_calibration_toml
+    from dm2.view.foxglove_live import FoxgloveLive
+
+    fox = FoxgloveLive(read_calibration_toml(cell.calibration), port=0)
+    client = subprocess.Popen([sys.executable, "-c", FOXGLOVE_CLIENT, fox.url],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        if client.stdout.readline().strip() != "connected" \
+                or not client.stdout.readline().startswith("subscribed"):
+            raise RuntimeError("the Foxglove client never subscribed")
+        without, with_client = [], []
+        for k in range(runs):
+            without.append(one_run(cell, wire, speed, tmp / f"fx{speed:g}_{k}_off"))
+            with_client.append(one_run(cell, wire, speed, tmp / f"fx{speed:g}_{k}_on",
+                                       fox=fox))
+        p99 = [median([np.percentile(r["lat_ms"], 99) for r in rr])
+               for rr in (without, with_client)]
+        print(f"live latency, socket -> fused, pad stream at {speed:g}x, load average "
+              f"{os.getloadavg()[0]:.2f}: p99 {p99[0]:.2f} ms without a Foxglove client, "
+              f"{p99[1]:.2f} ms with one connected and subscribed to every channel "
+              f"({fox.updates} layer updates sent; median of {runs} runs each, alternated; "
+              f"goal p99 <= 20 ms at 10x)", flush=True)
+    finally:
+        fox.stop_server()
+        try:
+            client.wait(10)
+        except subprocess.TimeoutExpired:
+            client.kill()
 
 
 SOCKET_CLIENT = """import sys

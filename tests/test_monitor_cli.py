@@ -89,7 +89,7 @@ def test_monitor_replaces_only_its_own_earlier_outputs(tmp_path, stream):
     assert res.exit_code == 0, res.output
     assert sorted(p.name for p in out.iterdir()) == [
         ".dm2-manifest.json", "layer_0000.ply", "layer_0001.ply", "monitor.json",
-        "monitor.log", "monitor.toml", "notes.txt"]
+        "monitor.log", "monitor.toml", "notes.txt", "scene.mcap"]
     assert (out / "notes.txt").read_text() == "mine"
     assert read_ply(out / "layer_0001.ply").n_faces > 1000
     thesis = tmp_path / "thesis"

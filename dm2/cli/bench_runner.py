@@ -75,13 +75,16 @@ def recorded(messages, writer):
 
 
 def stream_to_pipeline(sim, pipeline, scratch: Path, record: bool,
-                       progress: Progress | None = None) -> None:
+                       progress: Progress | None = None, tap=None) -> None:
     """Run ``pipeline`` on the simulation's message stream (truth into ``scratch/truth``).
 
     With ``record`` the stream is also written to ``scratch/run.mcap`` with the scenario,
-    toolpath and calibration attached.
+    toolpath and calibration attached; ``tap`` (a dm2.report.scene_inputs.StreamTap) sees
+    every message on the way.
     """
     messages = sim.messages(truth_dir=scratch / "truth", progress=progress)
+    if tap is not None:
+        messages = tap.wrap(messages)
     if not record:
         pipeline.run(messages)
         return
@@ -103,7 +106,7 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
                  report_stage: Callable[[str, int, int], None] | None = None,
                  on_pipeline: Callable | None = None,
                  include: dict | None = None,
-                 true_T_B_S: dict | None = None) -> ScenarioRun:
+                 true_T_B_S: dict | None = None, scene: bool = False) -> ScenarioRun:
     """Simulate ``sc`` on the twin, monitor it and write the run folder ``run_dir``.
 
     Parameters
@@ -126,6 +129,8 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
     include : name -> path of further files moved into the run folder (e.g. its log file)
     true_T_B_S : the twin's profilers as built (dict sensor id -> (4, 4)) instead of the
         scenario's nominal layout
+    scene : also write ``scene.mcap``, the run in Foxglove's schemas
+        (:mod:`dm2.report.scene_mcap`)
 
     Raises
     ------
@@ -150,7 +155,12 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
     run_dir.parent.mkdir(parents=True, exist_ok=True)
     scratch = Path(tempfile.mkdtemp(prefix=".dm2-run-", dir=run_dir.parent))
     try:
-        stream_to_pipeline(sim, pipeline, scratch, record, progress)
+        tap = None
+        if scene:
+            from dm2.report.scene_inputs import StreamTap
+
+            tap = StreamTap()
+        stream_to_pipeline(sim, pipeline, scratch, record, progress, tap=tap)
         if on_stream_end is not None:
             on_stream_end()
         truth = _read_json(scratch / "truth" / "faults.json") or {"faults": []}
@@ -172,6 +182,11 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
                 track_truth={str(k): v for k, v in tracks_vs_truth.items()}),
             force=force, include=include, command="dm2 run" if full_report else "dm2 bench",
             inputs=[scenario_file], stage=report_stage)
+        if scene:
+            from dm2.report.scene_mcap import add_scene_to_run, scene_items
+
+            add_scene_to_run(run_dir, scene_items(pipeline.results, report,
+                                                  pipeline.fusion.calibration, tap))
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     verdict = run_verdict(profiles_fused=pipeline.fusion.profiles_fused,

@@ -10,9 +10,13 @@ from dm2.cli.common import app, bad_input_exits, console, fail, log_file
 
 
 def run_live_monitor(cell_path: Path, out: Path, max_duration_s: float | None = None,
-                     force: bool = False, view_port: int | None = None) -> None:
+                     force: bool = False, view_port: int | None = None, scene: bool = True,
+                     foxglove: bool = False) -> None:
     """``dm2 monitor --live CELL.toml --out DIR``: monitor the cell until it goes quiet or
-    Ctrl-C / SIGTERM; ``DIR/live.mcap`` records the stream, ``DIR/report`` the results. Ends
+    Ctrl-C / SIGTERM; ``DIR/live.mcap`` records the stream, ``DIR/report`` the results,
+    ``DIR/scene.mcap`` (``scene``) the scene in Foxglove's schemas, written from the recording
+    at the end; ``foxglove`` serves the scene live on the cell file's ``[live] foxglove``
+    address. Ends
     with one line per drop reason, and exit 1 when nothing was fused or more than
     ``monitor.gates.max_lost_share`` of the input was lost."""
     import signal
@@ -55,6 +59,20 @@ def run_live_monitor(cell_path: Path, out: Path, max_duration_s: float | None = 
         pipeline = runner.analysis.pipeline
         view = start_live_view(runner.calibration, lambda: pipeline.last_T_B_F, view_port)
         runner.analysis.layer_listeners.append(view.on_layer)
+    fox = None
+    if foxglove:
+        from dm2.live.config import parse_host_port
+        from dm2.view.foxglove_live import FoxgloveLive
+
+        host, port = parse_host_port(cell.live.foxglove, "foxglove")
+        try:
+            fox = FoxgloveLive(runner.calibration, runner.analysis.pipeline, host=host,
+                               port=port, allow_remote=cell.live.allow_remote)
+        except ValueError as exc:
+            runner.close()
+            fail(f"{cell_path}: [live] foxglove: {exc}")
+        runner.analysis.layer_listeners.append(fox.on_layer)
+        console.print(f"Foxglove: connect to [bold]{fox.url}[/]")
     stop = threading.Event()
     previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
     console.print(f"listening: EGM udp {addresses['egm'][0]}:{addresses['egm'][1]}, profiles "
@@ -70,7 +88,16 @@ def run_live_monitor(cell_path: Path, out: Path, max_duration_s: float | None = 
         if view is not None:
             view.close()
             view.stop_server()
+        if fox is not None:
+            fox.close()
     a = runner.analysis
+    if scene:
+        try:
+            _write_live_scene(runner, out)
+        except (OSError, ValueError) as exc:  # the run's own outputs are written already
+            console.print(f"[bold yellow]warning:[/] no scene.mcap: {exc}", highlight=False)
+    if fox is not None:
+        fox.stop_server()
     dropped = a.dropped
     console.print(f"{runner.messages_in} messages, {a.fusion.profiles_fused} profiles fused, "
                   f"{len(a.results)} layers, {len(a.tracks)} tracks"
@@ -98,6 +125,26 @@ def run_live_monitor(cell_path: Path, out: Path, max_duration_s: float | None = 
     code = exit_code(code, stream_code)
     if code:
         raise typer.Exit(code)
+
+
+def _write_live_scene(runner, out: Path) -> None:
+    """``out/scene.mcap`` from the live recording and the session's results."""
+    import json
+
+    from dm2.io.recording import read_recording
+    from dm2.report.scene_inputs import StreamTap
+    from dm2.report.scene_mcap import add_scene_to_run, scene_items
+
+    tap = StreamTap()
+    if runner.recording_path.exists():
+        for msg in read_recording(runner.recording_path).messages():
+            tap.see(msg)
+    report_path = runner.report_dir / "report.json"
+    report = json.loads(report_path.read_text(encoding="utf-8")) \
+        if report_path.exists() else None
+    alarms = runner.analysis.pipeline.session.realtime_summary()["alarms"]  # not in the report
+    add_scene_to_run(out, scene_items(runner.analysis.results, report, runner.calibration, tap,
+                                      alarms=alarms))
 
 
 @app.command("serve-twin")

@@ -121,6 +121,13 @@ def monitor(
     view: bool = typer.Option(False, "--view", help="Show the part growing in the browser "
                               "(3D, coloured by signed deviation) on 127.0.0.1:--view-port."),
     view_port: int = typer.Option(8080, "--view-port", min=1, max=65535),
+    scene: bool = typer.Option(True, "--scene/--no-scene", help="Also write scene.mcap, the "
+                               "run in Foxglove's schemas, to OUT."),
+    foxglove: bool = typer.Option(False, "--foxglove", help="Serve the growing part to "
+                                  "Foxglove over its WebSocket protocol (with --live: on the "
+                                  "cell file's [live] foxglove address; else "
+                                  "127.0.0.1:--foxglove-port)."),
+    foxglove_port: int = typer.Option(8765, "--foxglove-port", min=0, max=65535),
     force: bool = typer.Option(False, "--force", help="Write into a folder holding an earlier "
                                "dm2 run and other files: replace only dm2's files."),
     allow_truncated: bool = typer.Option(False, "--allow-truncated", help="Exit 0 (not 3) "
@@ -147,7 +154,8 @@ def monitor(
 
         if run is not None:
             fail("give either a recording or --live CELL.toml, not both")
-        run_live_monitor(live, out, force=force, view_port=view_port if view else None)
+        run_live_monitor(live, out, force=force, view_port=view_port if view else None,
+                         scene=scene, foxglove=foxglove)
         return
     if run is None:
         fail("give a recording to replay, or --live CELL.toml")
@@ -202,11 +210,14 @@ def monitor(
                       f"{len(result.regions)} region(s) -> {out / entry['file']}")
 
     live_view = None
+    fox = None
 
     def on_layer(result) -> None:
         save(result)
         if live_view is not None:
             live_view.on_layer(result)
+        if fox is not None:
+            fox.on_layer(result)
 
     gates = InputGates(monitor_cfg.gates)
     pipeline = Pipeline(cal, monitor_cfg, process, plate_size_mm=plate_mm, toolpath=tp,
@@ -215,9 +226,20 @@ def monitor(
         from dm2.cli.common import start_live_view
 
         live_view = start_live_view(cal, lambda: pipeline.last_T_B_F, view_port)
+    if foxglove:
+        from dm2.view.foxglove_live import FoxgloveLive
+
+        with bad_input_exits():
+            fox = FoxgloveLive(cal, pipeline, port=foxglove_port)
+        console.print(f"Foxglove: connect to [bold]{fox.url}[/]")
+    from dm2.report.scene_inputs import StreamTap
+
+    tap = StreamTap() if scene else None
     mon = pipeline.fusion
     with console.status("fusing profiles"), log_file(out / "monitor.log"):
-        pipeline.run(rec.messages())
+        pipeline.run(tap.wrap(rec.messages()) if tap is not None else rec.messages())
+    if fox is not None:
+        fox.close()
     n_msgs = pipeline.messages
     input_info = (rec.input_summary() if hasattr(rec, "input_summary")  # other readers:
                   else {"file": str(run), "complete": True})  # complete unless they say so
@@ -241,6 +263,14 @@ def monitor(
                                sections=pipeline.sections(input=input_info), inputs=[run],
                                command="dm2 monitor", force=force)
         add_to_manifest(out, ["report/"])
+    if tap is not None:
+        from dm2.report.scene_mcap import add_scene_to_run, scene_items
+
+        report = json.loads((out / "report" / "report.json").read_text(encoding="utf-8")) \
+            if analyse and pipeline.results else None
+        add_scene_to_run(out, scene_items(pipeline.results, report, cal, tap))
+        if fox is not None and report is not None:
+            fox.send_findings(report)
     table = Table(title=f"monitor: {run.name}")
     table.add_column("what")
     table.add_column("count", justify="right")
@@ -266,15 +296,21 @@ def monitor(
         problems = "".join("; " + p for p in getattr(rec, "problems", []))
         console.print(f"{run.name}: {verdict}{problems}", highlight=False, markup=False)
     code = exit_code(code, 3 if damaged and not allow_truncated else 0)
-    if live_view is not None:
+    if live_view is not None or fox is not None:
         from dm2.view.live import serve_forever
 
-        live_view.close()
-        console.print(f"3D view: [bold]{live_view.url}[/] (Ctrl-C ends)")
+        if live_view is not None:
+            live_view.close()
+            console.print(f"3D view: [bold]{live_view.url}[/] (Ctrl-C ends)")
+        if fox is not None:
+            console.print(f"Foxglove: [bold]{fox.url}[/] (Ctrl-C ends)")
         try:
             serve_forever()
         finally:
-            live_view.stop_server()
+            if live_view is not None:
+                live_view.stop_server()
+            if fox is not None:
+                fox.stop_server()
 
     if code:
         raise typer.Exit(code)

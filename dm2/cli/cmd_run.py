@@ -116,6 +116,12 @@ def run(
     view: bool = typer.Option(False, "--view", help="Show the part growing in the browser "
                               "(3D, coloured by signed deviation) on 127.0.0.1:--view-port."),
     view_port: int = typer.Option(8080, "--view-port", min=1, max=65535),
+    scene: bool = typer.Option(True, "--scene/--no-scene", help="Also write scene.mcap, the "
+                               "run in Foxglove's schemas, to the run folder."),
+    foxglove: bool = typer.Option(False, "--foxglove", help="Serve the growing part, its "
+                                  "tracks, alarms and frames to Foxglove over its WebSocket "
+                                  "protocol on 127.0.0.1:--foxglove-port."),
+    foxglove_port: int = typer.Option(8765, "--foxglove-port", min=0, max=65535),
 ) -> None:
     """Simulate SCENARIO on the twin, monitor it with the 3D-DM2 pipeline and write a report.
 
@@ -152,6 +158,7 @@ def run(
     # a failed write: the log goes (the report folder being written is removed by its writer)
     on_write_failure(run_dir, lambda: log_path.unlink(missing_ok=True))
     view_handle = None
+    fox_handle = None
     with progress_bar() as bar, log_file(log_path):
         task = bar.add_task("simulating + monitoring", total=1.0, done="")
         new_tracks = NewTracks(bar.console.print)
@@ -167,9 +174,17 @@ def run(
             new_tracks(result)
             if view_handle is not None:
                 view_handle.on_layer(result)
+            if fox_handle is not None:
+                fox_handle.on_layer(result)
 
         def on_pipeline(pipeline):
-            nonlocal view_handle
+            nonlocal view_handle, fox_handle
+            if foxglove:
+                from dm2.view.foxglove_live import FoxgloveLive
+
+                fox_handle = FoxgloveLive(pipeline.fusion.calibration, pipeline,
+                                          port=foxglove_port)
+                bar.console.print(f"Foxglove: connect to [bold]{fox_handle.url}[/]")
             if view:
                 from dm2.cli.common import start_live_view
 
@@ -183,13 +198,16 @@ def run(
                                     task, description="comparing with the twin's truth"),
                                 calibration=cal, on_layer=on_layer, report_stage=on_stage,
                                 on_pipeline=on_pipeline, force=force,
-                                include={"run.log": log_path})
+                                include={"run.log": log_path}, scene=scene)
         except (ReachError, ConfigError) as exc:
             log_path.unlink(missing_ok=True)
             fail(f"{path}: {exc}")
         except ValueError as exc:  # the run folder changed meanwhile (OutputRefused)
             log_path.unlink(missing_ok=True)
             fail(str(exc))
+        finally:
+            if fox_handle is not None:
+                fox_handle.close()
     report = done.report
     link_latest(run_dir)
     print_summary(report, new_tracks)
@@ -210,15 +228,23 @@ def run(
     code, verdict = done.verdict  # the gate of `dm2 monitor`: fused nothing, lost too much
     if verdict:
         console.print(f"{sc.name}: {verdict}", highlight=False, markup=False)
-    if view_handle is not None:
-        view_handle.close()
-        console.print(f"3D view: [bold]{view_handle.url}[/] (Ctrl-C ends)")
+    if fox_handle is not None:
+        fox_handle.send_findings(report)
+    if view_handle is not None or fox_handle is not None:
         from dm2.view.live import serve_forever
 
+        if view_handle is not None:
+            view_handle.close()
+            console.print(f"3D view: [bold]{view_handle.url}[/] (Ctrl-C ends)")
+        if fox_handle is not None:
+            console.print(f"Foxglove: [bold]{fox_handle.url}[/] (Ctrl-C ends)")
         try:
             serve_forever()
         finally:
-            view_handle.stop_server()
+            if view_handle is not None:
+                view_handle.stop_server()
+            if fox_handle is not None:
+                fox_handle.stop_server()
     code = exit_code(code, EXIT_MISSED if missed else 0)
     if code:
         raise typer.Exit(code)

@@ -22,6 +22,7 @@ Example::
     profiles = "127.0.0.1:6511"           # TCP address profile bridges connect to
     bridges = ["127.0.0.1"]
     bridge_idle_s = 10.0                  # a bridge connection without a frame this long: closed
+    foxglove = "127.0.0.1:8765"           # the Foxglove server of --foxglove (TCP)
     allow_remote = false                  # binding a non-loopback address needs true
 
     [[live.scancontrol]]                  # optional: sensors driven through the vendor's
@@ -128,6 +129,7 @@ class LiveConfig(_Model):
     profiles: str = "127.0.0.1:6511"
     bridges: tuple[str, ...] = ("127.0.0.1",)
     bridge_idle_s: float = Field(10.0, ge=0)  # close a bridge connection idle this long (0: never)
+    foxglove: str = "127.0.0.1:8765"  # the Foxglove WebSocket server of --foxglove
     allow_remote: bool = False
     scancontrol: tuple[ScanControlSensor, ...] = ()
     max_datagram_bytes: int = Field(2048, ge=64, le=65507)
@@ -139,7 +141,7 @@ class LiveConfig(_Model):
     idle_stop_s: float = Field(10.0, ge=0)  # stop after data stopped this long (0: never)
     max_duration_s: float | None = Field(None, gt=0)
 
-    @field_validator("egm", "profiles")
+    @field_validator("egm", "profiles", "foxglove")
     @classmethod
     def _address(cls, v: str) -> str:
         parse_host_port(v)
@@ -153,7 +155,7 @@ class LiveConfig(_Model):
     @model_validator(mode="after")
     def _loopback_only(self):
         if not self.allow_remote:
-            for name in ("egm", "profiles"):
+            for name in ("egm", "profiles", "foxglove"):
                 host, _ = parse_host_port(getattr(self, name), name)
                 if not is_loopback(host):
                     raise ValueError(f"{name} binds {host}, not loopback: set "
