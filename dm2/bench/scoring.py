@@ -29,6 +29,15 @@ neutral track
     a track explaining no fault of which at least 50 % of the area lies, in some layer, within
     the truth area of its sign at :data:`NEUTRAL_MIN_HEIGHT_MM` (0.2 mm), dilated: it sits on a
     true fault-caused deviation of 0.2-0.5 mm. Neither true nor false.
+drift track
+    a track explaining no fault and not neutral, where the truth confirms the deviation: in
+    some layer the twin's true surface stands off the reference the run used, in the track's
+    sign and by at least the run's event tolerance (``[monitor] delta_global_mm``), under at
+    least :data:`dm2.bench.reconstruction.DRIFT_SHARE` (50 %) of the track's area there
+    (``track_truth`` ``drift_share``, :func:`dm2.bench.reconstruction.truth_checks`). The
+    whole part drifts off the plan there, no fault does: reported and counted (``drift_tracks``,
+    ``drift_area_mm2``: the sum of their largest area in one layer), neither true nor false,
+    on a control too. Its entry keeps ``drift_since_layer`` and ``drift_rate_mm_per_layer``.
 false track
     every other track. The **false area** is the sum over false tracks of their largest area in
     one layer [mm^2]. Where the run measured each track's flagged vertices against the twin's
@@ -62,6 +71,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from dm2.bench.reconstruction import DRIFT_SHARE
 from dm2.report.report_json import DEFECT_MIN_HEIGHT_MM  # the report's onset height too
 
 DEFECT_MIN_AREA_MM2 = 4.0
@@ -218,17 +228,20 @@ def score_run(report: dict, fault_truth: dict | None, *, truth_maps: dict,
     findings = _score_findings(report, faults, scores, expected_process_scale)
     for v in verdict.values():
         if v["verdict"] is None:
+            drift = ((v["truth"] or {}).get("drift_share") or 0.0) >= DRIFT_SHARE
             v["verdict"] = ("neutral" if faults and v["neutral_share"] >= EXPLAIN_FRACTION
-                            else "false")
+                            else "drift" if drift else "false")
     by = {k: [v["id"] for v in verdict.values() if v["verdict"] == k]
-          for k in ("true", "fragment", "neutral", "false")}
+          for k in ("true", "fragment", "neutral", "drift", "false")}
     alarms = realtime_false_alarms(report, truth_maps)
     rms = [v["rms_mm"] for v in (reconstruction or {}).values()]
     hours = process_s / 3600.0 if process_s else None
     expectations = report.get("expectations", [])
     return {"faults": scores, "tracks": list(verdict.values()),
             "true_tracks": by["true"], "fragments": by["fragment"],
-            "neutral_tracks": by["neutral"], "false_tracks": by["false"],
+            "neutral_tracks": by["neutral"], "drift_tracks": by["drift"],
+            "drift_area_mm2": float(sum(verdict[t]["area_mm2"] for t in by["drift"])),
+            "false_tracks": by["false"],
             "false_tracks_part_deviates": [t for t in by["false"]
                                            if (verdict[t]["truth"] or {}).get("part_deviates")],
             "false_area_mm2": float(sum(verdict[t]["area_mm2"] for t in by["false"])),

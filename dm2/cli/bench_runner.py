@@ -150,7 +150,8 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
         if on_stream_end is not None:
             on_stream_end()
         truth = _read_json(scratch / "truth" / "faults.json") or {"faults": []}
-        recon, tracks_vs_truth = truth_checks(pipeline.results, scratch / "truth")
+        recon, tracks_vs_truth = truth_checks(pipeline.results, scratch / "truth",
+                                              tolerance_mm=sc.monitor.delta_global_mm)
         footprints = track_footprints(pipeline.results)
         timing = pipeline.timing()
         monitor_s = timing["fusion_s"] + timing["reference_s"] + timing["analysis_s"]
@@ -235,6 +236,8 @@ def sweep_case(scenario_dict: dict, source: str) -> dict:
             "first_layer_detected", "onset_delay_layers", "iou", "height_error_mm")
     return _rounded({**{k: fault.get(k) for k in keep},
                      "false_positive_tracks": len(score["false_tracks"]),
+                     "drift_tracks": len(score.get("drift_tracks", [])),
+                     "realtime_false_alarms": score["realtime_false_alarms"],
                      "layers": score["layers"],
                      "reconstruction_rms_mm": score["reconstruction_rms_mm"]})
 
