@@ -214,7 +214,8 @@ def score_scenario_run(run: ScenarioRun) -> dict:
                      footprints=run.footprints, reconstruction=run.reconstruction,
                      track_truth=run.track_truth, process_s=run.process_s,
                      monitor_s=run.monitor_s, wall_s=run.wall_s,
-                     expected_process_scale=coupon_scale(run.scenario))
+                     expected_process_scale=coupon_scale(run.scenario),
+                     event_tolerance_mm=run.scenario.monitor.delta_global_mm)
 
 
 def sweep_case(scenario_dict: dict, source: str) -> dict:
