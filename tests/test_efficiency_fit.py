@@ -235,7 +235,7 @@ def test_a_cell_is_fitted_on_its_first_scenario_of_the_whole_suite():
     _, files = resolve_suite("model_error", SUITES)
     suite = [load_scenario(f) for f in files]
     sources = cell_sources(suite)
-    assert len(sources) == 4  # the four cells of the model-error suite
+    assert len(sources) == 5  # the five cells of the model-error suite
     dent = next(sc for sc in suite if sc.name.endswith("dent_hole_wall_narrow_lean"))
     first = next(sc for sc in suite if cell_key(sc) == cell_key(dent))
     assert first.name.endswith("bump_box_corner_narrow_lean") and first is not dent

@@ -35,8 +35,10 @@ def test_every_scenario_is_a_regression_scenario_off_the_nominal_model():
         bases.add(base_name)
         variants.setdefault(variant, dict(me["twin_process"]))
         assert variants[variant] == me["twin_process"]  # one physics per variant
-    assert len(bases) == 8 and len(files) == 32
+    assert len(bases) == 8 and len(files) == 40
     assert variants == {"linear": {"efficiency_curve": "linear"},
+                        "logistic": {"efficiency_curve": "logistic", "logistic_k_per_rad": 9.0,
+                                     "logistic_phi0_rad": 0.61},
                         "cos_wide": {"efficiency_curve": "cos", "plume_sigma_factor": 1.15},
                         "narrow_lean": {"plume_sigma_factor": 0.85, "efficiency_factor": 0.9},
                         "wide_rich": {"plume_sigma_factor": 1.15, "efficiency_factor": 1.1}}

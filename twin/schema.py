@@ -60,9 +60,14 @@ class TwinProcessConfig(_Model):
     # "cos" (cos theta up to theta_c), "linear" (1 - theta/theta_c) or "plateau" (flat to
     # plateau_angle_deg, then linear to 0 at theta_c). Default "plateau": the shape measured
     # against spray angle in cold-spray impact-angle studies (e.g. Binder et al. 2011,
-    # J. Therm. Spray Technol., CP-Ti): nearly constant to about 30 deg off normal, then falling
-    efficiency_curve: Literal["cos2", "cos", "linear", "plateau"] = "plateau"
+    # J. Therm. Spray Technol., CP-Ti): nearly constant to about 30 deg off normal, then falling.
+    # "logistic": expit(k (phi - phi0)) in the spray angle phi = 90 deg - theta [rad] between
+    # jet and surface, 1 at normal impact, no cut at the critical angle (the shape fitted to
+    # cold-spray experiments in published deposition simulators); k and phi0 below
+    efficiency_curve: Literal["cos2", "cos", "linear", "plateau", "logistic"] = "plateau"
     plateau_angle_deg: float = Field(30.0, ge=0, lt=90)
+    logistic_k_per_rad: float = Field(9.0, gt=0, le=100)
+    logistic_phi0_rad: float = Field(0.61, gt=0, lt=1.5707963267948966)
     # the twin's curve times cos(theta) to this power (0: the curve alone); the twin's own, so
     # never taken from [process], where it describes the monitor's model of the curve
     efficiency_cos_exponent: float = Field(0.0, ge=0, le=6)

@@ -28,6 +28,9 @@ GRID_TOL_MM = 1e-6  # a grid's vertex coordinates agree with its spacing within 
 # a track's flagged vertices lie closer than this share of their |deviation| to the true
 # surface: the part itself stands off the reference there (truth_checks)
 PART_DEVIATES_SHARE = 0.5
+# a track is drift in a layer when the true surface stands off the reference the run used by at
+# least the tolerance, in the track's sign, under this share of its area there (truth_checks)
+DRIFT_SHARE = 0.5
 
 
 def grid_of_mesh(vertices: np.ndarray, faces: np.ndarray):
@@ -97,7 +100,42 @@ def _truth_layers(results, truth_dir: Path):
                truth_O[:, :2].max(axis=0) - CROP_MM)
 
 
-def truth_checks(results, truth_dir: Path) -> tuple[dict[int, dict], dict[int, dict]]:
+def truth_height_at(xy_O, h, x0, y0, cell) -> np.ndarray:
+    """Bilinear height [mm] (n,) of the grid heights ``h`` (H, W) (vertex (i, j) at
+    (x0 + i cell, y0 + j cell)) at ``xy_O`` (n, 2) [mm]; clamped at the grid's border."""
+    xy = np.asarray(xy_O, dtype=np.float64).reshape(-1, 2)
+    H, W = h.shape
+    fx = np.clip((xy[:, 0] - x0) / cell, 0.0, W - 1.0)
+    fy = np.clip((xy[:, 1] - y0) / cell, 0.0, H - 1.0)
+    i0 = np.minimum(np.floor(fx).astype(np.int64), W - 2)
+    j0 = np.minimum(np.floor(fy).astype(np.int64), H - 2)
+    tx, ty = fx - i0, fy - j0
+    return ((1 - ty) * ((1 - tx) * h[j0, i0] + tx * h[j0, i0 + 1])
+            + ty * ((1 - tx) * h[j0 + 1, i0] + tx * h[j0 + 1, i0 + 1]))
+
+
+def _drift(offsets: dict[int, tuple], sign: int, tolerance_mm: float) -> dict:
+    """A track's drift figures from its per-layer true offsets ``{layer: (offset_mm (k,), area
+    (k,))}`` (true surface minus the reference the run used, at its flagged vertices)."""
+    share, median = {}, {}
+    for k, (off, w) in sorted(offsets.items()):
+        total = float(np.sum(w))
+        share[k] = float(np.sum(w[sign * off >= tolerance_mm]) / total) if total > 0 else 0.0
+        median[k] = float(np.median(off))
+    since = next((k for k, v in share.items() if v >= DRIFT_SHARE), None)
+    rate = None
+    if since is not None:
+        ks = np.array([k for k in median if k >= since], np.float64)
+        if ks.size >= 2 and np.ptp(ks) > 0:
+            rate = float(np.polyfit(ks, [median[int(k)] for k in ks], 1)[0])
+    return {"drift_share_by_layer": {str(k): v for k, v in share.items()},
+            "true_offset_median_by_layer_mm": {str(k): v for k, v in median.items()},
+            "drift_share": max(share.values(), default=0.0), "drift_since_layer": since,
+            "drift_rate_mm_per_layer": rate, "drift_tolerance_mm": float(tolerance_mm)}
+
+
+def truth_checks(results, truth_dir: Path,
+                 tolerance_mm: float | None = None) -> tuple[dict[int, dict], dict[int, dict]]:
     """The reconstruction per layer and each track's flagged vertices, against the true surface.
 
     The truth is the twin's ``layer_NNN.ply`` (the true top surface when the layer closed);
@@ -119,11 +157,20 @@ def truth_checks(results, truth_dir: Path) -> tuple[dict[int, dict], dict[int, d
         part itself stands off the reference there, as measured. A track that no fault explains
         but whose part deviates reports the twin's part as it is (the monitor's model differs
         from the twin's physics there), not a measurement error.
+        With ``tolerance_mm`` (the run's event tolerance, ``[monitor] delta_global_mm``) and a
+        grid truth, also the reference the run used against the true surface at the track's
+        flagged vertices (true height minus reference height at their xy, per layer):
+        ``drift_share_by_layer`` (the area share where the truth stands off the reference by
+        at least the tolerance in the track's sign, the sign of its median deviation),
+        ``true_offset_median_by_layer_mm``, ``drift_share`` (the largest), ``drift_since_layer``
+        (the first layer where the share reaches ``DRIFT_SHARE``), ``drift_rate_mm_per_layer``
+        (the least-squares slope of the median offset from that layer on; None with one layer).
     """
     unobserved = CLASS_NAMES.index("unobserved")
     layers: dict[int, dict] = {}
     dev_by: dict[int, list] = {}
     dist_by: dict[int, list] = {}
+    off_by: dict[int, dict] = {}
     for r, truth_O, faces, lo, hi in _truth_layers(results, truth_dir):
         dev = r.deviation
         xy = dev.vertices_O[:, :2]
@@ -137,6 +184,8 @@ def truth_checks(results, truth_dir: Path) -> tuple[dict[int, dict], dict[int, d
                                 "n_vertices": int(ids.size)}
         dist_at = np.full(dev.vertices_O.shape[0], np.nan)
         dist_at[ids] = d
+        grid = grid_of_mesh(truth_O, faces) if tolerance_mm is not None else None
+        areas = dev.vertex_areas() if grid is not None else None
         for reg, tid in zip(r.regions, r.track_ids, strict=True):
             if tid is None:
                 continue
@@ -145,6 +194,13 @@ def truth_checks(results, truth_dir: Path) -> tuple[dict[int, dict], dict[int, d
             if rid.size:
                 dev_by.setdefault(int(tid), []).append(dev.signed_distance_mm[rid])
                 dist_by.setdefault(int(tid), []).append(dist_at[rid])
+                if grid is not None:
+                    xy_r = dev.vertices_O[rid, :2]
+                    off = truth_height_at(xy_r, *grid) - r.reference.height_at(xy_r)
+                    prev = off_by.setdefault(int(tid), {}).get(int(r.layer))
+                    new = (off, areas[rid])
+                    off_by[int(tid)][int(r.layer)] = new if prev is None else (
+                        np.concatenate([prev[0], off]), np.concatenate([prev[1], areas[rid]]))
     tracks = {}
     for tid, devs in dev_by.items():
         dv, e = np.concatenate(devs), np.concatenate(dist_by[tid])
@@ -153,4 +209,6 @@ def truth_checks(results, truth_dir: Path) -> tuple[dict[int, dict], dict[int, d
                        "truth_distance_median_mm": med_dist,
                        "truth_distance_p90_mm": float(np.percentile(e, 90)),
                        "part_deviates": med_dist < PART_DEVIATES_SHARE * abs(med_dev)}
+        if tid in off_by:
+            tracks[tid].update(_drift(off_by[tid], 1 if med_dev >= 0 else -1, tolerance_mm))
     return layers, tracks

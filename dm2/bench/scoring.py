@@ -13,22 +13,34 @@ truth area of sign ``s`` at level ``h`` in layer ``L``
     :data:`DILATION_MM` (1 mm). With several faults in one run, a local fault's (bump, dent,
     corner dwell) share of the map is the part within :data:`LOCAL_SUPPORT_MM` of its centres;
     a global fault's is the whole map.
+event tolerance
+    the run's own: ``[monitor] delta_global_mm`` (``score_run(event_tolerance_mm=...)``; without
+    one, :data:`DEFECT_MIN_HEIGHT_MM`, 0.5 mm). The floor the bench can measure follows it.
 qualifying fault (the population of recall)
-    a fault whose truth area of either sign at :data:`DEFECT_MIN_HEIGHT_MM` (0.5 mm), undilated,
-    covers at least :data:`DEFECT_MIN_AREA_MM2` (4 mm^2) in some layer; its **onset** is the
-    first such layer.
+    a fault whose truth area of either sign at the event tolerance, undilated, covers at least
+    :data:`DEFECT_MIN_AREA_MM2` (4 mm^2) in some layer; its **onset** is the first such layer.
 explains
     a track explains a fault when, in some layer from the fault's onset, at least
     :data:`EXPLAIN_FRACTION` (50 %) of the track's area in that layer lies within the fault's
-    truth area of the *track's* sign at 0.5 mm (dilated). A fault is **detected** when a track
-    explains it. Every track counts, local or global.
+    truth area of the *track's* sign at the event tolerance (dilated). A fault is
+    **detected** when a track explains it. Every track counts, local or global.
 fragment
     a further track explaining an already explained fault (the earliest, then the largest, is
     the fault's true track): neutral, counted.
 neutral track
     a track explaining no fault of which at least 50 % of the area lies, in some layer, within
-    the truth area of its sign at :data:`NEUTRAL_MIN_HEIGHT_MM` (0.2 mm), dilated: it sits on a
-    true fault-caused deviation of 0.2-0.5 mm. Neither true nor false.
+    the truth area of its sign at :data:`NEUTRAL_MIN_HEIGHT_MM` (0.2 mm, or the event tolerance
+    when lower), dilated: it sits on a true fault-caused deviation between that and the event
+    tolerance. Neither true nor false.
+drift track
+    a track explaining no fault and not neutral, where the truth confirms the deviation: in
+    some layer the twin's true surface stands off the reference the run used, in the track's
+    sign and by at least the run's event tolerance (``[monitor] delta_global_mm``), under at
+    least :data:`dm2.bench.reconstruction.DRIFT_SHARE` (50 %) of the track's area there
+    (``track_truth`` ``drift_share``, :func:`dm2.bench.reconstruction.truth_checks`). The
+    whole part drifts off the plan there, no fault does: reported and counted (``drift_tracks``,
+    ``drift_area_mm2``: the sum of their largest area in one layer), neither true nor false,
+    on a control too. Its entry keeps ``drift_since_layer`` and ``drift_rate_mm_per_layer``.
 false track
     every other track. The **false area** is the sum over false tracks of their largest area in
     one layer [mm^2]. Where the run measured each track's flagged vertices against the twin's
@@ -40,7 +52,8 @@ precision, recall, F1
     precision over tracks: true / (true + false) tracks; recall over qualifying faults:
     detected / qualifying; F1 their harmonic mean (1 for an empty population).
 real-time false alarm
-    a real-time alarm whose centroid lies outside the truth area of its sign at 0.2 mm of its
+    a real-time alarm whose centroid lies outside the truth area of its sign at the neutral
+    level (0.2 mm, or the event tolerance when lower) of its
     layer and of the layer before (the layer is the first whose closing stamp is at or after
     the alarm). Reported per hour of process time.
 process finding
@@ -49,7 +62,7 @@ process finding
     a bump, dent or corner dwell) of its sign when the finding's first layer is within one layer
     of the fault's onset or of the first layer the fault acts in (its window's start in the
     truth): a change found at the layer it began is found, though the part shows it only once
-    its effect has grown to 0.5 mm.
+    its effect has grown to the event tolerance.
     Otherwise an ``offset`` finding (the cell's scale) is **correct** when its estimate is within
     :data:`FINDING_TOLERANCE` (3 %) of the scale the twin's ``[twin_process]`` deposits at
     (``expected_process_scale``), and any other finding is a **false finding**, counted with the
@@ -62,6 +75,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from dm2.bench.reconstruction import DRIFT_SHARE
 from dm2.report.report_json import DEFECT_MIN_HEIGHT_MM  # the report's onset height too
 
 DEFECT_MIN_AREA_MM2 = 4.0
@@ -125,7 +139,7 @@ def _restrict(mask, support):
     return mask if support is None else mask & support
 
 
-def _fault_population(fault: dict, maps: dict, n_faults: int) -> dict:
+def _fault_population(fault: dict, maps: dict, n_faults: int, level_mm: float) -> dict:
     """Peak height, onset and per-layer peak of one fault from the truth maps."""
     peak, onset, peaks = 0.0, None, {}
     for k in sorted(maps):
@@ -135,7 +149,7 @@ def _fault_population(fault: dict, maps: dict, n_faults: int) -> dict:
         p = float(np.max(np.abs(dev))) if dev.size else 0.0
         peaks[k] = p
         peak = max(peak, p)
-        if onset is None and max(tm.area_mm2(_restrict(tm.mask(s, DEFECT_MIN_HEIGHT_MM), sup))
+        if onset is None and max(tm.area_mm2(_restrict(tm.mask(s, level_mm), sup))
                                  for s in (1, -1)) >= DEFECT_MIN_AREA_MM2:
             onset = k
     return {"peak": peak, "onset": onset, "peaks": peaks}
@@ -146,7 +160,8 @@ def score_run(report: dict, fault_truth: dict | None, *, truth_maps: dict,
               process_s: float | None = None, monitor_s: float | None = None,
               wall_s: float | None = None,
               expected_process_scale: float | None = None,
-              track_truth: dict | None = None) -> dict:
+              track_truth: dict | None = None,
+              event_tolerance_mm: float = DEFECT_MIN_HEIGHT_MM) -> dict:
     """Score one run strictly (see the module's definitions).
 
     Parameters
@@ -164,11 +179,15 @@ def score_run(report: dict, fault_truth: dict | None, *, truth_maps: dict,
         (:func:`dm2.bench.reconstruction.truth_checks`), kept in each track's entry as
         ``truth``; ``false_tracks_part_deviates`` lists the false tracks where the part itself
         stands off the reference (the monitor's model, not its measurement, is off there)
+    event_tolerance_mm : the run's event tolerance [mm] (``[monitor] delta_global_mm``): the
+        height a fault's truth must reach to qualify and to explain a track
     """
+    level = float(event_tolerance_mm)
+    neutral_level = min(NEUTRAL_MIN_HEIGHT_MM, level)
     faults = list((fault_truth or {}).get("faults", []))
     foot = footprints_from_regions(report) if footprints is None else footprints
     tracks = {int(t["id"]): t for t in report.get("tracks", [])}
-    pops = [_fault_population(f, truth_maps, len(faults)) for f in faults]
+    pops = [_fault_population(f, truth_maps, len(faults), level) for f in faults]
 
     # which fault each track explains, in which layer and how well
     explains: dict[int, list[tuple[int, int, float]]] = {}  # fault idx -> (tid, layer, share)
@@ -185,7 +204,7 @@ def score_run(report: dict, fault_truth: dict | None, *, truth_maps: dict,
                 tm = truth_maps.get(k)
                 if tm is None or k < pop["onset"]:
                     continue
-                mask = _restrict(tm.mask(s, DEFECT_MIN_HEIGHT_MM, DILATION_MM),
+                mask = _restrict(tm.mask(s, level, DILATION_MM),
                                  _support(f, tm, len(faults)))
                 share = tm.fraction_in(mask, xy, w)
                 best = max(best, share)
@@ -197,7 +216,7 @@ def score_run(report: dict, fault_truth: dict | None, *, truth_maps: dict,
             tm = truth_maps.get(k)
             if tm is not None:
                 neutral_share = max(neutral_share, tm.fraction_in(
-                    tm.mask(s, NEUTRAL_MIN_HEIGHT_MM, DILATION_MM), xy, w))
+                    tm.mask(s, neutral_level, DILATION_MM), xy, w))
         area = max((float(np.sum(w)) for _, w in layers.values()), default=0.0)
         verdict[tid] = {"id": tid, "kind": t["kind"], "area_mm2": area,
                         "best_share": best, "neutral_share": neutral_share, "verdict": None,
@@ -214,21 +233,24 @@ def score_run(report: dict, fault_truth: dict | None, *, truth_maps: dict,
                 verdict[tid]["verdict"] = "true"
             elif verdict[tid]["verdict"] is None:
                 verdict[tid]["verdict"] = "fragment"
-        scores.append(_fault_score(f, pop, ex, report, foot, truth_maps))
+        scores.append(_fault_score(f, pop, ex, report, foot, truth_maps, level))
     findings = _score_findings(report, faults, scores, expected_process_scale)
     for v in verdict.values():
         if v["verdict"] is None:
+            drift = ((v["truth"] or {}).get("drift_share") or 0.0) >= DRIFT_SHARE
             v["verdict"] = ("neutral" if faults and v["neutral_share"] >= EXPLAIN_FRACTION
-                            else "false")
+                            else "drift" if drift else "false")
     by = {k: [v["id"] for v in verdict.values() if v["verdict"] == k]
-          for k in ("true", "fragment", "neutral", "false")}
-    alarms = realtime_false_alarms(report, truth_maps)
+          for k in ("true", "fragment", "neutral", "drift", "false")}
+    alarms = realtime_false_alarms(report, truth_maps, neutral_level)
     rms = [v["rms_mm"] for v in (reconstruction or {}).values()]
     hours = process_s / 3600.0 if process_s else None
     expectations = report.get("expectations", [])
-    return {"faults": scores, "tracks": list(verdict.values()),
+    return {"faults": scores, "tracks": list(verdict.values()), "event_tolerance_mm": level,
             "true_tracks": by["true"], "fragments": by["fragment"],
-            "neutral_tracks": by["neutral"], "false_tracks": by["false"],
+            "neutral_tracks": by["neutral"], "drift_tracks": by["drift"],
+            "drift_area_mm2": float(sum(verdict[t]["area_mm2"] for t in by["drift"])),
+            "false_tracks": by["false"],
             "false_tracks_part_deviates": [t for t in by["false"]
                                            if (verdict[t]["truth"] or {}).get("part_deviates")],
             "false_area_mm2": float(sum(verdict[t]["area_mm2"] for t in by["false"])),
@@ -275,7 +297,7 @@ def _score_findings(report, faults, scores, expected_scale) -> list[dict]:
     return out
 
 
-def _fault_score(fault, pop, explained, report, foot, maps) -> dict:
+def _fault_score(fault, pop, explained, report, foot, maps, level_mm) -> dict:
     """One fault's score; onset delay, IoU and height error at its true track's first
     explaining layer."""
     tracks = {int(t["id"]): t for t in report.get("tracks", [])}
@@ -302,7 +324,7 @@ def _fault_score(fault, pop, explained, report, foot, maps) -> dict:
     rows, cols, inside = tm.cells_of(xy)
     flagged = np.zeros(tm.deviation_mm.shape, bool)
     flagged[rows[inside], cols[inside]] = True
-    truth = tm.mask(s, DEFECT_MIN_HEIGHT_MM)
+    truth = tm.mask(s, level_mm)
     union = np.count_nonzero(flagged | truth)
     out["iou"] = float(np.count_nonzero(flagged & truth) / union) if union else None
     out["truth_height_mm"] = truth_h = pop["peaks"].get(layer)
@@ -315,8 +337,10 @@ def _fault_score(fault, pop, explained, report, foot, maps) -> dict:
     return out
 
 
-def realtime_false_alarms(report: dict, maps: dict) -> dict:
-    """How many real-time alarms the run raised and how many were false (see definitions)."""
+def realtime_false_alarms(report: dict, maps: dict,
+                          level_mm: float = NEUTRAL_MIN_HEIGHT_MM) -> dict:
+    """How many real-time alarms the run raised and how many were false (see definitions):
+    confirmed where the truth of the alarm's sign reaches ``level_mm`` at its centroid."""
     alarms = ((report.get("realtime") or {}).get("alarms")) or []
     closes = sorted((ly.get("stamp_s"), int(ly["layer"])) for ly in report.get("layers", [])
                     if ly.get("stamp_s") is not None)
@@ -329,7 +353,7 @@ def realtime_false_alarms(report: dict, maps: dict) -> dict:
         for k in (layer, None if layer is None else layer - 1):
             tm = maps.get(k) if k is not None else None
             if tm is not None and tm.fraction_in(
-                    tm.mask(s, NEUTRAL_MIN_HEIGHT_MM, DILATION_MM),
+                    tm.mask(s, level_mm, DILATION_MM),
                     [a["centroid_xy_O_mm"]]) > 0:
                 ok = True
         false += not ok

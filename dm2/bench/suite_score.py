@@ -11,8 +11,9 @@ def summarize(runs: dict[str, dict], targets: dict | None = None) -> dict:
 
     ``targets`` may hold ``f1_min``, ``max_onset_delay_layers``, ``max_false_tracks`` and
     ``max_false_alarms_per_hour`` (each checked when present). ``gate_passed`` is False when a
-    control has any track.
+    control has any false track (drift, confirmed by the truth, is not false).
     """
+    tolerances = sorted({r.get("event_tolerance_mm", DEFECT_MIN_HEIGHT_MM) for r in runs.values()})
     qual = [f for r in runs.values() for f in r["faults"] if f["qualifies"]]
     detected = sum(1 for f in qual if f["detected"])
     true_t = sum(len(r["true_tracks"]) for r in runs.values())
@@ -33,6 +34,9 @@ def summarize(runs: dict[str, dict], targets: dict | None = None) -> dict:
                                              for r in runs.values()),
            "fragments": sum(len(r["fragments"]) for r in runs.values()),
            "neutral_tracks": sum(len(r["neutral_tracks"]) for r in runs.values()),
+           # tracks no fault explains where the true part stands off the reference the run used
+           "drift_tracks": sum(len(r.get("drift_tracks", [])) for r in runs.values()),
+           "drift_area_mm2": float(sum(r.get("drift_area_mm2", 0.0) for r in runs.values())),
            "false_area_mm2": float(sum(r["false_area_mm2"] for r in runs.values())),
            "precision": precision, "recall": recall, "f1": f1,
            "max_onset_delay_layers": max(delays) if delays else None,
@@ -42,7 +46,9 @@ def summarize(runs: dict[str, dict], targets: dict | None = None) -> dict:
            "process_h": hours, "false_tracks_per_control": controls,
            "gate_passed": all(n == 0 for n in controls.values()),
            "expectations_passed": all(r["expect_passed"] for r in runs.values()),
-           "definition": f"strict: every track counts; faults >= {DEFECT_MIN_HEIGHT_MM} mm over "
+           "event_tolerance_mm": tolerances,
+           "definition": "strict: every track counts; faults >= the run's event tolerance ("
+                         + "/".join(f"{t:g}" for t in tolerances) + " mm) over "
                          f">= {DEFECT_MIN_AREA_MM2} mm2 (see dm2.bench.scoring)"}
     targets = dict(targets or {})
     checks = {}

@@ -49,7 +49,8 @@ SUITES = {
     "model_error": Suite(
         "model_error", "The regression suite's controls and wall, edge, corner and hole faults "
         "on a twin whose physics departs from the monitor's model as another cell's would "
-        "(another efficiency curve, plume 15 % wider or narrower, efficiency 10 % off), with "
+        "(another efficiency curve: linear, cos or a logistic in the spray angle; plume 15 % "
+        "wider or narrower, efficiency 10 % off), with "
         "other seeds: how the one frozen configuration holds off nominal.",
         "model_error",
         targets={"f1_min": 0.95, "max_onset_delay_layers": 1, "max_false_tracks": 0,

@@ -1,7 +1,10 @@
 """Monte Carlo sweeps over seeds and fault magnitudes on Dask distributed.
 
 :func:`sweep_cases` expands a base scenario into one case per (size, seed): the size is written
-into one field of one fault (``faults[i].<param>``), the seed into ``seed``. :func:`run_sweep`
+into one field of one fault (``faults[i].<param>``), the seed into ``seed``; with ``controls``,
+one fault-free control per seed follows (every fault removed, all else the same), so the false
+tracks and false real-time alarms of the same settings over the same seeds stand beside the
+detection probability. :func:`run_sweep`
 maps a case function over them on a Dask client: a :class:`distributed.LocalCluster` of worker
 processes (one thread each, so each process holds one physics engine) by default, or the
 scheduler at ``scheduler_address``. :func:`summarize_sweep` turns the case results into the
@@ -25,8 +28,11 @@ RELIABLE_PROBABILITY = 0.9
 
 
 def sweep_cases(base: dict, sizes: Sequence[float], seeds: Sequence[int],
-                param: str = "height_mm", fault_index: int = 0) -> list[dict]:
-    """One scenario dict per (size, seed), sizes outer, seeds inner.
+                param: str = "height_mm", fault_index: int = 0,
+                controls: bool = False) -> list[dict]:
+    """One scenario dict per (size, seed), sizes outer, seeds inner; with ``controls``, then
+    one fault-free control per seed (``size`` None, ``control`` True: the base without its
+    faults, at the same settings and seed).
 
     Raises
     ------
@@ -46,6 +52,12 @@ def sweep_cases(base: dict, sizes: Sequence[float], seeds: Sequence[int],
             sc["seed"] = int(seed)
             sc["name"] = f"{base.get('name', 'sweep')}_{param}{size:g}_seed{seed}"
             cases.append({"size": float(size), "seed": int(seed), "scenario": sc})
+    for seed in seeds if controls else ():
+        sc = copy.deepcopy(base)
+        sc["faults"] = []
+        sc["seed"] = int(seed)
+        sc["name"] = f"{base.get('name', 'sweep')}_control_seed{seed}"
+        cases.append({"size": None, "seed": int(seed), "control": True, "scenario": sc})
     return cases
 
 
@@ -106,8 +118,9 @@ def _collect(client, cases, case_fn, progress) -> list[dict]:
         results[index[fut.key]] = fut.result()
         if progress is not None:
             progress(done, len(cases))
-    return [{"size": c["size"], "seed": c["seed"], **r} for c, r in zip(cases, results,
-                                                                         strict=True)]
+    return [{"size": c["size"], "seed": c["seed"], **({"control": True} if c.get("control")
+                                                      else {}), **r}
+            for c, r in zip(cases, results, strict=True)]
 
 
 def summarize_sweep(results: list[dict], reliable: float = RELIABLE_PROBABILITY) -> dict:
@@ -116,8 +129,13 @@ def summarize_sweep(results: list[dict], reliable: float = RELIABLE_PROBABILITY)
     A case counts as detected when the fault was found with the right sign by any track
     (``probability``) or by a global over/underbuild track (``probability_global``). The smallest
     reliable size is the smallest size at and above which every size's probability is at
-    least ``reliable`` (None if even the largest misses it).
+    least ``reliable`` (None if even the largest misses it). The fault-free controls (results
+    with ``control``) are summed apart: ``control`` ``{"n", "false_tracks", "drift_tracks",
+    "realtime_false_alarms"}`` (None without controls); each size row also carries its own
+    ``realtime_false_alarms`` and ``drift_tracks``.
     """
+    controls = [r for r in results if r.get("control")]
+    results = [r for r in results if not r.get("control")]
     sizes = sorted({r["size"] for r in results})
     by_size = []
     for s in sizes:
@@ -132,14 +150,22 @@ def summarize_sweep(results: list[dict], reliable: float = RELIABLE_PROBABILITY)
                         "mean_peak_height_mm": float(np.mean(peaks)) if peaks else None,
                         "mean_onset_delay_layers": float(np.mean(delays)) if delays else None,
                         "false_positive_tracks": int(sum(r.get("false_positive_tracks", 0)
+                                                         for r in rows)),
+                        "drift_tracks": int(sum(r.get("drift_tracks", 0) for r in rows)),
+                        "realtime_false_alarms": int(sum(r.get("realtime_false_alarms", 0)
                                                          for r in rows))})
     smallest = None
     for row in reversed(by_size):
         if row["probability"] < reliable:
             break
         smallest = row["size"]
+    control = None if not controls else {
+        "n": len(controls), "seeds": sorted(int(r["seed"]) for r in controls),
+        "false_tracks": int(sum(r.get("false_positive_tracks", 0) for r in controls)),
+        "drift_tracks": int(sum(r.get("drift_tracks", 0) for r in controls)),
+        "realtime_false_alarms": int(sum(r.get("realtime_false_alarms", 0) for r in controls))}
     return {"reliable_probability": reliable, "by_size": by_size,
-            "smallest_reliable_size": smallest}
+            "smallest_reliable_size": smallest, "control": control}
 
 
 def plot_sweep(path: str | Path, summary: dict, param: str, title: str = "") -> Path:
@@ -160,6 +186,11 @@ def plot_sweep(path: str | Path, summary: dict, param: str, title: str = "") -> 
     if summary["smallest_reliable_size"] is not None:
         ax.axvline(summary["smallest_reliable_size"], ls=":", c="tab:green",
                    label=f"smallest reliable: {summary['smallest_reliable_size']:g}")
+    control = summary.get("control")
+    if control:
+        ax.plot([], [], " ", label=f"fault-free control, {control['n']} seeds: "
+                f"{control['false_tracks']} false tracks, "
+                f"{control['realtime_false_alarms']} false RT alarms")
     ax.set_xlabel(f"fault {param}")
     ax.set_ylabel("detection probability")
     ax.set_ylim(-0.05, 1.05)

@@ -164,7 +164,8 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
         if on_stream_end is not None:
             on_stream_end()
         truth = _read_json(scratch / "truth" / "faults.json") or {"faults": []}
-        recon, tracks_vs_truth = truth_checks(pipeline.results, scratch / "truth")
+        recon, tracks_vs_truth = truth_checks(pipeline.results, scratch / "truth",
+                                              tolerance_mm=sc.monitor.delta_global_mm)
         footprints = track_footprints(pipeline.results)
         timing = pipeline.timing()
         monitor_s = timing["fusion_s"] + timing["reference_s"] + timing["analysis_s"]
@@ -236,7 +237,8 @@ def score_scenario_run(run: ScenarioRun) -> dict:
                      footprints=run.footprints, reconstruction=run.reconstruction,
                      track_truth=run.track_truth, process_s=run.process_s,
                      monitor_s=run.monitor_s, wall_s=run.wall_s,
-                     expected_process_scale=coupon_scale(run.scenario))
+                     expected_process_scale=coupon_scale(run.scenario),
+                     event_tolerance_mm=run.scenario.monitor.delta_global_mm)
 
 
 def sweep_case(scenario_dict: dict, source: str) -> dict:
@@ -258,6 +260,8 @@ def sweep_case(scenario_dict: dict, source: str) -> dict:
             "first_layer_detected", "onset_delay_layers", "iou", "height_error_mm")
     return _rounded({**{k: fault.get(k) for k in keep},
                      "false_positive_tracks": len(score["false_tracks"]),
+                     "drift_tracks": len(score.get("drift_tracks", [])),
+                     "realtime_false_alarms": score["realtime_false_alarms"],
                      "layers": score["layers"],
                      "reconstruction_rms_mm": score["reconstruction_rms_mm"]})
 

@@ -20,7 +20,7 @@ EXIT_FAILED = 1
 def bench_table(runs: dict[str, dict]) -> Table:
     table = Table(title="Bench: strict score against the twin's truth maps")
     cols = ("scenario", "fault", "h mm", "detected", "onset L", "delay L", "IoU",
-            "height err mm", "tracks T/frag/neu/F", "false mm²", "RT alarms F/all", "RMS mm",
+            "height err mm", "tracks T/frag/neu/D/F", "false mm²", "RT alarms F/all", "RMS mm",
             "RTF", "expect")
     for c in cols:
         table.add_column(c, justify="left" if c in ("scenario", "fault") else "right")
@@ -31,6 +31,7 @@ def bench_table(runs: dict[str, dict]) -> Table:
         faults = r["faults"] or [None]
         n_false = len(r["false_tracks"])
         counts = (f"{len(r['true_tracks'])}/{len(r['fragments'])}/{len(r['neutral_tracks'])}/"
+                  f"{len(r.get('drift_tracks', []))}/"
                   + (f"[red]{n_false}[/]" if n_false else "0"))
         for i, f in enumerate(faults):
             common = [counts, fmt_cell(r["false_area_mm2"], "{:.0f}"),
@@ -52,13 +53,17 @@ def bench_table(runs: dict[str, dict]) -> Table:
 
 
 def score_line(summary: dict) -> str:
-    """The strict score in one line (F1, its parts, false tracks and alarms; false process
-    findings count as false tracks, bench.json ``false_findings`` says how many)."""
+    """The strict score in one line (F1, its parts, detections, drift, false tracks and alarms;
+    false process findings count as false tracks, bench.json ``false_findings`` says how many;
+    drift tracks, confirmed by the truth, are neither true nor false)."""
     per_h = summary["realtime_false_alarms_per_hour"]
     controls = summary["false_tracks_per_control"]
     return (f"F1 {summary['f1']:.3f} (precision {summary['precision']:.3f} over "
             f"{summary['true_tracks'] + summary['false_tracks']} tracks, recall "
             f"{summary['recall']:.3f} over {summary['qualifying_faults']} faults); "
+            f"detections {summary['detected_faults']}/{summary['qualifying_faults']}; "
+            f"drift {summary.get('drift_tracks', 0)} track(s) "
+            f"({summary.get('drift_area_mm2', 0.0):.0f} mm²); "
             f"false tracks {summary['false_tracks']} ({summary['false_area_mm2']:.0f} mm²; "
             f"where the twin's part itself stands off the reference as measured: "
             f"{summary['false_tracks_part_deviates']}), fragments "

@@ -38,11 +38,16 @@ def sweep(
                              help="Output folder (default runs/sweep-TIME)."),
     force: bool = typer.Option(False, "--force", help="Write into a folder holding an earlier "
                                "dm2 output and other files: replace only dm2's files."),
+    controls: bool = typer.Option(True, "--controls/--no-controls", help="Also run the "
+                                  "fault-free control (every fault removed) at the same "
+                                  "settings over the same seeds, and print its false tracks "
+                                  "and false real-time alarms beside each size."),
 ) -> None:
     """Monte Carlo over seeds and fault sizes on Dask: detection probability against size.
 
     Writes sweep.json (every case and the probability per size, with the smallest size
-    detected in at least 90 % of the seeds from there up) and sweep.png.
+    detected in at least 90 % of the seeds from there up, and the fault-free control's false
+    tracks and false real-time alarms over the same seeds) and sweep.png.
 
     Example: `dm2 sweep scenarios/suites/smoke/bump.toml --sizes 0.2,0.4,0.8 --seeds 4`
     """
@@ -58,7 +63,8 @@ def sweep(
         base = apply_overrides(base, list(overrides))
         parse_scenario(base, str(path))
         size_list = _floats(sizes)
-        cases = sweep_cases(base, size_list, list(range(seed0, seed0 + seeds)), param, fault)
+        cases = sweep_cases(base, size_list, list(range(seed0, seed0 + seeds)), param, fault,
+                            controls=controls)
         parse_scenario(cases[0]["scenario"], f"{path} (faults[{fault}].{param})")
         out_dir = (out or Path("runs") / f"sweep-{datetime.now():%Y%m%d-%H%M%S}").absolute()
         kept = prepare_output_dir(out_dir, force=force)
@@ -66,7 +72,7 @@ def sweep(
 
     where = scheduler or f"a local cluster of {workers} worker processes"
     console.print(f"[bold]dm2 sweep[/] {len(cases)} cases ({len(size_list)} sizes x {seeds} "
-                  f"seeds) on {where}")
+                  f"seeds{f' + {seeds} fault-free controls' if controls else ''}) on {where}")
     t0 = time.perf_counter()
     results = run_sweep(cases, sweep_case, scheduler_address=scheduler, n_workers=workers,
                         progress=lambda d, n: console.print(f"  {d}/{n} cases done"))
@@ -79,15 +85,26 @@ def sweep(
     plot_sweep(out_dir / "sweep.png", summary, param, f"{Path(path).stem}: detection vs {param}")
     claim_outputs(out_dir, kept, "dm2 sweep")
     table = Table(title=f"Detection probability against {param}")
-    for c in ("size", "n", "detected", "probability", "P global track", "mean peak mm",
-              "FP tracks"):
+    ctrl = summary["control"]
+    cols = ["size", "n", "detected", "probability", "P global track", "mean peak mm",
+            "FP tracks", "false RT alarms"]
+    if ctrl:
+        cols += ["control FP tracks", "control false RT"]
+    for c in cols:
         table.add_column(c, justify="right")
     for r in summary["by_size"]:
         table.add_row(f"{r['size']:g}", str(r["n"]), str(r["detected"]),
                       f"{r['probability']:.2f}", f"{r['probability_global']:.2f}",
                       fmt_cell(r["mean_peak_height_mm"]),
-                      str(r["false_positive_tracks"]))
+                      str(r["false_positive_tracks"]), str(r["realtime_false_alarms"]),
+                      *([str(ctrl["false_tracks"]), str(ctrl["realtime_false_alarms"])]
+                        if ctrl else []))
     console.print(table)
+    if ctrl:
+        console.print(f"fault-free control (every fault removed, the same settings) over the "
+                      f"same {ctrl['n']} seeds: {ctrl['false_tracks']} false track(s), "
+                      f"{ctrl['realtime_false_alarms']} false real-time alarm(s), "
+                      f"{ctrl['drift_tracks']} drift track(s)")
     smallest = summary["smallest_reliable_size"]
     console.print(f"smallest reliably detected {param} (>= "
                   f"{summary['reliable_probability']:.0%}): "

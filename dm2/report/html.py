@@ -68,6 +68,32 @@ def _blank(value) -> str:
     return "" if value is None else str(value)
 
 
+def drift_sentences(report: dict) -> list[str]:
+    """One sentence per track that no injected fault explains and where the twin's true surface
+    stands off the reference the run used (report.json ``track_truth`` ``drift_since_layer``,
+    dm2.bench.reconstruction.truth_checks), e.g. "Track 1 (overbuild) is drift: the part runs
+    0.15 mm/layer over the plan since layer 62 (+0.80 mm in layer 70, beyond 0.4 mm under 100 %
+    of the track)"."""
+    explained = {r.get("track_id") for r in report.get("fault_truth") or []}
+    kinds = {int(t["id"]): t["kind"] for t in report.get("tracks", [])}
+    out = []
+    for tid, tt in sorted((report.get("track_truth") or {}).items(), key=lambda e: int(e[0])):
+        since = tt.get("drift_since_layer")
+        if since is None or int(tid) in explained or str(tid) in map(str, explained):
+            continue
+        offsets = tt.get("true_offset_median_by_layer_mm") or {}
+        last = max(offsets, key=int) if offsets else None
+        rate = tt.get("drift_rate_mm_per_layer")
+        runs = ("runs off the plan" if rate is None else
+                f"runs {abs(rate):.2f} mm/layer {'over' if rate >= 0 else 'under'} the plan")
+        at = f"{offsets[last]:+.2f} mm in layer {last}, " if last is not None else ""
+        out.append(f"Track {tid} ({kinds.get(int(tid), '?').replace('_', ' ')}) is drift: the "
+                   f"part {runs} since layer {since} ({at}beyond "
+                   f"{tt.get('drift_tolerance_mm', 0.0):g} mm under "
+                   f"{100 * tt.get('drift_share', 0.0):.0f} % of the track)")
+    return out
+
+
 def _truth(report: dict) -> str:
     parts = []
     if report.get("fault_truth"):
@@ -86,6 +112,10 @@ def _truth(report: dict) -> str:
             rows, ["fault", "expected track", "layers", f"truth ≥ {onset_mm} from", "found",
                    "track", "first layer found", f"delay after truth ≥ {onset_mm} [layers]"],
             left=(0, 1)))
+    drift = drift_sentences(report)
+    if drift:
+        parts.append("<h2>Drift (the twin's truth)</h2><ul>"
+                     + "".join(f"<li>{escape(d)}.</li>" for d in drift) + "</ul>")
     if report.get("expectations"):
         rows = [[e["expect"], "met" if e["passed"] else "MISSED",
                  "; ".join(filter(None, [", ".join(str(i) for i in e.get("track_ids") or [])]

@@ -265,7 +265,9 @@ def twin_process(scenario: TwinScenario) -> tuple[ProcessConfig, TwinPhysics]:
                           plateau_angle_deg=tp.plateau_angle_deg,
                           plume_exponent=tp.plume_exponent, porosity=tp.porosity,
                           standoff_efficiency_per_mm=tp.standoff_efficiency_per_mm,
-                          efficiency_cos_exponent=tp.efficiency_cos_exponent)
+                          efficiency_cos_exponent=tp.efficiency_cos_exponent,
+                          logistic_k_per_rad=tp.logistic_k_per_rad,
+                          logistic_phi0_rad=tp.logistic_phi0_rad)
     return proc, physics
 
 

@@ -73,20 +73,27 @@ def _frac(x):
 # twin.world.twin_physics.TwinPhysics.kernel_params): curve code, plateau angle [rad], volume
 # per dense volume (1 / (1 - porosity)), relative efficiency per mm of spray distance beyond
 # the reference standoff, that standoff [mm], the exponent of an extra cos(theta) factor on the
-# curve
-PHYS_CURVE, PHYS_PLATEAU, PHYS_BULK, PHYS_STANDOFF_SLOPE, PHYS_STANDOFF_REF, PHYS_COS_EXP = \
-    range(6)
-CURVE_COS2, CURVE_COS, CURVE_LINEAR, CURVE_PLATEAU = range(4)
+# curve, the logistic curve's steepness [1/rad] and midpoint spray angle [rad]
+PHYS_CURVE, PHYS_PLATEAU, PHYS_BULK, PHYS_STANDOFF_SLOPE, PHYS_STANDOFF_REF, PHYS_COS_EXP, \
+    PHYS_LOGISTIC_K, PHYS_LOGISTIC_PHI0 = range(8)
+CURVE_COS2, CURVE_COS, CURVE_LINEAR, CURVE_PLATEAU, CURVE_LOGISTIC = range(5)
 
 
 @njit(cache=True)
-def efficiency_curve(theta, theta_c, code=CURVE_COS2, theta_p=0.0):
+def efficiency_curve(theta, theta_c, code=CURVE_COS2, theta_p=0.0, k=9.0, phi0=0.61):
     """Relative deposition efficiency at impact angle ``theta`` [rad], 0 from ``theta_c``.
 
     ``code``: CURVE_COS2 ``cos^2(pi/2 (theta/theta_c)^2)`` (the nominal model), CURVE_COS
     ``cos(theta)``, CURVE_LINEAR ``1 - theta/theta_c``, CURVE_PLATEAU 1 up to ``theta_p``,
-    then linear to 0 at ``theta_c``.
+    then linear to 0 at ``theta_c``; CURVE_LOGISTIC ``expit(k (phi - phi0))`` in the spray
+    angle ``phi = pi/2 - theta`` between jet and surface, 1 at normal impact, with no cut at
+    ``theta_c`` (0 from grazing, ``phi <= 0``).
     """
+    if code == CURVE_LOGISTIC:
+        phi = 0.5 * math.pi - theta
+        if phi <= 0.0:
+            return 0.0
+        return (1.0 + math.exp(-k * (0.5 * math.pi - phi0))) / (1.0 + math.exp(-k * (phi - phi0)))
     if theta >= theta_c:
         return 0.0
     if code == CURVE_COS:
@@ -179,6 +186,8 @@ def spray_step(field, state, seq, lam, spot, axis, sigma, back_mm, zeta0, plume)
     slope = phys[PHYS_STANDOFF_SLOPE]
     s_ref = phys[PHYS_STANDOFF_REF]
     cos_exp = phys[PHYS_COS_EXP]
+    k_logistic = phys[PHYS_LOGISTIC_K]
+    phi0 = phys[PHYS_LOGISTIC_PHI0]
     n_packets = int(lam + uniform(state))
     w = np.empty((2 * SPLAT_RADIUS_CELLS + 1) ** 2)
     deposited = 0.0
@@ -209,7 +218,7 @@ def spray_step(field, state, seq, lam, spot, axis, sigma, back_mm, zeta0, plume)
         if cos_t <= 0.0:
             continue
         theta = math.acos(min(cos_t, 1.0))
-        zeta = zeta0 * efficiency_curve(theta, theta_c, code, theta_p)
+        zeta = zeta0 * efficiency_curve(theta, theta_c, code, theta_p, k_logistic, phi0)
         if cos_exp != 0.0:
             zeta *= min(cos_t, 1.0) ** cos_exp
         if slope != 0.0:  # the nozzle exit lies t from the hit

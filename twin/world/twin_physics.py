@@ -8,7 +8,8 @@ its own (:class:`TwinPhysics`, used by :class:`twin.world.deposition.SprayModel`
 * ``[process]`` keys repeated in ``[twin_process]`` override the nominal values;
 * ``plume_sigma_factor`` and ``efficiency_factor`` scale the resulting plume sigma and
   normal-impact efficiency;
-* ``efficiency_curve`` (+ ``plateau_angle_deg``): the efficiency's fall with impact angle,
+* ``efficiency_curve`` (+ ``plateau_angle_deg``; the ``logistic`` curve's
+  ``logistic_k_per_rad`` and ``logistic_phi0_rad``): the efficiency's fall with impact angle,
   times ``cos(theta) ** efficiency_cos_exponent`` (the twin's own exponent: never the one in
   ``[process]``, which describes the monitor's model of the curve);
 * ``plume_exponent`` ``p``: packets leave the nozzle with the radial density
@@ -33,8 +34,10 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
+from scipy.special import expit
 
-CURVES = ("cos2", "cos", "linear", "plateau")  # index = the kernels' CURVE_* code
+# index = the kernels' CURVE_* code
+CURVES = ("cos2", "cos", "linear", "plateau", "logistic")
 RADIAL_TABLE_NODES = 4096  # quantile intervals of the tabulated inverse radial CDF
 RADIAL_TAIL_QUANTILE = 1.0 - 1e-7  # the table's last node (the tail beyond is cut)
 
@@ -51,6 +54,10 @@ class TwinPhysics:
     porosity : float, pore volume fraction of the deposit
     standoff_efficiency_per_mm : float [1/mm], relative efficiency per mm of extra flight
     efficiency_cos_exponent : float, the curve times ``cos(theta)`` to this power
+    logistic_k_per_rad, logistic_phi0_rad : float [1/rad], [rad], the "logistic" curve
+        ``expit(k (phi - phi0)) / expit(k (pi/2 - phi0))``, ``phi = pi/2 - theta`` the spray
+        angle between jet and surface (the shape fitted to cold-spray deposition experiments
+        in published deposition simulators); no cut at the critical angle, 0 from grazing
     """
 
     efficiency_curve: str = "cos2"
@@ -59,6 +66,8 @@ class TwinPhysics:
     porosity: float = 0.0
     standoff_efficiency_per_mm: float = 0.0
     efficiency_cos_exponent: float = 0.0
+    logistic_k_per_rad: float = 9.0
+    logistic_phi0_rad: float = 0.61
 
     def __post_init__(self):
         if self.efficiency_curve not in CURVES:
@@ -83,7 +92,8 @@ class TwinPhysics:
         return np.array([CURVES.index(self.efficiency_curve),
                          math.radians(self.plateau_angle_deg), self.bulk_factor,
                          self.standoff_efficiency_per_mm, standoff_mm,
-                         self.efficiency_cos_exponent], dtype=np.float64)
+                         self.efficiency_cos_exponent, self.logistic_k_per_rad,
+                         self.logistic_phi0_rad], dtype=np.float64)
 
     def radial_table(self) -> np.ndarray:
         """Inverse CDF of the radius across the jet in sigmas (empty for the Gaussian)."""
@@ -100,6 +110,10 @@ class TwinPhysics:
             z = np.cos(theta)
         elif self.efficiency_curve == "linear":
             z = 1.0 - theta / tc
+        elif self.efficiency_curve == "logistic":
+            k, phi0 = self.logistic_k_per_rad, self.logistic_phi0_rad
+            z = expit(k * (0.5 * np.pi - theta - phi0)) / expit(k * (0.5 * np.pi - phi0))
+            tc = 0.5 * np.pi  # no cut at the critical angle: 0 from grazing
         else:
             tp = math.radians(self.plateau_angle_deg)
             z = np.where(theta <= tp, 1.0, (tc - theta) / (tc - tp))
