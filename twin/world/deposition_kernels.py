@@ -35,6 +35,8 @@ class Plume(NamedTuple):
     v_packet: float  # volume of one powder packet [mm^3]
     theta_c: float  # critical spray angle [rad]
     normal_cells: int  # half width of the smoothed surface normal [nodes]
+    tan_face: float  # steepest face a stuck packet stays on (tan of its angle from level)
+    max_slide: int  # most nodes a stuck packet slides down a steeper face
     phys: np.ndarray  # PHYS_* entries: efficiency curve, porosity, spray-distance efficiency
     radial: np.ndarray  # radial profile of the plume (:func:`radial_offset`)
 
@@ -115,8 +117,15 @@ def radial_offset(u1, radial):
 
 
 @njit(cache=True)
-def _smoothed_normal(H, cell, x, y, k):
-    """Upward unit normal from central differences over +-k cells around ``(x, y)``."""
+def _robust_gradient(H, cell, x, y, k):
+    """Surface gradient ``(gx, gy)`` at ``(x, y)`` over +-k cells, robust to narrow features.
+
+    Along each axis the two one-sided differences over ``k`` cells are taken and the steeper
+    one kept: on a face they agree with the central difference (to its curvature), while a
+    ridge or peak narrower than the stencil, whose central difference reads flat, shows the
+    slope of its flanks. On a surface rough only at the packets' scale both stay small (the
+    same 1.5 mm baseline as before), so the roughness runaway a fine normal brought stays
+    away."""
     ny, nx = H.shape
     i = min(max(int(x / cell), 0), nx - 1)
     j = min(max(int(y / cell), 0), ny - 1)
@@ -124,10 +133,45 @@ def _smoothed_normal(H, cell, x, y, k):
     i1 = min(i + k, nx - 1)
     j0 = max(j - k, 0)
     j1 = min(j + k, ny - 1)
-    gx = (H[j, i1] - H[j, i0]) / ((i1 - i0) * cell) if i1 > i0 else 0.0
-    gy = (H[j1, i] - H[j0, i]) / ((j1 - j0) * cell) if j1 > j0 else 0.0
+    h = H[j, i]
+    gl = (h - H[j, i0]) / ((i - i0) * cell) if i > i0 else 0.0
+    gr = (H[j, i1] - h) / ((i1 - i) * cell) if i1 > i else 0.0
+    gx = gl if abs(gl) > abs(gr) else gr
+    gl = (h - H[j0, i]) / ((j - j0) * cell) if j > j0 else 0.0
+    gr = (H[j1, i] - h) / ((j1 - j) * cell) if j1 > j else 0.0
+    gy = gl if abs(gl) > abs(gr) else gr
+    return gx, gy
+
+
+@njit(cache=True)
+def _smoothed_normal(H, cell, x, y, k):
+    """Upward unit normal at ``(x, y)`` from :func:`_robust_gradient` over +-k cells."""
+    gx, gy = _robust_gradient(H, cell, x, y, k)
     n = math.sqrt(gx * gx + gy * gy + 1.0)
     return -gx / n, -gy / n, 1.0 / n
+
+
+@njit(cache=True)
+def settle(H, cell, x, y, k, tan_max, max_steps):
+    """Where a packet that stuck at ``(x, y)`` on a face steeper than ``tan_max`` ends up:
+    stepped one cell at a time down the face (its robust gradient) until the surface under it
+    is no steeper, at most ``max_steps`` cells. A height field holds one top per column, so
+    material that sticks to a steep face builds that face outward from its foot instead of
+    raising the column it struck (which is what grew needles); on a face no steeper than
+    ``tan_max`` it stays where it hit."""
+    ny, nx = H.shape
+    for _ in range(max_steps):
+        gx, gy = _robust_gradient(H, cell, x, y, k)
+        g = math.sqrt(gx * gx + gy * gy)
+        if g <= tan_max:
+            break
+        xn = x - cell * gx / g
+        yn = y - cell * gy / g
+        if not (0.0 <= xn < nx * cell and 0.0 <= yn < ny * cell):
+            break
+        x = xn
+        y = yn
+    return x, y
 
 
 @njit(cache=True, nogil=True)
@@ -152,6 +196,7 @@ def spray_step(field, state, seq, lam, spot, axis, sigma, back_mm, zeta0, plume)
     H, bmax, zmax, dirty = field.H, field.bmax, field.zmax, field.dirty
     cell, thickness = field.cell, field.thickness
     v_packet, theta_c, normal_cells = plume.v_packet, plume.theta_c, plume.normal_cells
+    tan_face, max_slide = plume.tan_face, plume.max_slide
     phys, radial = plume.phys, plume.radial
     ax = axis[0]
     ay = axis[1]
@@ -218,6 +263,7 @@ def spray_step(field, state, seq, lam, spot, axis, sigma, back_mm, zeta0, plume)
         if bulk != 1.0:  # pores: the stuck mass stands taller than at full density
             vol *= bulk
         if vol > 0.0:
+            hx, hy = settle(H, cell, hx, hy, normal_cells, tan_face, max_slide)
             splat(H, bmax, zmax, dirty, cell, hx, hy, vol, w)
             deposited += vol
     return deposited, n_packets, missed
