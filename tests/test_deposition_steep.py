@@ -9,6 +9,7 @@ import math
 import numpy as np
 
 from dm2.core.config import ProcessConfig
+from twin.world import deposition_kernels as DK
 from twin.world.deposition import SprayModel, plume_sigma_mm, volume_rate_mm3_s
 from twin.world.heightfield import HeightField
 
@@ -52,22 +53,28 @@ def test_narrow_spike_under_tilted_jet_does_not_grow_faster_than_the_plume_allow
 
 
 def test_stuck_packet_on_a_face_steeper_than_the_critical_angle_settles_at_its_foot():
-    """A vertical 10 mm step sprayed low on its face by a jet tilted 40 degrees into it:
-    material that sticks to the face thickens the step from its foot outward, instead of
-    raising the step's edge columns (where a height field would put a hit on the face)."""
-    p = ProcessConfig(feed_g_min=26.0)
-    hf = HeightField(size_mm=(40.0, 40.0), cell_mm=CELL, thickness_mm=6.0)
-    h = np.zeros_like(hf.heights_mm)
+    """A packet stuck at the edge of a vertical 10 mm step settles down the face to where the
+    surface is no steeper than the critical angle (75 deg): past the foot, on the plate; one
+    on the flat top far from the edge, or on a 45 deg ramp, stays where it hit."""
+    h = np.zeros((160, 160))
     h[:, :80] = 10.0  # x < 20 mm stands 10 mm tall; its face looks along +x
-    hf.heights_mm = h
-    before = hf.heights_mm.copy()
-    model = SprayModel(p, seed=3)
-    tilt = math.radians(40.0)
-    axis = np.array([-math.sin(tilt), 0.0, -math.cos(tilt)])  # jet into the face
-    model.deposit(hf, np.array([20.0, 20.0, 3.0]), axis, dt_s=2.0)
-    gain = (hf.heights_mm - before) * CELL * CELL
-    total = float(gain.sum())
-    assert math.isclose(total, model.deposited_volume_mm3, rel_tol=1e-9)
-    step_top = float(gain[:, :80].sum())  # on the step, x < 20 mm
-    assert step_top < 0.05 * total
-    assert float(gain[:, 80:].max()) > 0.0
+    k = 6  # the 1.5 mm stencil in 0.25 mm cells
+    tan_c = math.tan(math.radians(75.0))
+    x, y = DK.settle(h, CELL, 19.9, 20.0, k, tan_c, 40)
+    assert x > 20.0 + k * CELL and y == 20.0
+    assert DK.settle(h, CELL, 10.0, 20.0, k, tan_c, 40) == (10.0, 20.0)
+    ramp = np.tile(np.arange(160) * CELL, (160, 1))  # 45 deg along x
+    assert DK.settle(ramp, CELL, 20.0, 20.0, k, tan_c, 40) == (20.0, 20.0)
+
+
+def test_impact_normal_reads_a_narrow_spike_as_steep_and_a_narrow_pit_as_flat():
+    """One node 2 mm above a flat field reads as a 53 deg crest (its flanks over the 1.5 mm
+    stencil), where a central difference reads it flat; one node 2 mm below reads flat, so
+    a pit fills instead of losing efficiency and deepening."""
+    k = 6
+    spike = np.zeros((41, 41))
+    spike[20, 20] = 2.0
+    gx, gy = DK._robust_gradient(spike, CELL, 20.1 * CELL, 20.1 * CELL, k)
+    assert math.isclose(abs(gx), 2.0 / (k * CELL)) and math.isclose(abs(gy), 2.0 / (k * CELL))
+    gx, gy = DK._robust_gradient(-spike, CELL, 20.1 * CELL, 20.1 * CELL, k)
+    assert gx == 0.0 and gy == 0.0

@@ -116,16 +116,33 @@ def radial_offset(u1, radial):
     return radial[k] * (1.0 - w) + radial[k + 1] * w
 
 
+@njit(cache=True, inline="always")
+def _axis_slope(h, h0, h1, d0, d1, steepest):
+    """Slope along one axis at a node of height ``h`` between ``h0`` (``d0`` [mm] before it)
+    and ``h1`` (``d1`` after): the steeper one-sided difference on a crest (anywhere with
+    ``steepest``), else the central difference (0 with no span)."""
+    if d0 + d1 <= 0.0:
+        return 0.0
+    if d0 > 0.0 and d1 > 0.0 and (steepest or (h > h0 and h > h1)):
+        gl = (h - h0) / d0
+        gr = (h1 - h) / d1
+        return gl if abs(gl) > abs(gr) else gr
+    return (h1 - h0) / (d0 + d1)
+
+
 @njit(cache=True)
-def _robust_gradient(H, cell, x, y, k):
+def _robust_gradient(H, cell, x, y, k, steepest=False):
     """Surface gradient ``(gx, gy)`` at ``(x, y)`` over +-k cells, robust to narrow features.
 
-    Along each axis the two one-sided differences over ``k`` cells are taken and the steeper
-    one kept: on a face they agree with the central difference (to its curvature), while a
-    ridge or peak narrower than the stencil, whose central difference reads flat, shows the
-    slope of its flanks. On a surface rough only at the packets' scale both stay small (the
-    same 1.5 mm baseline as before), so the roughness runaway a fine normal brought stays
-    away."""
+    Along each axis the two one-sided differences over ``k`` cells are taken. Where the node
+    stands above both ends (a crest along that axis) the steeper one is kept: a spike or ridge
+    narrower than the stencil, whose central difference reads flat, shows the slope of its
+    flanks, so it cannot keep full efficiency and capture the packets aimed around it.
+    Elsewhere (a face, a trough) it is the central difference: a pit reads as flat and fills,
+    so the roughness at the packets' scale stays damped (a trough read as steep would lose
+    efficiency and deepen without bound). ``steepest`` keeps the steeper one-sided difference
+    everywhere (where a stuck packet settles: off a face's edge or down into a trough, both
+    of which fill)."""
     ny, nx = H.shape
     i = min(max(int(x / cell), 0), nx - 1)
     j = min(max(int(y / cell), 0), ny - 1)
@@ -134,12 +151,8 @@ def _robust_gradient(H, cell, x, y, k):
     j0 = max(j - k, 0)
     j1 = min(j + k, ny - 1)
     h = H[j, i]
-    gl = (h - H[j, i0]) / ((i - i0) * cell) if i > i0 else 0.0
-    gr = (H[j, i1] - h) / ((i1 - i) * cell) if i1 > i else 0.0
-    gx = gl if abs(gl) > abs(gr) else gr
-    gl = (h - H[j0, i]) / ((j - j0) * cell) if j > j0 else 0.0
-    gr = (H[j1, i] - h) / ((j1 - j) * cell) if j1 > j else 0.0
-    gy = gl if abs(gl) > abs(gr) else gr
+    gx = _axis_slope(h, H[j, i0], H[j, i1], (i - i0) * cell, (i1 - i) * cell, steepest)
+    gy = _axis_slope(h, H[j0, i], H[j1, i], (j - j0) * cell, (j1 - j) * cell, steepest)
     return gx, gy
 
 
@@ -154,14 +167,15 @@ def _smoothed_normal(H, cell, x, y, k):
 @njit(cache=True)
 def settle(H, cell, x, y, k, tan_max, max_steps):
     """Where a packet that stuck at ``(x, y)`` on a face steeper than ``tan_max`` ends up:
-    stepped one cell at a time down the face (its robust gradient) until the surface under it
+    stepped one cell at a time down the face (its steepest one-sided gradient over the same
+    stencil as the normal) until the surface under it
     is no steeper, at most ``max_steps`` cells. A height field holds one top per column, so
     material that sticks to a steep face builds that face outward from its foot instead of
     raising the column it struck (which is what grew needles); on a face no steeper than
     ``tan_max`` it stays where it hit."""
     ny, nx = H.shape
     for _ in range(max_steps):
-        gx, gy = _robust_gradient(H, cell, x, y, k)
+        gx, gy = _robust_gradient(H, cell, x, y, k, True)
         g = math.sqrt(gx * gx + gy * gy)
         if g <= tan_max:
             break
