@@ -50,6 +50,8 @@ class ScenarioRun:
     process_s : float [s], simulated process time
     wall_s : float [s], wall time of the whole run (twin included)
     monitor_s : float [s], wall time spent in the pipeline (fusion, reference, analysis)
+    truth_validity : the twin's check of its own truth (truth/validity.json; report.json
+        ``truth_validity``), or None where the twin wrote none
     """
 
     scenario: Scenario
@@ -62,6 +64,7 @@ class ScenarioRun:
     process_s: float = 0.0
     wall_s: float = 0.0
     monitor_s: float = 0.0
+    truth_validity: dict | None = None
 
 
 def recorded(messages, writer):
@@ -150,6 +153,7 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
         if on_stream_end is not None:
             on_stream_end()
         truth = _read_json(scratch / "truth" / "faults.json") or {"faults": []}
+        validity = _read_json(scratch / "truth" / "validity.json")
         recon, tracks_vs_truth = truth_checks(pipeline.results, scratch / "truth")
         footprints = track_footprints(pipeline.results)
         timing = pipeline.timing()
@@ -165,7 +169,8 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
             timing=timing, fault_truth=truth, expect=sc.expect, meta=meta,
             sections=pipeline.sections(
                 reconstruction={str(k): v for k, v in recon.items()},
-                track_truth={str(k): v for k, v in tracks_vs_truth.items()}),
+                track_truth={str(k): v for k, v in tracks_vs_truth.items()},
+                truth_validity=validity),
             force=force, include=include, command="dm2 run" if full_report else "dm2 bench",
             inputs=[scenario_file], stage=report_stage)
     finally:
@@ -173,7 +178,8 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
     return ScenarioRun(scenario=sc, run_dir=run_dir, report=report, fault_truth=truth,
                        reconstruction=recon, footprints=footprints,
                        track_truth=tracks_vs_truth, process_s=float(sim.end_s),
-                       wall_s=time.perf_counter() - t_start, monitor_s=float(monitor_s))
+                       wall_s=time.perf_counter() - t_start, monitor_s=float(monitor_s),
+                       truth_validity=validity)
 
 
 def track_footprints(results) -> dict:
@@ -213,7 +219,8 @@ def score_scenario_run(run: ScenarioRun) -> dict:
                      footprints=run.footprints, reconstruction=run.reconstruction,
                      track_truth=run.track_truth, process_s=run.process_s,
                      monitor_s=run.monitor_s, wall_s=run.wall_s,
-                     expected_process_scale=coupon_scale(run.scenario))
+                     expected_process_scale=coupon_scale(run.scenario),
+                     truth_validity=run.truth_validity)
 
 
 def sweep_case(scenario_dict: dict, source: str) -> dict:
