@@ -69,9 +69,9 @@ def _spray_on_bump(unstable: bool) -> dict:
     hf.heights_mm = np.outer(np.exp(-(y - 20) ** 2 / 2), np.exp(-(x - 20) ** 2 / 2))
     start_mm3 = float(hf.heights_mm.sum()) * CELL * CELL
     model = SprayModel(p, seed=5)
-    if unstable:  # a normal over no span, and nothing settles: every face reads flat
+    if unstable:  # a normal over no span: every face reads flat
         base = model._plume
-        model._plume = lambda f: base(f)._replace(normal_cells=0, tan_face=np.inf)
+        model._plume = lambda f: base(f)._replace(normal_cells=0)
     t = math.radians(35.0)
     for _ in range(10):
         for k in range(4):

@@ -47,11 +47,11 @@ Model (the paper's eq. for the coating distribution, sampled instead of integrat
   at 75 deg critical angle), zeta(60 deg) = 0.29 zeta(0), smoothly to 0 with zero slope at the
   critical angle. Rebounding material is lost.
 * **Steep faces.** Material striking a face steeper than the critical angle, relative to the
-  jet, rebounds (the curve below is 0 there). Material that sticks on a face steeper than the
-  critical angle from level (a tilted jet can hit one at a shallow impact angle) settles down
-  that face to where the surface is no steeper, at most ``MAX_SLIDE_MM`` away: a height field
-  holds one top per column, so this is how the face builds outward from its foot instead of
-  raising the column it struck.
+  jet, rebounds (the curve above is 0 there). Material that sticks adds to the column it
+  struck: a packet that settled down a steeper face to where the surface is no steeper
+  (the face building outward from its foot) was tried and left out, because on the twisted
+  tower's flanks it gathered what stuck above into the first ledge and doubled the height of
+  the flank spikes the validity check already finds there (see docs/twin-physics.md).
 * **The twin's own physics.** ``physics`` (:class:`twin.world.twin_physics.TwinPhysics`,
   from the scenario's ``[twin_process]``) changes the curve's shape, the plume's radial profile
   (super-Gaussian), the deposit's porosity and makes efficiency depend on each packet's flight
@@ -80,7 +80,6 @@ from twin.world.twin_physics import NOMINAL, TwinPhysics
 log = logging.getLogger(__name__)
 
 NORMAL_STEP_MM = 1.5  # half-width of the impact-angle normal's one-sided differences [mm]
-MAX_SLIDE_MM = 10.0  # farthest a stuck packet slides down a steeper face [mm]
 
 
 def volume_rate_mm3_s(process: ProcessConfig) -> float:
@@ -231,9 +230,7 @@ class SprayModel:
     def _plume(self, hf: HeightField) -> DK.Plume:
         """The fixed part of the spray as the kernels take it, on ``hf``'s node spacing."""
         return DK.Plume(self.v_packet_mm3, self._theta_c,
-                        max(1, round(NORMAL_STEP_MM / hf.cell_mm)),
-                        math.tan(self._theta_c),
-                        max(1, round(MAX_SLIDE_MM / hf.cell_mm)), self._phys, self._radial)
+                        max(1, round(NORMAL_STEP_MM / hf.cell_mm)), self._phys, self._radial)
 
 
 def _field_arrays(hf: HeightField) -> DK.FieldArrays:

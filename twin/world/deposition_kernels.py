@@ -35,8 +35,6 @@ class Plume(NamedTuple):
     v_packet: float  # volume of one powder packet [mm^3]
     theta_c: float  # critical spray angle [rad]
     normal_cells: int  # half width of the smoothed surface normal [nodes]
-    tan_face: float  # steepest face a stuck packet stays on (tan of its angle from level)
-    max_slide: int  # most nodes a stuck packet slides down a steeper face
     phys: np.ndarray  # PHYS_* entries: efficiency curve, porosity, spray-distance efficiency
     radial: np.ndarray  # radial profile of the plume (:func:`radial_offset`)
 
@@ -141,8 +139,7 @@ def _robust_gradient(H, cell, x, y, k, steepest=False):
     Elsewhere (a face, a trough) it is the central difference: a pit reads as flat and fills,
     so the roughness at the packets' scale stays damped (a trough read as steep would lose
     efficiency and deepen without bound). ``steepest`` keeps the steeper one-sided difference
-    everywhere (where a stuck packet settles: off a face's edge or down into a trough, both
-    of which fill)."""
+    everywhere."""
     ny, nx = H.shape
     i = min(max(int(x / cell), 0), nx - 1)
     j = min(max(int(y / cell), 0), ny - 1)
@@ -162,30 +159,6 @@ def _smoothed_normal(H, cell, x, y, k):
     gx, gy = _robust_gradient(H, cell, x, y, k)
     n = math.sqrt(gx * gx + gy * gy + 1.0)
     return -gx / n, -gy / n, 1.0 / n
-
-
-@njit(cache=True)
-def settle(H, cell, x, y, k, tan_max, max_steps):
-    """Where a packet that stuck at ``(x, y)`` on a face steeper than ``tan_max`` ends up:
-    stepped one cell at a time down the face (its steepest one-sided gradient over the same
-    stencil as the normal) until the surface under it
-    is no steeper, at most ``max_steps`` cells. A height field holds one top per column, so
-    material that sticks to a steep face builds that face outward from its foot instead of
-    raising the column it struck (which is what grew needles); on a face no steeper than
-    ``tan_max`` it stays where it hit."""
-    ny, nx = H.shape
-    for _ in range(max_steps):
-        gx, gy = _robust_gradient(H, cell, x, y, k, True)
-        g = math.sqrt(gx * gx + gy * gy)
-        if g <= tan_max:
-            break
-        xn = x - cell * gx / g
-        yn = y - cell * gy / g
-        if not (0.0 <= xn < nx * cell and 0.0 <= yn < ny * cell):
-            break
-        x = xn
-        y = yn
-    return x, y
 
 
 @njit(cache=True, nogil=True)
@@ -210,7 +183,6 @@ def spray_step(field, state, seq, lam, spot, axis, sigma, back_mm, zeta0, plume)
     H, bmax, zmax, dirty = field.H, field.bmax, field.zmax, field.dirty
     cell, thickness = field.cell, field.thickness
     v_packet, theta_c, normal_cells = plume.v_packet, plume.theta_c, plume.normal_cells
-    tan_face, max_slide = plume.tan_face, plume.max_slide
     phys, radial = plume.phys, plume.radial
     ax = axis[0]
     ay = axis[1]
@@ -277,7 +249,6 @@ def spray_step(field, state, seq, lam, spot, axis, sigma, back_mm, zeta0, plume)
         if bulk != 1.0:  # pores: the stuck mass stands taller than at full density
             vol *= bulk
         if vol > 0.0:
-            hx, hy = settle(H, cell, hx, hy, normal_cells, tan_face, max_slide)
             splat(H, bmax, zmax, dirty, cell, hx, hy, vol, w)
             deposited += vol
     return deposited, n_packets, missed
