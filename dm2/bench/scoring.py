@@ -160,7 +160,7 @@ def score_run(report: dict, fault_truth: dict | None, *, truth_maps: dict,
               process_s: float | None = None, monitor_s: float | None = None,
               wall_s: float | None = None,
               expected_process_scale: float | None = None,
-              track_truth: dict | None = None,
+              track_truth: dict | None = None, truth_validity: dict | None = None,
               event_tolerance_mm: float = DEFECT_MIN_HEIGHT_MM) -> dict:
     """Score one run strictly (see the module's definitions).
 
@@ -181,6 +181,9 @@ def score_run(report: dict, fault_truth: dict | None, *, truth_maps: dict,
         stands off the reference (the monitor's model, not its measurement, is off there)
     event_tolerance_mm : the run's event tolerance [mm] (``[monitor] delta_global_mm``): the
         height a fault's truth must reach to qualify and to explain a track
+    truth_validity : the twin's check of its own truth (``truth/validity.json``), kept as
+        ``truth_validity``; ``truth_valid`` is False when it failed (:func:`truth_invalid`:
+        such a run's figures are not to be counted)
     """
     level = float(event_tolerance_mm)
     neutral_level = min(NEUTRAL_MIN_HEIGHT_MM, level)
@@ -266,7 +269,16 @@ def score_run(report: dict, fault_truth: dict | None, *, truth_maps: dict,
             "reconstruction_by_layer": {str(k): v for k, v in (reconstruction or {}).items()},
             "process_s": process_s, "monitor_s": monitor_s, "wall_s": wall_s,
             "realtime_factor": process_s / monitor_s if process_s and monitor_s else None,
-            "realtime_factor_with_twin": process_s / wall_s if process_s and wall_s else None}
+            "realtime_factor_with_twin": process_s / wall_s if process_s and wall_s else None,
+            "truth_validity": truth_validity, "truth_valid": not truth_invalid(truth_validity)}
+
+
+def truth_invalid(truth_validity: dict | None) -> list[str]:
+    """Why a run's truth is outside the twin's validity (its check's reasons; empty when it is
+    valid or was not checked). The bench never scores such a run."""
+    if not truth_validity or truth_validity.get("valid", True):
+        return []
+    return list(truth_validity.get("reasons") or ["outside validity"])
 
 
 def _score_findings(report, faults, scores, expected_scale) -> list[dict]:

@@ -52,6 +52,8 @@ class ScenarioRun:
     monitor_s : float [s], wall time spent in the pipeline (fusion, reference, analysis)
     verdict : ``(code, sentence)`` of :func:`dm2.cli.outcome.run_verdict`, as ``dm2 monitor``
         judges a run: exit 1 and why when it fused nothing or lost too much of its input
+    truth_validity : the twin's check of its own truth (truth/validity.json; report.json
+        ``truth_validity``), or None where the twin wrote none
     """
 
     scenario: Scenario
@@ -65,6 +67,7 @@ class ScenarioRun:
     wall_s: float = 0.0
     monitor_s: float = 0.0
     verdict: tuple[int, str | None] = (0, None)
+    truth_validity: dict | None = None
 
 
 def recorded(messages, writer):
@@ -164,6 +167,7 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
         if on_stream_end is not None:
             on_stream_end()
         truth = _read_json(scratch / "truth" / "faults.json") or {"faults": []}
+        validity = _read_json(scratch / "truth" / "validity.json")
         recon, tracks_vs_truth = truth_checks(pipeline.results, scratch / "truth",
                                               tolerance_mm=sc.monitor.delta_global_mm)
         footprints = track_footprints(pipeline.results)
@@ -180,7 +184,8 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
             timing=timing, fault_truth=truth, expect=sc.expect, meta=meta,
             sections=pipeline.sections(
                 reconstruction={str(k): v for k, v in recon.items()},
-                track_truth={str(k): v for k, v in tracks_vs_truth.items()}),
+                track_truth={str(k): v for k, v in tracks_vs_truth.items()},
+                truth_validity=validity),
             force=force, include=include, command="dm2 run" if full_report else "dm2 bench",
             inputs=[scenario_file], stage=report_stage)
         if scene:
@@ -197,7 +202,7 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
                        reconstruction=recon, footprints=footprints,
                        track_truth=tracks_vs_truth, process_s=float(sim.end_s),
                        wall_s=time.perf_counter() - t_start, monitor_s=float(monitor_s),
-                       verdict=verdict)
+                       verdict=verdict, truth_validity=validity)
 
 
 def track_footprints(results) -> dict:
@@ -238,6 +243,7 @@ def score_scenario_run(run: ScenarioRun) -> dict:
                      track_truth=run.track_truth, process_s=run.process_s,
                      monitor_s=run.monitor_s, wall_s=run.wall_s,
                      expected_process_scale=coupon_scale(run.scenario),
+                     truth_validity=run.truth_validity,
                      event_tolerance_mm=run.scenario.monitor.delta_global_mm)
 
 

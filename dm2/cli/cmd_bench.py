@@ -28,6 +28,9 @@ def bench_table(runs: dict[str, dict]) -> Table:
         if "error" in r:
             table.add_row(name, "[red]error[/]", *[""] * (len(cols) - 3), "[red]NO[/]")
             continue
+        if "invalid_truth" in r:
+            table.add_row(name, "[red]invalid truth[/]", *[""] * (len(cols) - 3), "[red]NO[/]")
+            continue
         faults = r["faults"] or [None]
         n_false = len(r["false_tracks"])
         counts = (f"{len(r['true_tracks'])}/{len(r['fragments'])}/{len(r['neutral_tracks'])}/"
@@ -111,6 +114,7 @@ def bench(
 
     Example: `dm2 bench --suite regression`
     """
+    from dm2.bench.scoring import truth_invalid
     from dm2.bench.suite_score import summarize
     from dm2.bench.suites import load_suite_scenario, resolve_suite
     from scenarios import scenario_dir
@@ -174,16 +178,23 @@ def bench(
             runs[path.stem] = {"error": f"{type(exc).__name__}: {exc}", "expect_passed": False}
             continue
         runs[path.stem] = score_scenario_run(run)
+        if not runs[path.stem]["truth_valid"]:  # never scored: the twin's truth is unphysical
+            reasons = truth_invalid(run.truth_validity)
+            err_console.print(f"[red]{escape(f'{path.name}: truth outside validity: ')}"
+                              f"{escape('; '.join(reasons))}[/]")
+            runs[path.stem] = {"invalid_truth": reasons, "truth_validity": run.truth_validity,
+                               "expect_passed": False}
         if curve == "fitted":
             runs[path.stem]["curve"] = curves[key]
         done_runs[path.stem] = run
         console.print(f"  {path.stem}: {time.perf_counter() - t1:.1f} s wall, "
                       f"{run.process_s:.1f} s process, {len(run.report['layers'])} layers")
-    ok_runs = {k: v for k, v in runs.items() if "error" not in v}
+    ok_runs = {k: v for k, v in runs.items() if "error" not in v and "invalid_truth" not in v}
     summary = summarize(ok_runs, spec.targets)
     if len(ok_runs) < len(runs):
         summary["passed"] = False
-        summary["errors"] = sorted(set(runs) - set(ok_runs))
+        summary["errors"] = sorted(k for k, v in runs.items() if "error" in v)
+        summary["invalid_truth"] = sorted(k for k, v in runs.items() if "invalid_truth" in v)
     summary["wall_s"] = time.perf_counter() - t0
     doc = {"schema": "dm2.bench/2", "suite": spec.name, "description": spec.description,
            "overrides": list(overrides), "curve": curve, "runs": runs, "summary": summary}
@@ -211,9 +222,11 @@ def bench(
               + [k for k, v in summary["target_checks"].items() if not v]
               + [f"control {n}: {k} track(s)"
                  for n, k in summary["false_tracks_per_control"].items() if k])
-    if summary.get("errors"):
+    if summary.get("errors") or summary.get("invalid_truth"):
         console.print("[red]bench failed[/]: scenarios that did not run: "
-                      + ", ".join(summary["errors"]))
+                      + ", ".join(summary.get("errors") or ["none"])
+                      + "; scenarios whose truth is outside validity (not scored): "
+                      + ", ".join(summary.get("invalid_truth") or ["none"]))
         raise typer.Exit(EXIT_FAILED)
     if not summary["passed"]:
         if not gate:

@@ -189,6 +189,7 @@ class Simulation:
         split = (FanSplit(n_rays, threaded=scan_thread) if worker_fan_share is None else
                  FanSplit(n_rays, scan_thread, worker_fan_share, step_rays=0))
         grown = [-1]  # the layer whose blobs the field holds
+        blob_mm3 = [0.0]  # volume the injected bumps and dents added (the mass balance's)
         cpu = [0.0, 0.0]  # CPU seconds of the deposition calls, of all the worker's work
 
         def produce(c: int):
@@ -201,7 +202,9 @@ class Simulation:
             if layer != grown[0]:
                 if grown[0] >= 0 and truth is not None:
                     truth.layer(hf, grown[0])
-                faults.apply_blobs(hf, layer)  # a bump or dent appears as its layer starts
+                v0 = float(hf.heights_mm.sum()) if truth is not None else 0.0
+                if faults.apply_blobs(hf, layer) and truth is not None:  # as its layer starts
+                    blob_mm3[0] += (float(hf.heights_mm.sum()) - v0) * hf.cell_mm ** 2
                 grown[0] = layer
             if spraying[a:b].any():
                 spray.deposit_plan(hf, plan, a, b)
@@ -271,6 +274,8 @@ class Simulation:
         if grown[0] >= 0 and truth is not None:  # (stopped early: as the worker left it)
             truth.layer(hf, grown[0])
         if truth is not None and n:
+            truth.check_validity(hf, spray, float(plan.lam.sum()) * spray.v_packet_mm3,
+                                 blob_mm3[0], int(layers[n - 1]))
             truth.finish(int(motion.segment[n - 1]))
         self.final_heightfield = hf
         self.spray_cpu_s, self.worker_cpu_s = cpu

@@ -59,6 +59,28 @@ class TruthWriter:
         write_layer_surface(hf, self.dir / f"layer_{layer:03d}.ply")
         self.faulty[layer] = hf.heights_mm.copy()
 
+    def check_validity(self, hf, spray, planned_fed_mm3: float, blob_mm3: float,
+                       last_layer: int) -> dict:
+        """Check the final true surface and the run's mass balance
+        (:func:`twin.world.validity.check_truth`) and write ``validity.json``."""
+        import json
+
+        from twin.world.validity import check_truth
+
+        sc = self.sim.scenario
+        H = hf.heights_mm
+        layer_mm = sc.toolpath.layer_mm
+        top = float(self.sim.part_mesh_O.bounds[1][2])
+        out = check_truth(
+            H, hf.cell_mm, sigma_mm=spray.sigma_mm(), layer_mm=layer_mm,
+            critical_angle_deg=spray.process.critical_angle_deg,
+            field_gain_mm3=float(H.sum()) * hf.cell_mm ** 2 - blob_mm3,
+            stuck_mm3=spray.deposited_volume_mm3, fed_mm3=spray.fed_volume_mm3,
+            planned_fed_mm3=planned_fed_mm3,
+            planned_top_mm=min(top, (last_layer + 1) * layer_mm))
+        (self.dir / "validity.json").write_text(json.dumps(out, indent=1), encoding="utf-8")
+        return out
+
     def finish(self, last_segment: int) -> None:
         from twin.world.heightfield import HEIGHTFIELD_CELL_MM
         from twin.world.truth import write_deviation_maps, write_fault_truth

@@ -27,24 +27,31 @@ Model (the paper's eq. for the coating distribution, sampled instead of integrat
   matches the plume's profile to 0.3 % rms) while the motion, the surface and the twin's
   physics still set where and how much sticks.
 * **Sticking.** The impact angle ``theta`` is the angle between the reversed jet and the surface
-  normal, a central difference over ``NORMAL_STEP_MM`` = 1.5 mm either side of the hit: the
-  macroscopic surface that an efficiency curve is measured against (a nozzle tilted over a flat
-  coupon), not the slope of the packets' own shot noise. One packet carries the volume of a few
-  hundred CP-Ti particles (0.002 to 0.005 mm^3 against 1.4e-5 mm^3 for a 30 um particle), so
-  each leaves a splat far coarser than a real deposit's grain. With independently drawn
-  packets (before the R2 placement above), a normal taken over 0.5 mm read that roughness as
-  impact angle and the efficiency lost on its slopes fed it back: a wide flat raster
-  (26 g/min, 30 mm/s, 2 mm spacing) roughened without bound (rms 0.14 mm after 8 passes,
-  1.4 mm after 48) and its growth per pass fell from 0.80 to 0.37 mm, which stalled the
-  twisted tower at about 40 mm. Over 1.5 mm either side the raster keeps 0.80 mm
-  per pass for 72 passes (rms 0.45 mm), while walls, corners and the jet's own footprint
-  (sigma about 3 mm) still set the angle (see ``benchmarks/tower_scale.py``). Evenly placed
-  packets leave that raster at 0.07 mm rms after 30 passes.
+  normal, taken over ``NORMAL_STEP_MM`` = 1.5 mm either side of the hit: the macroscopic
+  surface that an efficiency curve is measured against (a nozzle tilted over a flat coupon),
+  not the slope of the packets' own roughness. Along each axis the two one-sided differences
+  over that span are taken and the steeper kept: on a face they agree with a central
+  difference, but a spike or ridge narrower than the span, which a central difference reads
+  as flat, shows its flanks' slope. (With the central difference alone such a feature kept
+  full efficiency, caught the tilted jet on its sides and put that volume on its own column:
+  a 24 mm round column 40 layers tall grew a 0.75 mm^2 needle to 68 mm.) A normal over
+  0.5 mm instead read the packets' roughness as impact angle, and the efficiency lost on its
+  slopes fed it back: with independently drawn packets (before the R2 placement above) a wide
+  flat raster (26 g/min, 30 mm/s, 2 mm spacing) roughened without bound (rms 0.14 mm after 8
+  passes, 1.4 mm after 48) and stalled the twisted tower at about 40 mm. Over 1.5 mm the
+  raster keeps 0.80 mm per pass for 72 passes, while walls, corners and the jet's own
+  footprint (sigma about 3 mm) still set the angle (see ``benchmarks/tower_scale.py``).
   A packet adds ``zeta(theta) * efficiency_factor`` of its volume, with
   ``zeta(theta) = deposition_efficiency * cos^2(pi/2 * (theta / critical_angle)^2)`` for
   ``theta < critical_angle`` and 0 beyond: flat near normal impact (zeta(15 deg) = 0.98 zeta(0)
   at 75 deg critical angle), zeta(60 deg) = 0.29 zeta(0), smoothly to 0 with zero slope at the
   critical angle. Rebounding material is lost.
+* **Steep faces.** Material striking a face steeper than the critical angle, relative to the
+  jet, rebounds (the curve above is 0 there). Material that sticks adds to the column it
+  struck: a packet that settled down a steeper face to where the surface is no steeper
+  (the face building outward from its foot) was tried and left out, because on the twisted
+  tower's flanks it gathered what stuck above into the first ledge and doubled the height of
+  the flank spikes the validity check already finds there (see docs/twin-physics.md).
 * **The twin's own physics.** ``physics`` (:class:`twin.world.twin_physics.TwinPhysics`,
   from the scenario's ``[twin_process]``) changes the curve's shape, the plume's radial profile
   (super-Gaussian), the deposit's porosity and makes efficiency depend on each packet's flight
@@ -72,7 +79,7 @@ from twin.world.twin_physics import NOMINAL, TwinPhysics
 
 log = logging.getLogger(__name__)
 
-NORMAL_STEP_MM = 1.5  # half-width of the impact-angle normal's central difference [mm]
+NORMAL_STEP_MM = 1.5  # half-width of the impact-angle normal's one-sided differences [mm]
 
 
 def volume_rate_mm3_s(process: ProcessConfig) -> float:
