@@ -41,8 +41,8 @@ def test_half_a_millimetre_short_over_one_segment_gives_the_predicted_factor():
     predicted = LAYER_MM / (LAYER_MM + cfg.gain * 0.5)  # 0.6667: slow down, lay 1.2 mm
     # the top is read over the plume's width (1.5 mm sigma): 10 mm off, the step is not seen
     np.testing.assert_allclose(corr.error_mm[1:], [0.0, 0.5, 0.0], atol=1e-9)
-    np.testing.assert_allclose(corr.factor, [1.0, 1.0, predicted, 1.0], atol=1e-9)
-    np.testing.assert_allclose(out.speed_mm_s[5:], [30.0, 30.0 * predicted, 30.0])
+    np.testing.assert_allclose(corr.factor, [1.0, 1.0, predicted, 1.0], atol=1e-4)
+    np.testing.assert_allclose(out.speed_mm_s[5:], [30.0, 30.0 * predicted, 30.0], atol=5e-4)
     # only that segment's speed changed; the geometry, layer 0 and the rest as programmed
     np.testing.assert_array_equal(out.position_O, tp.position_O)
     np.testing.assert_array_equal(out.axis_O, tp.axis_O)
@@ -51,7 +51,7 @@ def test_half_a_millimetre_short_over_one_segment_gives_the_predicted_factor():
     np.testing.assert_array_equal(changed, [6])
     # the same error above the plan speeds the nozzle up by the law
     _, over = correct_layer(tp, 1, _top(-0.25), cfg, LAYER_MM)
-    assert over.factor[2] == pytest.approx(LAYER_MM / (LAYER_MM - cfg.gain * 0.25))
+    assert over.factor[2] == pytest.approx(LAYER_MM / (LAYER_MM - cfg.gain * 0.25), abs=1e-4)
 
 
 def test_bounds_hold():
@@ -71,12 +71,12 @@ def test_the_rate_limit_holds_layer_to_layer():
     tp = _toolpath()
     target = LAYER_MM / (LAYER_MM + cfg.gain * 0.5)
     _, first = correct_layer(tp, 1, _top(0.5), cfg, LAYER_MM)
-    assert first.factor[2] == pytest.approx(1.0 - cfg.rate_per_layer)
+    assert first.factor[2] == pytest.approx(1.0 - cfg.rate_per_layer, abs=1e-4)
     _, second = correct_layer(tp, 1, _top(0.5), cfg, LAYER_MM, previous=first)
-    assert second.factor[2] == pytest.approx(max(target, 1.0 - 2 * cfg.rate_per_layer))
+    assert second.factor[2] == pytest.approx(max(target, 1.0 - 2 * cfg.rate_per_layer), abs=1e-4)
     # the part now stands 0.5 mm over: the factor climbs back by the rate at most
     _, third = correct_layer(tp, 1, _top(-0.5), cfg, LAYER_MM, previous=second)
-    assert third.factor[2] == pytest.approx(second.factor[2] + cfg.rate_per_layer)
+    assert third.factor[2] == pytest.approx(second.factor[2] + cfg.rate_per_layer, abs=1e-4)
 
 
 def test_unmeasured_segments_stay_programmed():
@@ -111,9 +111,10 @@ def test_smoothing_respects_the_robots_acceleration_in_a_corrected_layer():
     tp = _toolpath(xs)
     _, corr = correct_layer(tp, 1, _top(3.0), cfg, LAYER_MM)
     v, ln = corr.speed_mm_s, np.r_[0.0, np.diff(xs)]
-    assert np.all(np.diff(v[1:] ** 2) <= 200.0 * ln[2:] + 1e-9)
-    assert np.all(-np.diff(v[1:] ** 2) <= 200.0 * ln[1:-1] + 1e-9)
-    assert np.all(corr.factor[1:] >= cfg.min_speed_factor - 1e-12)
+    slack = 4 * 30.0 * 5e-4  # v^2 of two speeds each rounded to 0.001 mm/s
+    assert np.all(np.diff(v[1:] ** 2) <= 200.0 * ln[2:] + slack)
+    assert np.all(-np.diff(v[1:] ** 2) <= 200.0 * ln[1:-1] + slack)
+    assert np.all(corr.factor[1:] >= cfg.min_speed_factor - 1e-9)
     assert corr.factor[25] == pytest.approx(cfg.min_speed_factor)  # inside: the full slowdown
     assert corr.factor[10] == 1.0  # far before the short stretch: as programmed
     assert 0.6 < corr.factor[18] < 0.9  # the ramp down ends where the short stretch begins

@@ -33,7 +33,7 @@ later through the powder hose, so it cannot act per segment); the deposit of one
 over about the plume's width, so the error is read averaged over ``sample_sigma_mm``; the
 deposition efficiency does not depend on speed. Segments with no measured top near them,
 moves without spray and the programmed geometry are left as programmed: only ``speed_mm_s``
-changes.
+changes, rounded to the RAPID module's 0.001 mm/s.
 """
 
 from __future__ import annotations
@@ -46,6 +46,7 @@ from scipy.spatial import cKDTree
 from dm2.control.top_map import TopMap
 from dm2.core.config import ControlConfig
 from dm2.core.messages import Toolpath
+from dm2.toolpath.formats import RAPID_SPEED_DECIMALS
 
 NEIGHBOUR_MM = 5.0  # the previous layer's factor is read from its nearest segment this close
 
@@ -147,7 +148,8 @@ def correct_layer(toolpath: Toolpath, layer: int, top: TopMap, cfg: ControlConfi
     f = np.clip(f, cfg.min_speed_factor, hi)
     f = np.where(spray, f, 1.0)
     tied = spray & np.r_[False, spray[:-1]] & np.r_[False, v_p[1:] == v_p[:-1]]
-    v = accel_limit(f * v_p, length, ~tied, cfg.accel_mm_s2)
+    # to the speeddata's precision, so a RAPID module commands exactly these speeds
+    v = np.round(accel_limit(f * v_p, length, ~tied, cfg.accel_mm_s2), RAPID_SPEED_DECIMALS)
     speed = toolpath.speed_mm_s.copy()
     speed[rows] = v
     corrected = replace(toolpath, speed_mm_s=speed)
