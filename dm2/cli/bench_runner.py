@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dm2.cli.closed_loop import ClosedLoop
 from dm2.core.config import Scenario
 
 log = logging.getLogger(__name__)
@@ -72,13 +73,15 @@ def recorded(messages, writer):
 
 
 def stream_to_pipeline(sim, pipeline, scratch: Path, record: bool,
-                       progress: Progress | None = None) -> None:
+                       progress: Progress | None = None, next_layer=None) -> None:
     """Run ``pipeline`` on the simulation's message stream (truth into ``scratch/truth``).
 
     With ``record`` the stream is also written to ``scratch/run.mcap`` with the scenario,
-    toolpath and calibration attached.
+    toolpath and calibration attached. ``next_layer``: the closed loop's hook
+    (:meth:`twin.stream.simulate.Simulation.messages`).
     """
-    messages = sim.messages(truth_dir=scratch / "truth", progress=progress)
+    messages = sim.messages(truth_dir=scratch / "truth", progress=progress,
+                            next_layer=next_layer)
     if not record:
         pipeline.run(messages)
         return
@@ -100,7 +103,7 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
                  report_stage: Callable[[str, int, int], None] | None = None,
                  on_pipeline: Callable | None = None,
                  include: dict | None = None,
-                 true_T_B_S: dict | None = None) -> ScenarioRun:
+                 true_T_B_S: dict | None = None, compensate: str = "off") -> ScenarioRun:
     """Simulate ``sc`` on the twin, monitor it and write the run folder ``run_dir``.
 
     Parameters
@@ -123,6 +126,11 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
     include : name -> path of further files moved into the run folder (e.g. its log file)
     true_T_B_S : the twin's profilers as built (dict sensor id -> (4, 4)) instead of the
         scenario's nominal layout
+    compensate : "off"; "advise": each next layer corrected from the monitor's measured top
+        (``[control]``, :mod:`dm2.control`) and written to ``corrections/`` as a RAPID module
+        and a CSV; "apply": the twin also executes the corrected layers (it pauses
+        ``[control] layer_pause_s`` before each layer, the powder off on the way there, for
+        the monitor to close the layer before); "hold": those pauses without corrections
 
     Raises
     ------
@@ -137,16 +145,20 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
 
     t_start = time.perf_counter()
     run_dir = check_output_dir(run_dir, force=force)
-    sim = Simulation(sc, true_T_B_S=true_T_B_S)
+    sim = Simulation(sc, true_T_B_S=true_T_B_S,
+                     layer_pause_s=sc.control.layer_pause_s if compensate in ("apply", "hold")
+                     else 0.0)
+    loop = ClosedLoop(sim, sc, compensate, on_layer)
     pipeline = Pipeline(calibration or sim.calibration, sc.monitor, sc.process,
                         plate_size_mm=sc.cell.plate_size_mm, toolpath=sim.toolpath,
-                        on_layer=on_layer)
+                        on_layer=loop.on_layer)
     if on_pipeline is not None:
         on_pipeline(pipeline)
     run_dir.parent.mkdir(parents=True, exist_ok=True)
     scratch = Path(tempfile.mkdtemp(prefix=".dm2-run-", dir=run_dir.parent))
     try:
-        stream_to_pipeline(sim, pipeline, scratch, record, progress)
+        loop.out_dir(scratch / "corrections")
+        stream_to_pipeline(sim, pipeline, scratch, record, progress, loop.next_layer)
         if on_stream_end is not None:
             on_stream_end()
         truth = _read_json(scratch / "truth" / "faults.json") or {"faults": []}
@@ -158,14 +170,14 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
                       wall_s=time.perf_counter() - t_start)
         meta = {"scenario": sc.name, "scenario_file": str(scenario_file or ""), "seed": sc.seed,
                 "layers_simulated": len(pipeline.results)}
-        include = {**{name: scratch / name for name in ("truth", "run.mcap")
+        include = {**{name: scratch / name for name in ("truth", "run.mcap", "corrections")
                       if (scratch / name).exists()}, **(include or {})}
         report = pipeline.write_outputs(
             run_dir, full=full_report, config_toml=dump_toml(sc.to_toml_dict()),
             timing=timing, fault_truth=truth, expect=sc.expect, meta=meta,
             sections=pipeline.sections(
                 reconstruction={str(k): v for k, v in recon.items()},
-                track_truth={str(k): v for k, v in tracks_vs_truth.items()}),
+                track_truth={str(k): v for k, v in tracks_vs_truth.items()}, **loop.sections()),
             force=force, include=include, command="dm2 run" if full_report else "dm2 bench",
             inputs=[scenario_file], stage=report_stage)
     finally:

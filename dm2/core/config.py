@@ -202,6 +202,9 @@ class ControlConfig(_Model):
     top_cell_mm: float = Field(1.0, gt=0, le=5.0)  # grid of the measured top map
     sample_sigma_mm: float = Field(1.5, ge=0)  # the top is averaged this wide around a segment
     min_weight: float = Field(1.0, ge=0)  # fused vertices below this weight are not measured
+    # the cell waits this long where each layer has been approached, for that layer's program
+    # (the monitor closes the layer before after its reorder window)
+    layer_pause_s: float = Field(1.5, ge=0)
 
 
 class ExpectTrack(_Model):
