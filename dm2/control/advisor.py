@@ -45,7 +45,11 @@ class Compensator:
         """Layer ``result.layer`` analysed (a :class:`dm2.defects.layer_analysis.LayerResult`):
         correct the next one."""
         dev = result.deviation
-        self.correct_next(int(result.layer), dev.vertices_O, dev.normals_O, dev.weight)
+        verts = dev.vertices_O
+        if dev.unseen_mm is not None:  # grown since the profilers last saw it: as modelled
+            verts = verts.copy()
+            verts[:, 2] += np.nan_to_num(dev.unseen_mm)
+        self.correct_next(int(result.layer), verts, dev.normals_O, dev.weight)
 
     def correct_next(self, layer: int, vertices_O, normals_O=None, weight=None
                      ) -> LayerCorrection | None:
