@@ -33,3 +33,14 @@ def test_a_patch_over_the_intent_is_scored_with_its_size():
     assert s["top_error_mm"] == pytest.approx(0.0)
     # the footprint: 30 x 20 mm of infill plus a half spacing each side, less 2 mm of edge
     assert s["footprint_mm2"] == pytest.approx((30.0 + 2.0 - 4.0) * (20.0 + 2.0 - 4.0), rel=0.08)
+
+
+def test_layers_to_recover():
+    from dm2.cli.bench_closed_loop import layers_to_recover
+
+    def layers(areas):
+        return [{"out_of_tolerance_mm2": a, "footprint_mm2": 100.0} for a in areas]
+
+    assert layers_to_recover(layers([0.0, 3.0, 4.9])) == 0  # never above 5 %
+    assert layers_to_recover(layers([0.0, 40.0, 20.0, 2.0, 1.0])) == 2  # out at 1, back at 3
+    assert layers_to_recover(layers([0.0, 40.0, 60.0])) is None  # not back by the last layer
