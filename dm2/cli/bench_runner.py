@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dm2.cli.closed_loop import ClosedLoop
 from dm2.core.config import Scenario
 
 log = logging.getLogger(__name__)
@@ -78,14 +79,16 @@ def recorded(messages, writer):
 
 
 def stream_to_pipeline(sim, pipeline, scratch: Path, record: bool,
-                       progress: Progress | None = None, tap=None) -> None:
+                       progress: Progress | None = None, tap=None, next_layer=None) -> None:
     """Run ``pipeline`` on the simulation's message stream (truth into ``scratch/truth``).
 
     With ``record`` the stream is also written to ``scratch/run.mcap`` with the scenario,
     toolpath and calibration attached; ``tap`` (a dm2.report.scene_inputs.StreamTap) sees
-    every message on the way.
+    every message on the way. ``next_layer``: the closed loop's hook
+    (:meth:`twin.stream.simulate.Simulation.messages`).
     """
-    messages = sim.messages(truth_dir=scratch / "truth", progress=progress)
+    messages = sim.messages(truth_dir=scratch / "truth", progress=progress,
+                            next_layer=next_layer)
     if tap is not None:
         messages = tap.wrap(messages)
     if not record:
@@ -109,7 +112,8 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
                  report_stage: Callable[[str, int, int], None] | None = None,
                  on_pipeline: Callable | None = None,
                  include: dict | None = None,
-                 true_T_B_S: dict | None = None, scene: bool = False) -> ScenarioRun:
+                 true_T_B_S: dict | None = None, scene: bool = False,
+                 compensate: str = "off") -> ScenarioRun:
     """Simulate ``sc`` on the twin, monitor it and write the run folder ``run_dir``.
 
     Parameters
@@ -134,6 +138,11 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
         scenario's nominal layout
     scene : also write ``scene.mcap``, the run in Foxglove's schemas
         (:mod:`dm2.report.scene_mcap`)
+    compensate : "off"; "advise": each next layer corrected from the monitor's measured top
+        (``[control]``, :mod:`dm2.control`) and written to ``corrections/`` as a RAPID module
+        and a CSV; "apply": the twin also executes the corrected layers (it pauses
+        ``[control] layer_pause_s`` before each layer, the powder off on the way there, for
+        the monitor to close the layer before); "hold": those pauses without corrections
 
     Raises
     ------
@@ -149,10 +158,13 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
 
     t_start = time.perf_counter()
     run_dir = check_output_dir(run_dir, force=force)
-    sim = Simulation(sc, true_T_B_S=true_T_B_S)
+    sim = Simulation(sc, true_T_B_S=true_T_B_S,
+                     layer_pause_s=sc.control.layer_pause_s if compensate in ("apply", "hold")
+                     else 0.0)
+    loop = ClosedLoop(sim, sc, compensate, on_layer)
     pipeline = Pipeline(calibration or sim.calibration, sc.monitor, sc.process,
                         plate_size_mm=sc.cell.plate_size_mm, toolpath=sim.toolpath,
-                        on_layer=on_layer)
+                        on_layer=loop.on_layer)
     if on_pipeline is not None:
         on_pipeline(pipeline)
     run_dir.parent.mkdir(parents=True, exist_ok=True)
@@ -163,7 +175,9 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
             from dm2.report.scene_inputs import StreamTap
 
             tap = StreamTap()
-        stream_to_pipeline(sim, pipeline, scratch, record, progress, tap=tap)
+        loop.out_dir(scratch / "corrections")
+        stream_to_pipeline(sim, pipeline, scratch, record, progress, tap=tap,
+                           next_layer=loop.next_layer)
         if on_stream_end is not None:
             on_stream_end()
         truth = _read_json(scratch / "truth" / "faults.json") or {"faults": []}
@@ -177,7 +191,7 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
                       wall_s=time.perf_counter() - t_start)
         meta = {"scenario": sc.name, "scenario_file": str(scenario_file or ""), "seed": sc.seed,
                 "layers_simulated": len(pipeline.results)}
-        include = {**{name: scratch / name for name in ("truth", "run.mcap")
+        include = {**{name: scratch / name for name in ("truth", "run.mcap", "corrections")
                       if (scratch / name).exists()}, **(include or {})}
         report = pipeline.write_outputs(
             run_dir, full=full_report, config_toml=dump_toml(sc.to_toml_dict()),
@@ -185,7 +199,7 @@ def run_scenario(sc: Scenario, run_dir: str | Path, *, scenario_file: str | Path
             sections=pipeline.sections(
                 reconstruction={str(k): v for k, v in recon.items()},
                 track_truth={str(k): v for k, v in tracks_vs_truth.items()},
-                truth_validity=validity),
+                truth_validity=validity, **loop.sections()),
             force=force, include=include, command="dm2 run" if full_report else "dm2 bench",
             inputs=[scenario_file], stage=report_stage)
         if scene:

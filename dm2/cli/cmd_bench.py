@@ -104,6 +104,10 @@ def bench(
                               "from a fault-free calibration build on the twin (as `dm2 "
                               "fit-efficiency` does on a recording) and the suite is "
                               "monitored with it."),
+    compensate: bool = typer.Option(False, "--compensate", help="Run each scenario open and "
+                                    "closed loop (`dm2 run --compensate apply`) from the same "
+                                    "seed and score the final part against the design intent "
+                                    "instead (closed_loop in bench.json; no gate)."),
 ) -> None:
     """Run a suite of scenarios with injected faults and score each strictly against the
     twin's truth maps (every track counts; see dm2.bench.scoring).
@@ -145,6 +149,8 @@ def bench(
                   f"-> {out_dir}")
     from dm2.cli.bench_runner import run_scenario, score_scenario_run
 
+    if compensate:
+        return _closed_loop_bench(scenarios, out_dir, kept, full, spec)
     runs: dict[str, dict] = {}
     done_runs = {}
     chain_true, chain_cmp = {}, {}
@@ -233,6 +239,33 @@ def bench(
             console.print("[yellow]not gated (--no-gate)[/], missed: " + escape(", ".join(failed)))
             return
         console.print("[red]bench failed[/]: " + escape(", ".join(failed)))
+        raise typer.Exit(EXIT_FAILED)
+
+
+def _closed_loop_bench(scenarios, out_dir: Path, kept, full: bool, spec) -> None:
+    from dm2.cli.bench_closed_loop import closed_loop_case, closed_loop_lines
+
+    cases, t0 = {}, time.perf_counter()
+    tolerance_mm = None
+    for path, sc in scenarios:
+        tolerance_mm = sc.monitor.delta_global_mm
+        try:
+            cases[path.stem] = closed_loop_case(sc, out_dir / path.stem, path, full,
+                                                tolerance_mm)
+        except Exception as exc:  # one broken scenario must not hide the others
+            err_console.print(f"[red]{escape(f'{path.name}: {type(exc).__name__}: {exc}')}[/]")
+            cases[path.stem] = {"error": f"{type(exc).__name__}: {exc}"}
+            continue
+        for line in closed_loop_lines(path.stem, cases[path.stem]):
+            console.print(escape(line), highlight=False)
+    doc = {"schema": "dm2.bench/2", "suite": spec.name, "description": spec.description,
+           "closed_loop": {"tolerance_mm": tolerance_mm, "runs": cases,
+                           "wall_s": time.perf_counter() - t0}}
+    (out_dir / "bench.json").write_text(json.dumps(doc, indent=1, default=_json_default),
+                                        encoding="utf-8")
+    claim_outputs(out_dir, kept, "dm2 bench")
+    console.print(f"bench.json: [bold]{out_dir / 'bench.json'}[/]")
+    if any("error" in c for c in cases.values()):
         raise typer.Exit(EXIT_FAILED)
 
 

@@ -122,6 +122,11 @@ def run(
                                   "tracks, alarms and frames to Foxglove over its WebSocket "
                                   "protocol on 127.0.0.1:--foxglove-port."),
     foxglove_port: int = typer.Option(8765, "--foxglove-port", min=0, max=65535),
+    compensate: str = typer.Option("off", "--compensate", help="Close the loop: after each "
+                                   "layer the next one's speeds corrected from the measured "
+                                   "top ([control]); `advise` writes them to corrections/ "
+                                   "(RAPID module + CSV per layer), `apply` also has the twin "
+                                   "execute them."),
 ) -> None:
     """Simulate SCENARIO on the twin, monitor it with the 3D-DM2 pipeline and write a report.
 
@@ -144,6 +149,8 @@ def run(
         sc = load_scenario(path)
         if duration_s is not None:
             sc = sc.model_copy(update={"duration_s": duration_s})
+        if compensate not in ("off", "advise", "apply"):
+            raise ConfigError(f"--compensate: {compensate!r} is not one of off, advise, apply")
         cal = read_calibration_toml(calibration) if calibration is not None else None
         run_dir = (out or default_run_dir(runs_root, sc.name)).absolute()
         check_output_dir(run_dir, force=force, inputs=[path, calibration])
@@ -198,7 +205,8 @@ def run(
                                     task, description="comparing with the twin's truth"),
                                 calibration=cal, on_layer=on_layer, report_stage=on_stage,
                                 on_pipeline=on_pipeline, force=force,
-                                include={"run.log": log_path}, scene=scene)
+                                include={"run.log": log_path}, scene=scene,
+                                compensate=compensate)
         except (ReachError, ConfigError) as exc:
             log_path.unlink(missing_ok=True)
             fail(f"{path}: {exc}")

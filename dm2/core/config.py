@@ -219,6 +219,24 @@ class MonitorConfig(_Model):
         return self
 
 
+class ControlConfig(_Model):
+    """The closed loop's correction law (dm2.control): per segment, a traverse-speed factor for
+    the next layer from the measured top against the planned near-net top."""
+
+    min_speed_factor: float = Field(0.6, gt=0, le=1.0)  # slowest: this times the programmed speed
+    max_speed_factor: float = Field(1.6, ge=1.0)  # fastest: this times the programmed speed
+    rate_per_layer: float = Field(0.2, gt=0)  # a spot's factor moves at most this per layer
+    gain: float = Field(0.8, gt=0, le=1.0)  # share of the measured height error corrected at once
+    accel_mm_s2: float = Field(500.0, gt=0)  # the robot's path acceleration limit
+    max_speed_mm_s: float = Field(500.0, gt=0)  # the robot's traverse speed limit
+    top_cell_mm: float = Field(1.0, gt=0, le=5.0)  # grid of the measured top map
+    sample_sigma_mm: float = Field(1.5, ge=0)  # the top is averaged this wide around a segment
+    min_weight: float = Field(1.0, ge=0)  # fused vertices below this weight are not measured
+    # the cell waits this long where each layer has been approached, for that layer's program
+    # (the monitor closes the layer before after its reorder window)
+    layer_pause_s: float = Field(1.5, ge=0)
+
+
 class ExpectTrack(_Model):
     kind: Literal["overbuild", "underbuild", "local_overbuild", "local_underbuild"]
     near_mm: tuple[float, float] | None = None
@@ -259,6 +277,7 @@ class Scenario(_Model):
     faults: tuple[dict[str, Any], ...] = ()
     calibration_error: dict[str, Any] | None = None
     monitor: MonitorConfig = MonitorConfig()
+    control: ControlConfig = ControlConfig()
     expect: ExpectConfig = ExpectConfig()
 
     model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True,

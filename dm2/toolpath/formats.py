@@ -42,6 +42,7 @@ from dm2.core.messages import KIND_CODE, TOOLPATH_KINDS, Toolpath
 
 CSV_COLUMNS = ("index", "x_mm", "y_mm", "z_mm", "ax", "ay", "az", "speed_mm_s", "kind", "layer",
                "spray_on", "zone_mm")
+RAPID_SPEED_DECIMALS = 3  # speeddata's v_tcp [mm/s] as written
 
 
 def _atomic_write_text(path: str | Path, text: str) -> None:
@@ -190,7 +191,8 @@ def write_rapid(tp: Toolpath, path: str | Path, module_name: str = "DM2_Toolpath
            f"  ! {len(tp)} points, {tp.n_layers} layers; written by dm2.toolpath.formats",
            "  PERS num nLayer := 0;"]
     for (_k, v), name in speeds.items():
-        out.append(f"  CONST speeddata {name} := [{_rapid_num(v, 3)},500,5000,1000];")
+        v_text = _rapid_num(v, RAPID_SPEED_DECIMALS)
+        out.append(f"  CONST speeddata {name} := [{v_text},500,5000,1000];")
     for z, name in zones.items():
         if name != "fine":
             zs = _rapid_num(z, 3)

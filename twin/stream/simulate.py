@@ -27,6 +27,7 @@ from dm2.core.frames import PoseInterpolator
 from dm2.core.messages import SENSOR_IDS, Calibration, LayerMark, Profile, RobotState
 from dm2.core.toml_write import dump_toml
 from twin.schema import TwinScenario
+from twin.stream.replan import NextLayer, Replanner
 from twin.stream.threads import ChunkWorker, FanSplit, chunk_runs
 from twin.world.heightfield import HEIGHTFIELD_CELL_MM
 
@@ -76,7 +77,8 @@ class Simulation:
         without ``scan_thread``), and the share of each fan the worker cast at the end
     """
 
-    def __init__(self, scenario: TwinScenario, true_T_B_S: dict | None = None):
+    def __init__(self, scenario: TwinScenario, true_T_B_S: dict | None = None,
+                 layer_pause_s: float = 0.0):
         from dm2.toolpath import generate_toolpath
         from scenarios.parts import build_part
         from twin.cell.cell import CellModel
@@ -87,6 +89,12 @@ class Simulation:
         plate = scenario.cell.plate_size_mm
         self.part_mesh_O = build_part(scenario.part, plate)
         self.toolpath = generate_toolpath(self.part_mesh_O, scenario.toolpath)
+        self.layer_pause_s = float(layer_pause_s)
+        if self.layer_pause_s > 0:  # the powder stops on the way to each layer, which waits
+            starts = np.flatnonzero(np.diff(self.toolpath.layer)) + 1
+            spray_on = self.toolpath.spray_on.copy()
+            spray_on[starts] = False
+            self.toolpath = dataclasses.replace(self.toolpath, spray_on=spray_on)
         self.cell = CellModel.from_scenario(scenario)
         if true_T_B_S is not None:  # the profilers as built, off the cell file's layout
             self.cell = dataclasses.replace(self.cell, T_B_S={k: np.asarray(v, dtype=float)
@@ -98,7 +106,7 @@ class Simulation:
         self.motion = execute_toolpath(self.toolpath, self.cell,
                                        rate_hz=self.cell.robot_state_hz,
                                        accel_mm_s2=self.cell.accel_mm_s2,
-                                       dwell=self.faults.corner_dwell_s(self.toolpath))
+                                       dwell=self.dwell_for(self.toolpath))
         self.true_calibration = self.cell.calibration()
         self.calibration = perturbed_calibration(self.true_calibration,
                                                  scenario.calibration_error)
@@ -107,6 +115,16 @@ class Simulation:
             float(t[-1]), float(scenario.duration_s))
         log.info("simulation: %d toolpath points, %d layers, %.1f s of process time",
                  len(self.toolpath), self.toolpath.n_layers, self.end_s)
+
+    def dwell_for(self, toolpath) -> np.ndarray:
+        """Stops [s] at each vertex: the corner-dwell faults, and ``layer_pause_s`` where each
+        layer after the first has been approached, the powder off (the cell waiting for that
+        layer's program)."""
+        dwell = self.faults.corner_dwell_s(toolpath)
+        if self.layer_pause_s > 0:
+            dwell = dwell.copy()
+            dwell[np.flatnonzero(np.diff(toolpath.layer)) + 1] += self.layer_pause_s
+        return dwell
 
     def attachments(self) -> dict[str, bytes]:
         """Scenario (resolved TOML), toolpath (canonical CSV) and calibration (TOML)."""
@@ -118,7 +136,8 @@ class Simulation:
                 "calibration.toml": calibration_to_toml(self.calibration).encode()}
 
     def messages(self, truth_dir: str | Path | None = None, progress: Progress | None = None,
-                 *, scan_thread: bool = True, worker_fan_share: float | None = None
+                 *, scan_thread: bool = True, worker_fan_share: float | None = None,
+                 next_layer: NextLayer | None = None
                  ) -> Iterator[Profile | RobotState | LayerMark]:
         """The message stream in stamp order (deterministic for the scenario's seed).
 
@@ -127,6 +146,11 @@ class Simulation:
         while this one casts the rest and yields (the same messages either way, bit for bit;
         False keeps everything on the calling thread). ``worker_fan_share`` fixes the worker's
         share of each fan instead.
+
+        ``next_layer`` closes the loop (:mod:`twin.stream.replan`): asked for each layer's
+        toolpath as its first spraying move begins, once the stream before it has been taken;
+        a new toolpath is executed from there with the robot's own dynamics (everything on
+        the calling thread).
         """
         from twin.profiler.artefacts import schedule_artefacts
         from twin.profiler.occluders import nozzle_occluder
@@ -148,43 +172,51 @@ class Simulation:
         robot_rng = np.random.default_rng([sc.seed, ROBOT_NOISE_SEED_OFFSET])
         robot_sigma = sc.noise.robot_repeatability_mm
 
-        t = motion.t_s
-        n = int(np.searchsorted(t, self.end_s, side="right"))
         dt = 1.0 / cell.robot_state_hz
-        trig_s, trig_j, trig_c = trigger_schedule(float(t[n - 1]), sc.sensors)
-        if n >= 2:
-            trig_T_B_O = PoseInterpolator(t[:n], motion.T_B_O[:n])(trig_s)
-        else:  # a single sample: every trigger (at most one, at t[0]) sees that pose
-            trig_T_B_O = np.repeat(motion.T_B_O[:1], trig_s.size, axis=0)
-        layers = motion.layer[:n]
-        feed = faults.feed_factor(t[:n], layers)
-        efficiency = faults.efficiency_factor(layers)
-        standoff = faults.standoff_delta_mm(t[:n], layers)
-        stamps = t[:n].tolist()
-        spraying = np.asarray(motion.spray_on[:n], dtype=bool)
-        plan = spray.plan_samples(motion.position_O[:n], motion.axis_O[:n], dt,
-                                  spray_on=spraying, feed_factor=feed,
-                                  efficiency_factor=efficiency, standoff_delta_mm=standoff)
-        # clock jitter and lost profiles (twin.profiler.artefacts): a profile is exposed at
-        # its trigger, stamped off it; a lost one is never cast
-        stamped_s, kept = schedule_artefacts(sc.noise, sc.seed, trig_s)
-        if not kept.all():
-            trig_s, trig_j, trig_c = trig_s[kept], trig_j[kept], trig_c[kept]
-            stamped_s, trig_T_B_O = stamped_s[kept], trig_T_B_O[kept]
-        # the feed over the plume particles' reference feed, at each trigger (0: spray off)
-        trig_spray = (np.interp(trig_s, t[:n], spraying * feed)
-                      * (sc.process.feed_g_min / sc.noise.plume_feed_ref_g_min)).tolist()
-        trig_stamps, trig_sensor, trig_counter = (stamped_s.tolist(), trig_j.tolist(),
-                                                  trig_c.tolist())
+        scan_thread = scan_thread and next_layer is None
+
+        def derive(motion):
+            """The stream's per-sample and per-trigger arrays of ``motion`` (up to
+            ``self.end_s``)."""
+            t = motion.t_s
+            n = int(np.searchsorted(t, self.end_s, side="right"))
+            trig_s, trig_j, trig_c = trigger_schedule(float(t[n - 1]), sc.sensors)
+            if n >= 2:
+                trig_T_B_O = PoseInterpolator(t[:n], motion.T_B_O[:n])(trig_s)
+            else:  # a single sample: every trigger (at most one, at t[0]) sees that pose
+                trig_T_B_O = np.repeat(motion.T_B_O[:1], trig_s.size, axis=0)
+            layers = motion.layer[:n]
+            feed = faults.feed_factor(t[:n], layers)
+            efficiency = faults.efficiency_factor(layers)
+            standoff = faults.standoff_delta_mm(t[:n], layers)
+            spraying = np.asarray(motion.spray_on[:n], dtype=bool)
+            plan = spray.plan_samples(motion.position_O[:n], motion.axis_O[:n], dt,
+                                      spray_on=spraying, feed_factor=feed,
+                                      efficiency_factor=efficiency, standoff_delta_mm=standoff)
+            # clock jitter and lost profiles (twin.profiler.artefacts): a profile is exposed
+            # at its trigger, stamped off it; a lost one is never cast
+            stamped_s, kept = schedule_artefacts(sc.noise, sc.seed, trig_s)
+            if not kept.all():
+                trig_s, trig_j, trig_c = trig_s[kept], trig_j[kept], trig_c[kept]
+                stamped_s, trig_T_B_O = stamped_s[kept], trig_T_B_O[kept]
+            # the feed over the plume particles' reference feed, at each trigger (0: off)
+            trig_spray = (np.interp(trig_s, t[:n], spraying * feed)
+                          * (sc.process.feed_g_min / sc.noise.plume_feed_ref_g_min)).tolist()
+            chunks = list(chunk_runs(t[:n], layers, trig_s))
+            trig_end = np.searchsorted(trig_s, [t[b] if b < n else np.inf for _, b in chunks],
+                                       side="left").tolist()  # chunk c ends with these triggers
+            return (t, n, trig_T_B_O, layers, t[:n].tolist(), spraying, plan,
+                    stamped_s.tolist(), trig_j.tolist(), trig_c.tolist(), chunks, trig_end,
+                    trig_spray)
+
+        (t, n, trig_T_B_O, layers, stamps, spraying, plan, trig_stamps, trig_sensor,
+         trig_counter, chunks, trig_end, trig_spray) = derive(motion)
         # The true field grows on a worker thread, a few chunks ahead: it deposits a chunk
         # (one GIL-free kernel call), casts its share of the chunk's profiler fans on the field
         # and hands over the cells the chunk changed, while this thread yields the chunk's
         # robot states, brings its mirror of the field to the chunk's end and casts the rest
         # of those fans there: same order, same bits as one thread, whatever the share.
         mirror = hf.copy() if scan_thread else hf  # (one thread: chunk by chunk, on hf)
-        chunks = list(chunk_runs(t[:n], layers, trig_s))
-        trig_end = np.searchsorted(trig_s, [stamps[b] if b < n else np.inf for _, b in chunks],
-                                   side="left").tolist()  # chunk c ends with triggers up to here
         n_rays = profilers[0].dirs_S.shape[0]
         split = (FanSplit(n_rays, threaded=scan_thread) if worker_fan_share is None else
                  FanSplit(n_rays, scan_thread, worker_fan_share, step_rays=0))
@@ -227,16 +259,26 @@ class Simulation:
             cpu[1] += c2 - c0
             return rays, traces, changes, c2 - c0
 
-        worker = ChunkWorker(produce, len(chunks), threaded=scan_thread, name="twin-spray")
+        worker = (ChunkWorker(produce, len(chunks), threaded=scan_thread, name="twin-spray")
+                  if next_layer is None else None)
+        replan = Replanner(self, next_layer) if next_layer is not None else None
         k = 0  # next trigger
         layer_prev = -1
         c_main = time.thread_time()
+        c = 0
         try:
-            for c, (a, b) in enumerate(chunks):
+            while c < len(chunks):
+                a, b = chunks[c]
                 layer = int(layers[a])
                 if layer != layer_prev:
                     yield LayerMark(stamps[a], layer)
                     layer_prev = layer
+                if replan is not None and spraying[a:b].any() and (
+                        new := replan.at_layer(layer, motion, a)) is not None:
+                    motion = new
+                    (t, n, trig_T_B_O, layers, stamps, spraying, plan, trig_stamps,
+                     trig_sensor, trig_counter, chunks, trig_end, trig_spray) = derive(motion)
+                    c = replan.chunk_at(chunks, trig_end, a, k)
                 # the executed motion holds finite float64 joints and rigid flange poses, so
                 # the states skip re-validation; the noise draws match one (3,) draw per sample
                 T_B_F = np.ascontiguousarray(motion.T_B_F[a:b], dtype=np.float64)
@@ -250,7 +292,8 @@ class Simulation:
                     yield RobotState.trusted(stamps[i], i, joints[i - a], T_B_F[i - a])
                     if progress is not None and (i % 250 == 0 or i == n - 1):
                         progress(stamps[i], self.end_s)
-                rays, traces, changes, worker_s = worker.result(c)
+                rays, traces, changes, worker_s = (worker.result(c) if worker is not None
+                                                   else produce(c))
                 now = time.thread_time()
                 split.balance(now - c_main, worker_s)
                 c_main = now
@@ -269,8 +312,10 @@ class Simulation:
                     prof.trace_rays(mirror, trig_T_B_O[q], occluders, out, rays, n_rays)
                     yield prof.measure(out, trig_stamps[q], trig_counter[q], trig_spray[q])
                 k = trig_end[c]
+                c += 1
         finally:
-            worker.close()
+            if worker is not None:
+                worker.close()
         if grown[0] >= 0 and truth is not None:  # (stopped early: as the worker left it)
             truth.layer(hf, grown[0])
         if truth is not None and n:
