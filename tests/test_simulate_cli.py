@@ -70,7 +70,7 @@ def test_run_writes_recording_and_fault_truth(tmp_path):
     assert res.exit_code == 0, res.output
     assert sorted(p.name for p in truth.iterdir()) == [
         ".dm2-manifest.json", "deviation_000.npz", "deviation_001.npz", "faults.json",
-        "layer_000.ply", "layer_001.ply", "notes.txt"]
+        "layer_000.ply", "layer_001.ply", "notes.txt", "validity.json"]
     assert (truth / "notes.txt").read_text() == "mine"
     rec = read_recording(out)
     msgs = list(rec.messages())

