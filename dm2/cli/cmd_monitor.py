@@ -17,6 +17,7 @@ from dm2.cli.common import (
     log_file,
     note_cold_kernel_cache,
     on_write_failure,
+    serve_after_run,
 )
 
 log = logging.getLogger(__name__)
@@ -296,21 +297,7 @@ def monitor(
         problems = "".join("; " + p for p in getattr(rec, "problems", []))
         console.print(f"{run.name}: {verdict}{problems}", highlight=False, markup=False)
     code = exit_code(code, 3 if damaged and not allow_truncated else 0)
-    if live_view is not None or fox is not None:
-        from dm2.view.live import serve_forever
-
-        if live_view is not None:
-            live_view.close()
-            console.print(f"3D view: [bold]{live_view.url}[/] (Ctrl-C ends)")
-        if fox is not None:
-            console.print(f"Foxglove: [bold]{fox.url}[/] (Ctrl-C ends)")
-        try:
-            serve_forever()
-        finally:
-            if live_view is not None:
-                live_view.stop_server()
-            if fox is not None:
-                fox.stop_server()
+    serve_after_run(live_view, fox)
 
     if code:
         raise typer.Exit(code)

@@ -25,6 +25,7 @@ from dm2.cli.common import (
     log_file,
     note_cold_kernel_cache,
     on_write_failure,
+    serve_after_run,
 )
 from dm2.cli.outcome import EXIT_MISSED, drop_lines, exit_code
 
@@ -238,21 +239,7 @@ def run(
         console.print(f"{sc.name}: {verdict}", highlight=False, markup=False)
     if fox_handle is not None:
         fox_handle.send_findings(report)
-    if view_handle is not None or fox_handle is not None:
-        from dm2.view.live import serve_forever
-
-        if view_handle is not None:
-            view_handle.close()
-            console.print(f"3D view: [bold]{view_handle.url}[/] (Ctrl-C ends)")
-        if fox_handle is not None:
-            console.print(f"Foxglove: [bold]{fox_handle.url}[/] (Ctrl-C ends)")
-        try:
-            serve_forever()
-        finally:
-            if view_handle is not None:
-                view_handle.stop_server()
-            if fox_handle is not None:
-                fox_handle.stop_server()
+    serve_after_run(view_handle, fox_handle)
     code = exit_code(code, EXIT_MISSED if missed else 0)
     if code:
         raise typer.Exit(code)

@@ -246,3 +246,24 @@ def fmt_cell(v, spec: str = "{:.2f}") -> str:
     if isinstance(v, bool):
         return "yes" if v else "NO"
     return spec.format(v)
+
+
+def serve_after_run(view=None, fox=None) -> None:
+    """Keep the live 3D view (``view``) and the Foxglove server (``fox``) of a finished run
+    serving until Ctrl-C, their URLs printed; nothing when neither was started."""
+    if view is None and fox is None:
+        return
+    from dm2.view.live import serve_forever
+
+    if view is not None:
+        view.close()
+        console.print(f"3D view: [bold]{view.url}[/] (Ctrl-C ends)")
+    if fox is not None:
+        console.print(f"Foxglove: [bold]{fox.url}[/] (Ctrl-C ends)")
+    try:
+        serve_forever()
+    finally:
+        if view is not None:
+            view.stop_server()
+        if fox is not None:
+            fox.stop_server()
