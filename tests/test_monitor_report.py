@@ -70,7 +70,7 @@ def test_a_toolpath_the_robot_did_not_follow_is_refused_before_any_work(tmp_path
 def test_a_toolpath_scaled_10x_is_refused_naming_where_it_parts(tmp_path, recording):
     """The pad's toolpath scaled 10x about its centre (200 mm on the 120 mm plate): its first
     seconds pass within 3 mm of the spot, then the two part; the attached one passes."""
-    from dm2.cli.cmd_monitor import check_toolpath_matches
+    from dm2.cli.inputs import check_toolpath_matches
     from dm2.core.config import ProcessConfig
     from dm2.io.recording import read_recording
 

@@ -13,14 +13,14 @@ from pathlib import Path
 
 import typer
 
-from dm2.cli.cmd_monitor import (
+from dm2.cli.common import app, bad_input_exits, console, fail
+from dm2.cli.inputs import (
     CALIBRATION_OPTION,
     CONFIG_OPTION,
     MAP_OPTION,
     TOOLPATH_OPTION,
     load_inputs,
 )
-from dm2.cli.common import app, bad_input_exits, console, fail
 
 
 @app.command("fit-efficiency")
