@@ -60,7 +60,6 @@ def _refuse_non_finite(func, values: dict) -> None:
     """A number option given as ``inf`` or ``nan`` (click reads both as floats): exit 2
     naming the option as the user typed it."""
     import inspect
-    import math
 
     bad = [(k, v) for k, v in values.items() if isinstance(v, float) and not math.isfinite(v)]
     if not bad:
